@@ -247,6 +247,14 @@ def _read_mat(fs: cv2.FileStorage, key: str, path: Path, shape: tuple[int, ...] 
     return mat.reshape(shape) if shape is not None else mat
 
 
+def _read_intrinsics(fs: cv2.FileStorage, i: int, path: Path) -> np.ndarray:
+    """``K1``/``K2`` (or the ``M1``/``M2`` of OpenCV's samples)."""
+    for key in (f"K{i}", f"M{i}"):
+        if not fs.getNode(key).empty():
+            return _read_mat(fs, key, path, (3, 3))
+    raise CalibrationError(f"missing key 'K{i}' (or 'M{i}')", path)
+
+
 def _read_dist(fs: cv2.FileStorage, key: str, path: Path) -> np.ndarray:
     node = fs.getNode(key)
     if node.empty():
@@ -290,8 +298,7 @@ def load_calibration(path: str | Path) -> StereoRig:
         return _load_stereo_calib_layout(intr, extr)
     fs = _open_storage(path)
     try:
-        K1 = _read_mat(fs, "K1", path, (3, 3)) if not fs.getNode("K1").empty() else _read_mat(fs, "M1", path, (3, 3))
-        K2 = _read_mat(fs, "K2", path, (3, 3)) if not fs.getNode("K2").empty() else _read_mat(fs, "M2", path, (3, 3))
+        K1, K2 = (_read_intrinsics(fs, i, path) for i in (1, 2))
         D1, D2 = _read_dist(fs, "D1", path), _read_dist(fs, "D2", path)
         R = _read_mat(fs, "R", path, (3, 3))
         T = _read_mat(fs, "T", path, (3,))

@@ -1,0 +1,66 @@
+"""Shared fixtures: small rendered clips (rendered once per session) and the shared-data paths."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+from renderers.render import render_clip  # noqa: E402
+from renderers.scenario import load_scenario, parse_scenario  # noqa: E402
+
+REPO = Path(__file__).resolve().parent.parent
+SHARED = REPO.parent / "shared"
+REALDATA = SHARED / "realdata"
+
+
+def small_multi_marker(frames: int = 24, width: int = 320, height: int = 240, **render) -> dict:
+    """A toe-in rig with an off-centre principal point, three markers and a distractor."""
+    return {
+        "name": "small_multi",
+        "frames": frames,
+        "fps": 30,
+        "seed": 3,
+        "rig": {"width": width, "height": height, "focal": 300.0, "principal_point": [166.3, 113.8],
+                "baseline": 0.3, "toe_in_deg": 3.0},
+        "render": {"shading": "flat", "noise_std": 2.0, "blur_sigma": 0.6, **render},
+        "objects": [
+            {"name": "red", "color": [230, 30, 30], "radius": 0.05,
+             "motion": {"type": "constant_velocity", "start": [-0.3, -0.1, 1.6], "velocity": [0.3, 0.1, 0.9]}},
+            {"name": "green", "color": [30, 200, 40], "radius": 0.05,
+             "motion": {"type": "sinusoid", "center": [0.25, 0.15, 2.2], "amplitude": [0.3, 0.1, 0.3],
+                        "frequency_hz": 0.8}},
+            {"name": "blue", "color": [40, 60, 230], "radius": 0.05,
+             "motion": {"type": "constant_acceleration", "start": [0.0, -0.35, 2.5], "velocity": [-0.2, 0.0, 0.0],
+                        "acceleration": [0.5, 0.2, 0.0]}},
+        ],
+        "distractors": [{"shape": "cube", "color": [200, 40, 200], "size": 0.12, "position": [0.5, -0.3, 3.0]}],
+    }
+
+
+@pytest.fixture(scope="session")
+def png_clip(tmp_path_factory) -> Path:
+    """A lossless 320×240 clip of three markers (rendered once per test session)."""
+    out = tmp_path_factory.mktemp("clips") / "multi_png"
+    render_clip(parse_scenario(small_multi_marker()), out, fmt="png")
+    return out
+
+
+@pytest.fixture(scope="session")
+def mp4_clip(tmp_path_factory) -> Path:
+    """The same scene as MP4 videos."""
+    out = tmp_path_factory.mktemp("clips") / "multi_mp4"
+    render_clip(parse_scenario(small_multi_marker()), out, fmt="mp4")
+    return out
+
+
+@pytest.fixture(scope="session")
+def target_clip(tmp_path_factory) -> Path:
+    """A short four-point-target clip (PNG)."""
+    out = tmp_path_factory.mktemp("clips") / "target"
+    scen = load_scenario("four_point").with_overrides(frames=40)
+    render_clip(scen, out, fmt="png")
+    return out
