@@ -39,7 +39,7 @@ def project_jacobian(P: np.ndarray, X: np.ndarray) -> np.ndarray:
     M = P[:, :3]
     q = X @ M.T + P[:, 3]
     uv = q[..., :2] / q[..., 2:3]
-    J = M[None, :2, :] - uv[..., :, None] * M[None, 2:3, :]
+    J = M[:2] - uv[..., :, None] * M[2]
     return J / q[..., 2, None, None]
 
 

@@ -1,0 +1,105 @@
+"""Alpha-beta and alpha-beta-gamma filters (lecture 002; SPEC §4.6), on triangulated 3-D positions
+or on each camera's image coordinates (then triangulated).
+
+With time step ``dt`` (filterpy's ``GHFilter``/``GHKFilter`` convention; the lecture has dt = 1)::
+
+    predict  x̂ ← x̂ + v̂ dt (+ â dt²/2),   v̂ ← v̂ (+ â dt)
+    residual r = x − x̂
+    correct  x̂ += α r,   v̂ += β r / dt   (â += 2γ r / dt²)
+
+Written here (vectorised, any number of channels) rather than through filterpy's GH filters
+because a tracker must predict through missing measurements, which those classes cannot; a test
+checks agreement with filterpy on complete data.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from pipeline.estimators.base import NAN3, Estimator, EstimatorConfig, Step, register
+from pipeline.estimators.triangulation import triangulate
+
+
+class ABFilter:
+    """Alpha-beta(-gamma) filter over independent channels (a vector state per channel)."""
+
+    def __init__(self, x0: np.ndarray, dt: float, alpha: float, beta: float, gamma: float | None = None) -> None:
+        self.x = np.asarray(x0, dtype=float).copy()
+        self.v = np.zeros_like(self.x)
+        self.a = np.zeros_like(self.x)
+        self.dt, self.alpha, self.beta, self.gamma = dt, alpha, beta, gamma
+
+    def predict(self) -> np.ndarray:
+        dt = self.dt
+        if self.gamma is None:
+            self.x = self.x + self.v * dt
+        else:
+            self.x = self.x + self.v * dt + 0.5 * self.a * dt * dt
+            self.v = self.v + self.a * dt
+        return self.x
+
+    def correct(self, z: np.ndarray) -> None:
+        """Correct the channels whose measurement is finite."""
+        ok = np.isfinite(z)
+        r = np.where(ok, np.nan_to_num(z) - self.x, 0.0)
+        self.x = self.x + self.alpha * r
+        self.v = self.v + self.beta * r / self.dt
+        if self.gamma is not None:
+            self.a = self.a + 2.0 * self.gamma * r / self.dt**2
+
+
+class AlphaBetaConfig(EstimatorConfig):
+    alpha: float = Field(0.5, gt=0, le=1)
+    beta: float = Field(0.1, ge=0, le=2)
+    #: filter the triangulated 3-D points ("3d") or each camera's pixels, then triangulate ("image")
+    space: Literal["3d", "image"] = "3d"
+
+
+class AlphaBetaGammaConfig(AlphaBetaConfig):
+    gamma: float = Field(0.01, ge=0, le=2)
+
+
+@register
+class AlphaBetaEstimator(Estimator):
+    """Alpha-beta filter on 3-D positions or image coordinates."""
+
+    name = "alphabeta"
+    Config = AlphaBetaConfig
+
+    def _gamma(self) -> float | None:
+        return None
+
+    def reset(self) -> None:
+        super().reset()
+        self.f: ABFilter | None = None
+
+    def _step(self, y: np.ndarray) -> Step:
+        cfg: AlphaBetaConfig = self.config  # type: ignore[assignment]
+        z = y if cfg.space == "image" else triangulate(self.rig, y[None])[0]
+        if self.f is None:
+            if not np.all(np.isfinite(z)):
+                return Step(NAN3.copy(), NAN3.copy(), predicted=True)
+            self.f = ABFilter(z, self.dt, cfg.alpha, cfg.beta, self._gamma())
+            self.initialized = True
+        else:
+            self.f.predict()
+            self.f.correct(z)
+        have = bool(np.isfinite(z).any())
+        if cfg.space == "image":
+            p = triangulate(self.rig, self.f.x[None])[0]
+            return Step(p, NAN3.copy(), predicted=not have)
+        return Step(self.f.x.copy(), self.f.v.copy(), predicted=not have)
+
+
+@register
+class AlphaBetaGammaEstimator(AlphaBetaEstimator):
+    """Alpha-beta-gamma filter (adds an acceleration channel)."""
+
+    name = "alphabetagamma"
+    Config = AlphaBetaGammaConfig
+
+    def _gamma(self) -> float | None:
+        return self.config.gamma  # type: ignore[attr-defined]

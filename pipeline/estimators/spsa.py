@@ -1,0 +1,228 @@
+"""Algorithm 1 of Krivokon (2011): nonstationary SPSA with linear extremum prediction (SPEC §4.4).
+
+State ``θ ∈ R⁶`` (position, velocity); random perturbation ``Δ_k`` with components ±1/√6. For
+iteration k, consuming frames 2k−1 and 2k::
+
+    x_{2k−1} = A (θ_{2k−2} − βΔ_k),        x_{2k} = A² (θ_{2k−2} + βΔ_k)
+    z_j = ‖h(x_j) − y_j‖²                   (normalized image coordinates)
+    d = (z_{2k} − z_{2k−1}) / (2β),          d ← sign(d)·th if |d| > th   (projection rule)
+    θ_{2k−1} = A θ_{2k−2},                  θ_{2k} = A² θ_{2k−2} − α Δ_k d
+
+α, β, th are the only parameters; no noise statistics, two measurements per iteration, no matrix
+inversion. ``th = inf`` switches the projection rule off (the thesis's Fig. 6 runaway).
+
+The iteration runs in frame units, as the thesis does (``A`` with unit steps): the state's second
+half is the displacement per frame ``v·dt``, so one β perturbs position and velocity comparably;
+velocities are reported in m/s. The cost is computed in normalized image coordinates
+(``(u − cx)/fx``, ``(v − cy)/fy``) so α, β, th do not depend on resolution. A camera missing in
+either frame of a pair is left out of both costs; with no camera in common the iteration only
+predicts. The single-track step is written in plain Python scalars (a 6-vector is too small for
+numpy to pay off); ``run_batch`` is the same iteration vectorised over tracks.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from pydantic import Field
+
+from pipeline.estimators.base import NAN3, Estimator, EstimatorConfig, InitConfig, Step, register
+
+BIG_COST = 1.0e6  # cost of a trial point behind a camera (keeps the iteration finite)
+
+
+class SPSAConfig(EstimatorConfig):
+    """Algorithm 1's step size α, perturbation size β and projection threshold th.
+
+    SPSA learns velocity slowly, so by default it starts from a line fitted to the first five
+    triangulations (``init.frames = 5``) instead of a zero velocity.
+    """
+
+    init: InitConfig = InitConfig(frames=5)
+    alpha: float = Field(0.03, gt=0)
+    beta: float = Field(0.01, gt=0)
+    th: float = Field(0.003, gt=0)
+
+
+def _cost(p0: float, p1: float, p2: float, yn: tuple, use_l: bool, use_r: bool, RT: tuple) -> float:
+    """``‖h(p) − y‖²`` in normalized coordinates over the cameras in use (plain Python)."""
+    c = 0.0
+    if use_l:
+        if p2 <= 1e-9:
+            return BIG_COST
+        du, dv = p0 / p2 - yn[0], p1 / p2 - yn[1]
+        c += du * du + dv * dv
+    if use_r:
+        r00, r01, r02, r10, r11, r12, r20, r21, r22, t0, t1, t2 = RT
+        z = r20 * p0 + r21 * p1 + r22 * p2 + t2
+        if z <= 1e-9:
+            return BIG_COST
+        du = (r00 * p0 + r01 * p1 + r02 * p2 + t0) / z - yn[2]
+        dv = (r10 * p0 + r11 * p1 + r12 * p2 + t1) / z - yn[3]
+        c += du * du + dv * dv
+    return c
+
+
+@register
+class SPSAEstimator(Estimator):
+    """Algorithm 1 (SPSA with linear prediction and the projection rule)."""
+
+    name = "spsa"
+    Config = SPSAConfig
+    state_dim = 6
+
+    def reset(self) -> None:
+        super().reset()
+        R, T = self.rig.R, self.rig.T
+        self._RT = (*R.ravel().tolist(), *T.ravel().tolist())
+        self._K = [(c.K[0, 0], c.K[0, 1], c.K[0, 2], c.K[1, 1], c.K[1, 2]) for c in self.rig.cameras]
+        self.theta = [0.0] * 6  # frame units: [p, v·dt]
+        self._phase = 0  # 0: next frame is x_{2k−1}; 1: next frame is x_{2k}
+        self._delta: list[float] = []
+        self._z_odd: tuple[float, ...] | None = None
+        self._y_odd: tuple = ()
+        self._signs = self.rng.integers(0, 2, size=(4096, self.state_dim))
+        self._sign_i = 0
+
+    @property
+    def x(self) -> np.ndarray:
+        """State in SI units ``[p, v]``."""
+        t = self.theta
+        return np.array([t[0], t[1], t[2], t[3] / self.dt, t[4] / self.dt, t[5] / self.dt])
+
+    def _normalize(self, y: np.ndarray) -> tuple[tuple, bool, bool]:
+        out = []
+        for c in range(2):
+            fx, s, cx, fy, cy = self._K[c]
+            u, v = float(y[2 * c]), float(y[2 * c + 1])
+            yy = (v - cy) / fy
+            out += [(u - cx - s * yy) / fx, yy]
+        ok_l = math.isfinite(out[0]) and math.isfinite(out[1])
+        ok_r = math.isfinite(out[2]) and math.isfinite(out[3])
+        return tuple(out), ok_l, ok_r
+
+    def _draw_delta(self) -> list[float]:
+        if self._sign_i >= len(self._signs):
+            self._signs = self.rng.integers(0, 2, size=(4096, self.state_dim))
+            self._sign_i = 0
+        row = self._signs[self._sign_i]
+        self._sign_i += 1
+        a = 1.0 / math.sqrt(self.state_dim)
+        return [a if b else -a for b in row.tolist()]
+
+    def _out(self, th: list[float], predicted: bool) -> Step:
+        inv = 1.0 / self.dt
+        return Step(np.array(th[:3]), np.array([th[3] * inv, th[4] * inv, th[5] * inv]), predicted=predicted)
+
+    def _step(self, y: np.ndarray) -> Step:
+        cfg: SPSAConfig = self.config  # type: ignore[assignment]
+        if not self.initialized:
+            x0 = self.initial_state(y)
+            if x0 is None:
+                return Step(NAN3.copy(), NAN3.copy(), predicted=True)
+            self.theta = [*x0[:3].tolist(), *(x0[3:] * self.dt).tolist()]
+            self.initialized = True
+            self._phase = 0
+            return self._out(self.theta, False)
+        t = self.theta
+        yn, ok_l, ok_r = self._normalize(y)
+        b = cfg.beta
+        if self._phase == 0:
+            # x_{2k−1} = A(θ − βΔ): position p − βΔp + (v − βΔv)
+            D = self._delta = self._draw_delta()
+            self._y_odd = (yn, ok_l, ok_r)
+            self._trial_odd = (
+                t[0] - b * D[0] + t[3] - b * D[3],
+                t[1] - b * D[1] + t[4] - b * D[4],
+                t[2] - b * D[2] + t[5] - b * D[5],
+            )
+            self._phase = 1
+            pred = [t[0] + t[3], t[1] + t[4], t[2] + t[5], t[3], t[4], t[5]]  # θ_{2k−1} = Aθ
+            return self._out(pred, not (ok_l or ok_r))
+        self._phase = 0
+        D = self._delta
+        yo, ol, orr = self._y_odd
+        use_l, use_r = ok_l and ol, ok_r and orr
+        new = [t[0] + 2 * t[3], t[1] + 2 * t[4], t[2] + 2 * t[5], t[3], t[4], t[5]]  # A²θ
+        if use_l or use_r:
+            xe = (
+                t[0] + b * D[0] + 2 * (t[3] + b * D[3]),
+                t[1] + b * D[1] + 2 * (t[4] + b * D[4]),
+                t[2] + b * D[2] + 2 * (t[5] + b * D[5]),
+            )
+            xo = self._trial_odd
+            z_odd = _cost(xo[0], xo[1], xo[2], yo, use_l, use_r, self._RT)
+            z_even = _cost(xe[0], xe[1], xe[2], yn, use_l, use_r, self._RT)
+            d = (z_even - z_odd) / (2 * b)
+            if d > cfg.th:
+                d = cfg.th
+            elif d < -cfg.th:
+                d = -cfg.th
+            if math.isfinite(d):
+                a = cfg.alpha * d
+                new = [new[i] - a * D[i] for i in range(6)]
+        self.theta = new
+        return self._out(new, not (use_l or use_r))
+
+    def run_batch(self, Y: np.ndarray) -> np.ndarray:
+        return batch_spsa(self, np.asarray(Y, dtype=float))
+
+
+def _cost_batch(rig, P: np.ndarray, yn: np.ndarray, use: np.ndarray) -> np.ndarray:
+    """Vectorised ``‖h(p) − y‖²`` (normalized) for M positions, cameras masked by ``use`` (M×2)."""
+    zl = P[:, 2]
+    Pr = P @ rig.R.T + rig.T
+    zr = Pr[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        hl = P[:, :2] / zl[:, None]
+        hr = Pr[:, :2] / zr[:, None]
+        cl = np.sum((hl - yn[:, :2]) ** 2, axis=1)
+        cr = np.sum((hr - yn[:, 2:]) ** 2, axis=1)
+    cl = np.where(zl > 1e-9, cl, BIG_COST)
+    cr = np.where(zr > 1e-9, cr, BIG_COST)
+    return np.where(use[:, 0], cl, 0.0) + np.where(use[:, 1], cr, 0.0)
+
+
+def batch_spsa(est: SPSAEstimator, Y: np.ndarray, init_states: np.ndarray | None = None) -> np.ndarray:
+    """Algorithm 1 over M tracks at once (M × frames × 4 → M × frames × 3), frame units inside.
+
+    ``init_states`` (M × 6, SI units) overrides the configured initialisation per track.
+    """
+    from pipeline.estimators.triangulation import triangulate
+
+    est.reset()
+    cfg: SPSAConfig = est.config  # type: ignore[assignment]
+    M, n, _ = Y.shape
+    Yn = est.rig.normalize(Y)
+    ok = np.stack([np.isfinite(Yn[..., :2]).all(-1), np.isfinite(Yn[..., 2:]).all(-1)], axis=-1)
+    th = np.zeros((M, 6))
+    out = np.full((M, n, 3), np.nan)
+    if init_states is not None:
+        th[:] = init_states
+        th[:, 3:] *= est.dt
+    elif cfg.init.mode == "given":
+        th[:] = np.array(cfg.init.state)
+        th[:, 3:] *= est.dt
+    else:
+        th[:, :3] = triangulate(est.rig, Y[:, 0])
+    out[:, 0] = th[:, :3]
+    b, a = cfg.beta, 1.0 / math.sqrt(6)
+    rng = est.rng
+    k = 1
+    while k < n:
+        D = np.where(rng.integers(0, 2, size=(M, 6)) == 1, a, -a)
+        xo = th[:, :3] + th[:, 3:] - b * (D[:, :3] + D[:, 3:])
+        out[:, k] = th[:, :3] + th[:, 3:]
+        if k + 1 >= n:
+            break
+        use = ok[:, k] & ok[:, k + 1]
+        xe = th[:, :3] + b * D[:, :3] + 2 * (th[:, 3:] + b * D[:, 3:])
+        d = (_cost_batch(est.rig, xe, Yn[:, k + 1], use) - _cost_batch(est.rig, xo, Yn[:, k], use)) / (2 * b)
+        d = np.clip(d, -cfg.th, cfg.th)
+        d = np.where(np.isfinite(d) & use.any(axis=1), d, 0.0)
+        th[:, :3] += 2 * th[:, 3:]
+        th -= cfg.alpha * d[:, None] * D
+        out[:, k + 1] = th[:, :3]
+        k += 2
+    return out

@@ -1,0 +1,61 @@
+"""The unmodified nonstationary SPSA of Vakhitov, Granichin & Gurevich (2009) (SPEC §4.3): the
+baseline Algorithm 1 improves on. State = position only; Δ_n components ±1/√3::
+
+    x_{2n−1} = θ_{2n−2} − βΔ_n,   x_{2n} = θ_{2n−2} + βΔ_n
+    θ_{2n} = θ_{2n−2} − (α/2β) Δ_n (z_{2n} − z_{2n−1}),   θ_{2n−1} = θ_{2n−2}
+
+with ``z_j = ‖h(x_j) − y_j‖²`` in normalized image coordinates. It knows nothing of the motion, so
+it "latches" behind a moving point even without noise (thesis Fig. 3). The projection rule of
+Algorithm 1 (``|d| ≤ th``) is applied as well, so the two differ only in the motion model.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from pipeline.estimators.base import NAN3, Step, register
+from pipeline.estimators.spsa import SPSAConfig, SPSAEstimator, _cost
+
+
+@register
+class SPSAVGGEstimator(SPSAEstimator):
+    """Position-only SPSA without motion prediction."""
+
+    name = "spsa_vgg"
+    Config = SPSAConfig
+    state_dim = 3
+
+    def _step(self, y: np.ndarray) -> Step:
+        cfg: SPSAConfig = self.config  # type: ignore[assignment]
+        if not self.initialized:
+            x0 = self.initial_state(y)
+            if x0 is None:
+                return Step(NAN3.copy(), NAN3.copy(), predicted=True)
+            self.theta = x0[:3].tolist()
+            self.initialized = True
+            self._phase = 0
+            return Step(np.array(self.theta), NAN3.copy())
+        t = self.theta
+        yn, ok_l, ok_r = self._normalize(y)
+        b = cfg.beta
+        if self._phase == 0:
+            self._delta = self._draw_delta()
+            self._y_odd = (yn, ok_l, ok_r)
+            self._phase = 1
+            return Step(np.array(t), NAN3.copy(), predicted=not (ok_l or ok_r))
+        self._phase = 0
+        D = self._delta
+        yo, ol, orr = self._y_odd
+        use_l, use_r = ok_l and ol, ok_r and orr
+        if use_l or use_r:
+            z_odd = _cost(t[0] - b * D[0], t[1] - b * D[1], t[2] - b * D[2], yo, use_l, use_r, self._RT)
+            z_even = _cost(t[0] + b * D[0], t[1] + b * D[1], t[2] + b * D[2], yn, use_l, use_r, self._RT)
+            d = max(-cfg.th, min(cfg.th, (z_even - z_odd) / (2 * b)))
+            if math.isfinite(d):
+                self.theta = [t[i] - cfg.alpha * d * D[i] for i in range(3)]
+        return Step(np.array(self.theta), NAN3.copy(), predicted=not (use_l or use_r))
+
+    def run_batch(self, Y: np.ndarray) -> np.ndarray:
+        return np.stack([self.run(y).position for y in np.asarray(Y, dtype=float)])
