@@ -81,6 +81,50 @@ def render_cmd(
     out.print(f"wrote {result.frames} stereo frames to {result.clip_dir}")
 
 
+def _parse_roi(roi: str | None) -> tuple[int, int, int, int] | None:
+    if roi is None:
+        return None
+    try:
+        x, y, w, h = (int(v) for v in roi.split(","))
+    except ValueError:
+        raise StereotrackError(f"--roi must be x,y,w,h in pixels, not {roi!r}") from None
+    return x, y, w, h
+
+
+def _fmt(v: float | None, spec: str = ".3f") -> str:
+    return "—" if v is None else format(v, spec)
+
+
+@app.command("detect")
+def detect_cmd(
+    clip: Annotated[Path, typer.Argument(help="Clip folder (left/right videos or PNG folders) or a single video.")],
+    detector: Annotated[str, typer.Option(help="blob, meanshift or camshift.")] = "blob",
+    markers: Annotated[list[str] | None, typer.Option(
+        "--markers", help="Marker colour, NAME:HLO-HHI[:SMIN[:VMIN]] (OpenCV HSV) or NAME=#RRGGBB; repeatable "
+        "or comma-separated. Default: the colours in the clip's scenario.yaml.")] = None,
+    roi: Annotated[str | None, typer.Option(help="Initial tracking window x,y,w,h (meanshift/camshift).")] = None,
+    allow_unequal: Annotated[bool, typer.Option("--allow-unequal", help="Truncate unequal left/right lengths.")] = False,
+    output: Annotated[Path | None, typer.Option("-o", "--output", help="Output folder (default CLIP/out).")] = None,
+) -> None:
+    """Find the markers in every frame; write detections.csv and print a per-camera summary."""
+    from detectors.stage import detect_clip
+
+    specs = [s for m in markers or [] for s in m.split(",") if s.strip()] or None
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with progress_bar() as bar:
+            task = bar.add_task(f"detect ({detector})", total=None)
+            result = detect_clip(clip, detector, specs, _parse_roi(roi), allow_unequal, output,  # type: ignore[arg-type]
+                                 progress=lambda done, total: bar.update(task, completed=done, total=total or None))
+    for w in caught:
+        console.print(f"[yellow]warning:[/] {w.message}")
+    table = Table("camera", "frames", "detections", "misses", "px err median", "p95", "max", title=str(result.path))
+    for s in result.summaries:
+        table.add_row(s.camera, str(s.frames), str(s.detections), "—" if s.misses is None else str(s.misses),
+                      _fmt(s.err_median), _fmt(s.err_p95), _fmt(s.err_max))
+    out.print(table)
+
+
 def main() -> None:
     """Console-script entry point: user errors become one line on stderr and exit code 2."""
     try:

@@ -1,0 +1,131 @@
+"""Meanshift and CamShift tracking (lecture 002; SPEC §4.7).
+
+A hue histogram of the marker, taken from an initial window (the blob detector's first
+detection, or a user ROI), is back-projected onto every frame; ``cv2.meanShift`` (fixed window) or
+``cv2.CamShift`` (window adapts to the apparent size — the lecture's (x, y, s) extension) climbs
+from the window an alpha-beta filter predicts. When the back-projection mass in the window falls
+below ``loss_threshold`` the track is lost and the blob detector re-acquires it. The reported point
+is the back-projection centroid inside the final window.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import cv2
+import numpy as np
+
+from detectors.blob import BlobDetector, Detection, MarkerColor
+from pipeline.errors import StereotrackError
+from pipeline.estimators.alphabeta import ABFilter
+
+CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.1)
+
+
+@dataclass
+class TrackState:
+    window: tuple[int, int, int, int]
+    lost: bool
+
+
+class MeanShiftTracker:
+    """Track one marker through a camera's frames with meanshift or CamShift."""
+
+    def __init__(
+        self,
+        marker: MarkerColor,
+        mode: Literal["meanshift", "camshift"] = "meanshift",
+        roi: tuple[int, int, int, int] | None = None,
+        loss_threshold: float = 0.15,
+        window_scale: float = 1.6,
+        ab: tuple[float, float] = (0.7, 0.3),
+    ) -> None:
+        self.marker, self.mode, self.roi = marker, mode, roi
+        self.loss_threshold, self.window_scale, self.ab = loss_threshold, window_scale, ab
+        self.blob = BlobDetector([marker], min_roundness=0.3)
+        self.hist: np.ndarray | None = None
+        self.window: tuple[int, int, int, int] | None = None
+        self.filter: ABFilter | None = None
+        self.size = 0.0
+        self.lost = True
+
+    def _mask(self, hsv: np.ndarray) -> np.ndarray:
+        """Pixels saturated and bright enough to carry a trustworthy hue (lecture's S, V gate)."""
+        return cv2.inRange(hsv, (0, self.marker.s_min, self.marker.v_min), (180, 255, 255))
+
+    def _learn(self, hsv: np.ndarray, win: tuple[int, int, int, int]) -> None:
+        x, y, w, h = win
+        roi, mask = hsv[y : y + h, x : x + w], self._mask(hsv[y : y + h, x : x + w])
+        hist = cv2.calcHist([roi], [0], mask, [36], [0, 180])
+        if hist.sum() <= 0:
+            raise StereotrackError(f"the initial window {win} holds no pixels of marker '{self.marker.name}'")
+        cv2.normalize(hist, hist, 0, 255, cv2.NORM_MINMAX)
+        self.hist = hist
+
+    def _clip(self, cx: float, cy: float, w: float, h: float, shape) -> tuple[int, int, int, int]:
+        H, W = shape[:2]
+        w, h = max(int(round(w)), 4), max(int(round(h)), 4)
+        x = int(round(cx - w / 2))
+        y = int(round(cy - h / 2))
+        x, y = min(max(x, 0), max(W - w, 0)), min(max(y, 0), max(H - h, 0))
+        return x, y, min(w, W), min(h, H)
+
+    def _acquire(self, bgr: np.ndarray, hsv: np.ndarray) -> Detection | None:
+        found = self.blob.detect(bgr, hsv)
+        if not found:
+            return None
+        d = found[0]
+        r = max(np.sqrt(d.area / np.pi), 3.0) * self.window_scale
+        self.window = self._clip(d.u, d.v, 2 * r, 2 * r, bgr.shape)
+        self.size = 2 * r
+        if self.hist is None:
+            self._learn(hsv, self._clip(d.u, d.v, 2 * r / self.window_scale, 2 * r / self.window_scale, bgr.shape))
+        self.filter = ABFilter(np.array([d.u, d.v]), 1.0, *self.ab)
+        self.lost = False
+        return d
+
+    def update(self, bgr: np.ndarray) -> Detection | None:
+        """Track into the next frame; None when the marker is lost (and not re-acquired)."""
+        hsv = cv2.cvtColor(bgr, cv2.COLOR_BGR2HSV)
+        H, W = bgr.shape[:2]
+        if self.hist is None and self.roi is not None:
+            x, y, w, h = self.roi
+            if w <= 0 or h <= 0 or x < 0 or y < 0 or x + w > W or y + h > H:
+                raise StereotrackError(f"--roi {self.roi} lies outside the {W}×{H} frame")
+            self._learn(hsv, self.roi)
+            self.window, self.size = self.roi, float(max(w, h))
+            self.filter = ABFilter(np.array([x + w / 2, y + h / 2]), 1.0, *self.ab)
+            self.lost = False
+        if self.lost or self.window is None or self.filter is None:
+            d = self._acquire(bgr, hsv)
+            if d is None:
+                return None
+        assert self.window is not None and self.filter is not None and self.hist is not None
+        bp = cv2.calcBackProject([hsv], [0], self.hist, [0, 180], 1)
+        bp = cv2.bitwise_and(bp, self._mask(hsv))
+        pred = self.filter.predict()
+        _, _, w, h = self.window
+        win = self._clip(pred[0], pred[1], w, h, bgr.shape)
+        if self.mode == "camshift":
+            rot, win = cv2.CamShift(bp, win, CRITERIA)
+            if win[2] <= 0 or win[3] <= 0:
+                self.lost = True
+                return None
+            side = max(rot[1]) * 1.2 if max(rot[1]) > 0 else max(win[2], win[3])
+            win = self._clip(win[0] + win[2] / 2, win[1] + win[3] / 2, side, side, bgr.shape)
+        else:
+            _, win = cv2.meanShift(bp, win, CRITERIA)
+        x, y, w, h = win
+        sub = bp[y : y + h, x : x + w].astype(np.float32)
+        mass = float(sub.sum()) / (255.0 * max(w * h, 1))
+        if mass < self.loss_threshold * 0.25 or sub.sum() <= 0:
+            self.lost = True
+            d = self._acquire(bgr, hsv)  # re-acquire in the same frame when possible
+            return d
+        m = cv2.moments(sub)
+        u, v = x + m["m10"] / m["m00"], y + m["m01"] / m["m00"]
+        self.filter.correct(np.array([u, v]))
+        self.window = self._clip(u, v, w, h, bgr.shape)
+        self.size = float(max(w, h))
+        return Detection(self.marker.name, float(u), float(v), float(m["m00"] / 255.0), min(1.0, mass))
