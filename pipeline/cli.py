@@ -125,6 +125,161 @@ def detect_cmd(
     out.print(table)
 
 
+def _methods(methods: str | None) -> list[str] | None:
+    return [m.strip() for m in methods.split(",") if m.strip()] if methods else None
+
+
+def _metrics_table(metrics: dict, title: str) -> Table:
+    table = Table("method", "3-D RMSE (m)", "final (m)", "reproj. RMSE (px)", "steps/s", title=title)
+    for m, e in metrics.get("methods", {}).items():
+        table.add_row(m, _fmt(e.get("rmse"), ".4f"), _fmt(e.get("final"), ".4f"),
+                      _fmt(e.get("reprojection_rmse_px"), ".2f"), _fmt(e.get("steps_per_second"), ",.0f"))
+    return table
+
+
+@app.command("estimate")
+def estimate_cmd(
+    clip: Annotated[Path, typer.Argument(help="Clip folder with calib.yaml and out/detections.csv.")],
+    methods: Annotated[str | None, typer.Option(help="Comma-separated methods (default: all point methods).")] = None,
+    output: Annotated[Path | None, typer.Option("-o", "--output", help="Output folder (default CLIP/out).")] = None,
+) -> None:
+    """Estimate 3-D tracks with each method; write estimates/<method>.csv and metrics.json."""
+    from pipeline.estimate import estimate_clip
+
+    with progress_bar() as bar:
+        task = bar.add_task("estimate", total=None)
+        res = estimate_clip(clip, _methods(methods), output,
+                            progress=lambda d, t: bar.update(task, completed=d, total=t))
+    out.print(_metrics_table(res.metrics, str(res.out_dir / "metrics.json")))
+
+
+@app.command("report")
+def report_cmd(
+    clip: Annotated[Path, typer.Argument(help="Clip folder whose out/ holds estimates and metrics.")],
+    output: Annotated[Path | None, typer.Option("-o", "--output", help="Output folder (default CLIP/out).")] = None,
+) -> None:
+    """Write out/report.md with the metrics table and figures."""
+    from pipeline.report import write_report
+
+    out.print(f"wrote {write_report(clip, output)}")
+
+
+@app.command("run")
+def run_cmd(
+    target: Annotated[str | None, typer.Argument(
+        help="A clip folder, a scenario (YAML or built-in name), or nothing for the built-in default scenario.")] = None,
+    output: Annotated[Path | None, typer.Option("-o", "--output",
+                                                help="Where a rendered clip goes (default runs/<scenario>).")] = None,
+    frames: Annotated[int | None, typer.Option(help="Override the scenario's frame count.")] = None,
+    seed: Annotated[int | None, typer.Option(help="Override the scenario's seed.")] = None,
+    detector: Annotated[str, typer.Option(help="blob, meanshift or camshift.")] = "blob",
+    methods: Annotated[str | None, typer.Option(help="Comma-separated methods (default: all).")] = None,
+    fmt: Annotated[str, typer.Option("--format", help="Rendered clip format: mp4 or png.")] = "mp4",
+) -> None:
+    """Run every stage on one clip: (render), detect, estimate, metrics, report, recording."""
+    from pipeline.run import DEFAULT_SCENARIO, process_clip
+
+    t0 = __import__("time").perf_counter()
+    target = target or DEFAULT_SCENARIO
+    clip = Path(target)
+    if not (clip.is_dir() and any(clip.iterdir())):
+        from renderers.render import render_clip
+        from renderers.scenario import load_scenario
+
+        scen = load_scenario(target).with_overrides(frames=frames, seed=seed)
+        clip = output or Path("runs") / scen.name
+        with progress_bar() as bar:
+            task = bar.add_task(f"render {scen.name}", total=scen.frames)
+            render_clip(scen, clip, fmt=fmt, progress=lambda d, t: bar.update(task, completed=d))  # type: ignore[arg-type]
+    with progress_bar() as bar:
+        task = bar.add_task("detect", total=None)
+
+        def stage(name: str) -> None:
+            bar.update(task, description=name, completed=0, total=None)
+
+        res = process_clip(clip, detector=detector, methods=_methods(methods), stage=stage,
+                           progress=lambda d, t: bar.update(task, completed=d, total=t))
+    out.print(_metrics_table(res.estimate.metrics, f"{clip} — {res.estimate.n_frames} frames"))
+    out.print(f"outputs in {res.out_dir}: detections.csv, estimates/, metrics.json, report.md, run.rrd")
+    out.print(f"replay: stereotrack view {clip}    ({__import__('time').perf_counter() - t0:.1f} s)")
+
+
+@app.command("view")
+def view_cmd(clip: Annotated[Path, typer.Argument(help="Clip folder whose out/run.rrd to open.")]) -> None:
+    """Open the run's recording in the rerun viewer (or print the command when there is no display)."""
+    import os
+    import shutil
+    import subprocess
+
+    rrd = clip / "out" / "run.rrd" if clip.is_dir() else clip
+    if not rrd.is_file():
+        raise StereotrackError("no recording: run `stereotrack run` first", rrd)
+    viewer = shutil.which("rerun")
+    if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")) or viewer is None:
+        out.print(f"no display here; on a machine with one run:\n  rerun {rrd}")
+        return
+    subprocess.run([viewer, str(rrd)], check=False)
+
+
+@app.command("batch")
+def batch_cmd(
+    input_dir: Annotated[Path, typer.Argument(help="Folder whose sub-folders are clips.")],
+    output: Annotated[Path, typer.Option("-o", "--output", help="Output folder (one sub-folder per clip).")],
+    workers: Annotated[int, typer.Option(help="Worker processes.")] = 2,
+    scheduler: Annotated[str | None, typer.Option(help="Dask scheduler address tcp://host:port.")] = None,
+    dask: Annotated[str | None, typer.Option("--dask", help="'local' runs a Dask LocalCluster here.")] = None,
+    force: Annotated[bool, typer.Option("--force", help="Redo clips whose outputs are complete.")] = False,
+    detector: Annotated[str, typer.Option(help="blob, meanshift or camshift.")] = "blob",
+    methods: Annotated[str | None, typer.Option(help="Comma-separated methods (default: all).")] = None,
+) -> None:
+    """Process every clip folder under INPUT_DIR; exit code 1 if any clip failed."""
+    from pipeline.batch import run_batch
+
+    sched = scheduler or (dask if dask else None)
+    if dask is not None and dask != "local":
+        raise StereotrackError("--dask takes 'local'; use --scheduler tcp://host:port for a running cluster")
+    with progress_bar() as bar:
+        task = bar.add_task("clips", total=None)
+        outcomes = run_batch(input_dir, output, workers, sched, force, detector, _methods(methods),
+                             progress=lambda d, t: bar.update(task, completed=d, total=t))
+    table = Table("clip", "status", "error", title=str(output / "summary.csv"))
+    for o in outcomes:
+        table.add_row(o.clip, o.status, o.error)
+    out.print(table)
+    if any(o.status == "failed" for o in outcomes):
+        raise typer.Exit(1)
+
+
+@app.command("render-batch")
+def render_batch_cmd(
+    scenario: Annotated[str, typer.Argument(help="Scenario YAML or built-in name.")],
+    output: Annotated[Path, typer.Option("-o", "--output", help="Folder to fill with one clip per seed.")],
+    seeds: Annotated[str, typer.Option(help="Seeds as A..B (inclusive) or a comma list.")] = "0..3",
+    frames: Annotated[int | None, typer.Option(help="Override the scenario's frame count.")] = None,
+    fmt: Annotated[str, typer.Option("--format", help="mp4 or png.")] = "mp4",
+) -> None:
+    """Render a folder of clips of one scenario, one per seed."""
+    from renderers.render import render_clip
+    from renderers.scenario import load_scenario
+
+    try:
+        if ".." in seeds:
+            a, b = seeds.split("..")
+            seed_list = list(range(int(a), int(b) + 1))
+        else:
+            seed_list = [int(s) for s in seeds.split(",")]
+    except ValueError:
+        raise StereotrackError(f"--seeds must be A..B or a comma list, not {seeds!r}") from None
+    base = load_scenario(scenario)
+    with progress_bar() as bar:
+        task = bar.add_task("clips", total=len(seed_list))
+        for s in seed_list:
+            scen = base.with_overrides(frames=frames, seed=s)
+            render_clip(scen, output / f"{scen.name}_seed{s}", fmt=fmt)  # type: ignore[arg-type]
+            bar.advance(task)
+    out.print(f"wrote {len(seed_list)} clips to {output}")
+
+
 def main() -> None:
     """Console-script entry point: user errors become one line on stderr and exit code 2."""
     try:

@@ -1,0 +1,138 @@
+"""``out/report.md``: the metrics table and matplotlib figures (trajectories in top and side views,
+error vs frame per method, image-plane tracks per camera), built from the stage files alone so a
+person who never opens rerun can read a run."""
+
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from detectors.stage import load_detections
+from pipeline.errors import StereotrackError
+from pipeline.estimate import load_truth
+from pipeline.io import atomic_path, read_csv, write_text
+from pipeline.recording import PALETTE
+
+
+def load_estimates(out_dir: Path) -> dict[str, dict[str, np.ndarray]]:
+    """``estimates/<method>.csv`` → method → marker → positions (frames × 3)."""
+    result: dict[str, dict[str, np.ndarray]] = {}
+    for f in sorted((out_dir / "estimates").glob("*.csv")):
+        cols = read_csv(f, ["frame", "marker", "x", "y", "z"])
+        n = int(np.nanmax(cols["frame"])) + 1 if len(cols["frame"]) else 0
+        per: dict[str, np.ndarray] = {}
+        for k, m, x, y, z in zip(cols["frame"].astype(int), cols["marker"], cols["x"], cols["y"], cols["z"], strict=True):
+            per.setdefault(str(m), np.full((n, 3), np.nan))[k] = (x, y, z)
+        result[f.stem] = per
+    return result
+
+
+def _save(fig, path: Path) -> None:
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, bbox_inches="tight")
+
+
+def _fmt(v) -> str:
+    if v is None or (isinstance(v, float) and not np.isfinite(v)):
+        return "—"
+    return f"{v:.4g}" if isinstance(v, float) else str(v)
+
+
+def metrics_table(metrics: dict) -> str:
+    """Markdown table of the per-method metrics."""
+    head = "| method | 3-D RMSE (m) | mean (m) | median (m) | final (m) | reproj. RMSE (px) | steps/s |"
+    lines = [head, "|" + "---|" * 7]
+    for m, e in metrics.get("methods", {}).items():
+        lines.append(f"| {m} | {_fmt(e.get('rmse'))} | {_fmt(e.get('mean'))} | {_fmt(e.get('median'))} | "
+                     f"{_fmt(e.get('final'))} | {_fmt(e.get('reprojection_rmse_px'))} | {_fmt(e.get('steps_per_second'))} |")
+    return "\n".join(lines)
+
+
+def write_report(clip: str | Path, out_dir: str | Path | None = None) -> Path:
+    """Write ``report.md`` and its figures into ``out_dir`` (default ``CLIP/out``)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    clip = Path(clip)
+    out_dir = Path(out_dir) if out_dir else clip / "out"
+    mpath = out_dir / "metrics.json"
+    if not mpath.is_file():
+        raise StereotrackError("no metrics.json: run `stereotrack estimate` first", mpath)
+    metrics = json.loads(mpath.read_text())
+    est = load_estimates(out_dir)
+    truth = load_truth(clip)
+    obs = load_detections(out_dir / "detections.csv") if (out_dir / "detections.csv").is_file() else {}
+    figdir = out_dir / "figures"
+    markers = sorted({m for per in est.values() for m in per})
+    figs = []
+
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5))
+    for ax, (i, j, lab) in zip(axes, ((0, 2, "top view: x (m) vs z (m)"), (1, 2, "side view: y (m) vs z (m)")), strict=True):
+        for mk in markers:
+            if truth and mk in truth.positions:
+                T = truth.positions[mk]
+                ax.plot(T[:, j], T[:, i], "k-", lw=2.5, alpha=0.5, label="truth" if mk == markers[0] else None)
+            for c, (meth, per) in enumerate(est.items()):
+                if mk in per:
+                    P = per[mk]
+                    ax.plot(P[:, j], P[:, i], "-", lw=1, color=np.array(PALETTE[c % len(PALETTE)]) / 255,
+                            label=meth if mk == markers[0] else None)
+        ax.set_xlabel("z (m)")
+        ax.set_ylabel(lab.split(":")[1].split("vs")[0].strip())
+        ax.set_title(lab)
+        if i == 1:
+            ax.invert_yaxis()
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    _save(fig, figdir / "trajectories.png")
+    plt.close(fig)
+    figs.append(("Trajectories (top and side views)", "figures/trajectories.png"))
+
+    if truth is not None:
+        fig, ax = plt.subplots(figsize=(12, 4.5))
+        for c, (meth, per) in enumerate(est.items()):
+            errs = [np.linalg.norm(per[mk] - truth.positions[mk][: len(per[mk])], axis=1)
+                    for mk in per if mk in truth.positions]
+            if errs:
+                n = min(len(e) for e in errs)
+                with np.errstate(all="ignore"), warnings.catch_warnings():
+                    warnings.simplefilter("ignore", RuntimeWarning)
+                    mean_err = np.nanmean([e[:n] for e in errs], axis=0)
+                ax.semilogy(mean_err, color=np.array(PALETTE[c % len(PALETTE)]) / 255,
+                            label=meth)
+        ax.set_xlabel("frame")
+        ax.set_ylabel("3-D error (m), mean over markers")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=8, ncol=4)
+        _save(fig, figdir / "error.png")
+        plt.close(fig)
+        figs.append(("3-D error per frame", "figures/error.png"))
+
+    if obs:
+        fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+        for c, ax in enumerate(axes):
+            for i, (mk, Y) in enumerate(sorted(obs.items())):
+                ax.plot(Y[:, 2 * c], Y[:, 2 * c + 1], ".", ms=2, color=np.array(PALETTE[i % len(PALETTE)]) / 255, label=mk)
+            ax.set_title(("left", "right")[c] + " camera: detections (px)")
+            ax.invert_yaxis()
+            ax.set_aspect("equal", adjustable="datalim")
+            ax.grid(alpha=0.3)
+        axes[0].legend(fontsize=7, markerscale=4)
+        _save(fig, figdir / "image_tracks.png")
+        plt.close(fig)
+        figs.append(("Image-plane tracks", "figures/image_tracks.png"))
+
+    lines = [f"# stereotrack report: {clip.name}", "",
+             f"{metrics.get('frames', '?')} frames, dt = {metrics.get('dt', float('nan')):.4g} s; "
+             + ("errors against the rendered ground truth." if metrics.get("has_truth") else "no ground truth (real footage)."),
+             "", "## Metrics", "", metrics_table(metrics), ""]
+    for title, rel in figs:
+        lines += [f"## {title}", "", f"![{title}]({rel})", ""]
+    path = out_dir / "report.md"
+    write_text(path, "\n".join(lines))
+    return path

@@ -1,0 +1,60 @@
+"""All stages on one clip: (render) → detect → estimate → metrics → report → recording."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from detectors.frames import StereoFrameSource
+from detectors.stage import DetectResult, detect_clip
+from pipeline.estimate import EstimateResult, estimate_clip
+from pipeline.recording import write_recording
+from pipeline.report import write_report
+
+DEFAULT_SCENARIO = "default"
+
+
+@dataclass
+class RunResult:
+    clip: Path
+    out_dir: Path
+    detect: DetectResult
+    estimate: EstimateResult
+    report: Path
+    recording: Path | None
+    seconds: float
+
+
+def process_clip(
+    clip: str | Path,
+    out_dir: str | Path | None = None,
+    detector: str = "blob",
+    methods: list[str] | None = None,
+    marker_specs: list[str] | None = None,
+    recording: bool = True,
+    images_in_recording: bool = True,
+    stage: Callable[[str], None] | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> RunResult:
+    """Detect, estimate, report and record one clip folder into ``out_dir`` (default CLIP/out)."""
+    t0 = time.perf_counter()
+    clip = Path(clip)
+    out_dir = Path(out_dir) if out_dir else clip / "out"
+    say = stage or (lambda s: None)
+    say("detect")
+    det = detect_clip(clip, detector, marker_specs, out_dir=out_dir, progress=progress)  # type: ignore[arg-type]
+    say("estimate")
+    est = estimate_clip(clip, methods, out_dir=out_dir, progress=progress)
+    say("report")
+    report = write_report(clip, out_dir)
+    rrd = None
+    if recording:
+        say("recording")
+        frames = None
+        if images_in_recording:
+            frames = ((f.index, f.left, f.right) for f in StereoFrameSource(clip, allow_unequal=True))
+        truth = est.truth.positions if est.truth else None
+        rrd = write_recording(out_dir / "run.rrd", est.rig, est.dt, est.observations, est.tracks, truth, frames)
+    return RunResult(clip, out_dir, det, est, report, rrd, time.perf_counter() - t0)
