@@ -116,23 +116,35 @@ class BlobDetector:
                 roundness = area / (np.pi * (max(w, h) / 2.0) ** 2)
                 if roundness < self.min_roundness or min(w, h) < 0.5 * max(w, h):
                     continue
-                u, v = self._refine(labels, i, bgr, x, y, w, h)
+                u, v = self._refine(labels, i, bgr, hsv, x, y, w, h, mk)
                 found.append(Detection(mk.name, u, v, float(area), float(min(roundness, 1.0))))
             found.sort(key=lambda d: (-d.score * d.area))
             out += found[: self.max_per_marker]
         return out
 
     @staticmethod
-    def _refine(labels, i, bgr, x, y, w, h) -> tuple[float, float]:
-        """Chroma-weighted centroid over the component dilated by 2 px (includes the soft rim)."""
+    def _refine(labels, i, bgr, hsv, x, y, w, h, mk: MarkerColor) -> tuple[float, float]:
+        """Colour-coverage-weighted centroid over the component dilated by 2 px.
+
+        Weight = how much of a pixel the marker covers, from its chroma (max − min of B, G, R)
+        between the range's minimum chroma (``s_min·v_min/255``) and the blob's typical chroma:
+        1 inside, fractional on the anti-aliased rim (sub-pixel accuracy on rendered markers),
+        capped so texture inside a real object does not pull the centroid; pixels whose hue is
+        outside the range (±5) get none (a hand around a ball).
+        """
         H, W = labels.shape
         x0, y0, x1, y1 = max(x - 3, 0), max(y - 3, 0), min(x + w + 3, W), min(y + h + 3, H)
         comp = (labels[y0:y1, x0:x1] == i).astype(np.uint8)
         region = cv2.dilate(comp, np.ones((5, 5), np.uint8)).astype(bool)
         patch = bgr[y0:y1, x0:x1]
         c = patch.max(axis=2).astype(np.float32) - patch.min(axis=2)
-        floor = float(np.median(c[~region])) + 8.0 if (~region).any() else 0.0
-        wts = np.where(region, np.clip(c - floor, 0, None), 0.0)
+        hue = hsv[y0:y1, x0:x1, 0].astype(np.int16)
+        lo, hi = (mk.h_lo - 5) % 180, (mk.h_hi + 5) % 180
+        hue_ok = (hue >= lo) & (hue <= hi) if lo <= hi else (hue >= lo) | (hue <= hi)
+        floor = mk.s_min * mk.v_min / 255.0 * 0.5
+        inside = c[comp.astype(bool)]
+        full = max(float(np.percentile(inside, 20)) - floor, 1.0) if inside.size else 1.0
+        wts = np.where(region & hue_ok, np.clip((c - floor) / full, 0.0, 1.0), 0.0)
         s = wts.sum()
         if s <= 0:
             ys, xs = np.nonzero(comp)

@@ -40,7 +40,9 @@ class MeanShiftTracker:
         loss_threshold: float = 0.15,
         window_scale: float = 1.6,
         ab: tuple[float, float] = (0.7, 0.3),
+        model_rate: float = 0.1,
     ) -> None:
+        self.model_rate = model_rate
         self.marker, self.mode, self.roi = marker, mode, roi
         self.loss_threshold, self.window_scale, self.ab = loss_threshold, window_scale, ab
         self.blob = BlobDetector([marker], min_roundness=0.3)
@@ -51,17 +53,26 @@ class MeanShiftTracker:
         self.lost = True
 
     def _mask(self, hsv: np.ndarray) -> np.ndarray:
-        """Pixels saturated and bright enough to carry a trustworthy hue (lecture's S, V gate)."""
-        return cv2.inRange(hsv, (0, self.marker.s_min, self.marker.v_min), (180, 255, 255))
+        """Pixels saturated and bright enough to carry a trustworthy hue (the lecture's S, V gate),
+        within the marker's hue range so that nearby objects (a hand) do not pull the centroid."""
+        return self.marker.mask(hsv)
 
-    def _learn(self, hsv: np.ndarray, win: tuple[int, int, int, int]) -> None:
+    def _learn(self, hsv: np.ndarray, win: tuple[int, int, int, int], rate: float = 1.0) -> None:
+        """(Re)learn the hue histogram from a window; ``rate < 1`` blends it into the current model
+        (the usual CamShift model update, so a first glimpse at the frame edge does not fix the
+        colour model for good)."""
         x, y, w, h = win
         roi, mask = hsv[y : y + h, x : x + w], self._mask(hsv[y : y + h, x : x + w])
         hist = cv2.calcHist([roi], [0], mask, [36], [0, 180])
+        h = hist.ravel()
+        hist = np.convolve(np.r_[h[-1:], h, h[:1]], [0.25, 0.5, 0.25], "valid")
+        hist = hist.astype(np.float32).reshape(-1, 1)  # smoothed over neighbouring hue bins (hue is circular)
         if hist.sum() <= 0:
-            raise StereotrackError(f"the initial window {win} holds no pixels of marker '{self.marker.name}'")
+            if self.hist is None:
+                raise StereotrackError(f"the initial window {win} holds no pixels of marker '{self.marker.name}'")
+            return
         cv2.normalize(hist, hist, 0, 255, cv2.NORM_MINMAX)
-        self.hist = hist
+        self.hist = hist if self.hist is None or rate >= 1 else cv2.addWeighted(self.hist, 1 - rate, hist, rate, 0)
 
     def _clip(self, cx: float, cy: float, w: float, h: float, shape) -> tuple[int, int, int, int]:
         H, W = shape[:2]
@@ -123,9 +134,24 @@ class MeanShiftTracker:
             self.lost = True
             d = self._acquire(bgr, hsv)  # re-acquire in the same frame when possible
             return d
-        m = cv2.moments(sub)
-        u, v = x + m["m10"] / m["m00"], y + m["m01"] / m["m00"]
+        u, v, m00 = self._refine(bp, x + w / 2, y + h / 2, w, h)
         self.filter.correct(np.array([u, v]))
         self.window = self._clip(u, v, w, h, bgr.shape)
+        if mass > self.loss_threshold:
+            self._learn(hsv, self.window, self.model_rate)
         self.size = float(max(w, h))
-        return Detection(self.marker.name, float(u), float(v), float(m["m00"] / 255.0), min(1.0, mass))
+        return Detection(self.marker.name, float(u), float(v), float(m00 / 255.0), min(1.0, mass))
+
+    def _refine(self, bp: np.ndarray, u: float, v: float, w: int, h: int) -> tuple[float, float, float]:
+        """Centroid of the back-projection blob at the track point, in a window 2× the track
+        window: the connected region of back-projected pixels nearest the window centre, so other
+        pixels of similar hue inside the window (a hand holding the ball) do not pull it."""
+        x0, y0, ww, hh = self._clip(u, v, 2.0 * w, 2.0 * h, bp.shape)
+        sub = (bp[y0 : y0 + hh, x0 : x0 + ww] > 0).astype(np.uint8)
+        n, labels, stats, cents = cv2.connectedComponentsWithStats(sub, connectivity=8)
+        if n <= 1:
+            return u, v, 0.0
+        cu, cv_ = u - x0, v - y0
+        # prefer large regions close to the predicted centre
+        best = max(range(1, n), key=lambda i: stats[i, 4] / (1.0 + np.hypot(cents[i, 0] - cu, cents[i, 1] - cv_) / max(w, 1)) ** 2)
+        return float(x0 + cents[best, 0]), float(y0 + cents[best, 1]), float(stats[best, 4] * 255.0)

@@ -1,0 +1,255 @@
+"""Detectors on rendered clips (measured against truth), on real footage, and on bad input."""
+
+from __future__ import annotations
+
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+
+from detectors.blob import BlobDetector, MarkerColor
+from detectors.frames import StereoFrameSource
+from detectors.meanshift import MeanShiftTracker
+from detectors.stage import detect_clip, label_four_points, load_detections
+from pipeline.errors import ClipError, StereotrackError
+from pipeline.io import read_csv
+from renderers.render import render_clip
+from renderers.scenario import parse_scenario
+from tests.conftest import REALDATA, small_multi_marker
+
+BALL = REALDATA / "ball2.mp4"
+needs_ball = pytest.mark.skipif(not BALL.is_file(), reason=f"real footage {BALL} not present (shared/realdata)")
+
+
+def _errors(result, clip):
+    return {s.camera: s for s in result.summaries}
+
+
+def test_blob_subpixel_on_lossless_clip(png_clip, tmp_path):
+    res = detect_clip(png_clip, "blob", out_dir=tmp_path)
+    tr = read_csv(png_clip / "truth.csv")
+    visible = int(tr["visible_left"].sum() + tr["visible_right"].sum())
+    errs, found = [], 0
+    det = load_detections(tmp_path / "detections.csv", 24)
+    for k, name, *uv, vl, vr in zip(tr["frame"].astype(int), tr["marker"], tr["u_left"], tr["v_left"], tr["u_right"],
+                                    tr["v_right"], tr["visible_left"], tr["visible_right"], strict=True):
+        for c, vis in enumerate((vl, vr)):
+            if vis and np.all(np.isfinite(det[name][k, 2 * c : 2 * c + 2])):
+                found += 1
+                errs.append(np.hypot(*(det[name][k, 2 * c : 2 * c + 2] - uv[2 * c : 2 * c + 2])))
+    errs = np.array(errs)
+    assert found >= 0.99 * visible
+    assert np.median(errs) <= 0.15 and np.percentile(errs, 95) <= 0.5, (np.median(errs), np.percentile(errs, 95))
+    assert all(s.err_median is not None for s in res.summaries)
+
+
+def test_blob_on_mp4_clip(mp4_clip, tmp_path):
+    res = detect_clip(mp4_clip, "blob", out_dir=tmp_path)
+    for s in res.summaries:
+        assert s.err_median <= 0.5 and s.misses <= 0.01 * s.frames * 3
+
+
+def test_distractors_never_reported(png_clip, tmp_path):
+    detect_clip(png_clip, "blob", out_dir=tmp_path)
+    cols = read_csv(tmp_path / "detections.csv")
+    assert set(cols["marker"]) <= {"red", "green", "blue"}
+    # the magenta cube's projection never hosts a detection
+    rig_cube = np.array([0.5, -0.3, 3.0])
+    from pipeline.camera import load_calibration
+
+    rig = load_calibration(png_clip)
+    cube_uv = rig.left.project(rig_cube[None])[0]
+    left = cols["camera"] == "left"
+    d = np.hypot(cols["u"][left] - cube_uv[0], cols["v"][left] - cube_uv[1])
+    assert d.min() > 5
+
+
+def test_no_detection_when_out_of_view(tmp_path):
+    data = small_multi_marker(frames=30)
+    data["objects"] = [{"name": "red", "color": [230, 30, 30], "radius": 0.05,
+                        "motion": {"type": "constant_velocity", "start": [-1.6, 0.0, 2.0], "velocity": [3.2, 0.0, 0.0]}}]
+    data["distractors"] = []
+    clip = tmp_path / "clip"
+    render_clip(parse_scenario(data), clip, fmt="png", workers=1)
+    res = detect_clip(clip, "blob", out_dir=tmp_path / "out")
+    tr = read_csv(clip / "truth.csv")
+    det = load_detections(tmp_path / "out" / "detections.csv", 30)["red"]
+    for c, cam in enumerate(("left", "right")):
+        u = tr[f"u_{cam}"]
+        fully_out = (u < -20) | (u > 320 + 20)  # centre beyond the border by more than the radius
+        assert fully_out.any()
+        assert np.all(np.isnan(det[fully_out, 2 * c]))
+    assert all(s.misses <= 2 for s in res.summaries)
+
+
+@pytest.mark.parametrize("mode", ["meanshift", "camshift"])
+def test_meanshift_camshift_on_rendered_clip(png_clip, tmp_path, mode):
+    res = detect_clip(png_clip, mode, out_dir=tmp_path)
+    for s in res.summaries:
+        assert s.err_median <= 2.0
+
+
+def _leaving_clip(tmp_path, frames=60):
+    """A marker that leaves the left edge and comes back, receding as it goes."""
+    data = small_multi_marker(frames=frames)
+    data["objects"] = [{"name": "red", "color": [230, 30, 30], "radius": 0.05,
+                        "motion": {"type": "sinusoid", "center": [-0.2, 0.0, 2.2], "amplitude": [1.1, 0.0, 0.8],
+                                   "frequency_hz": [0.5, 0.0, 0.25], "phase": [0.0, 0.0, -1.57]}}]
+    data["distractors"] = []
+    clip = tmp_path / "leave"
+    render_clip(parse_scenario(data), clip, fmt="png", workers=1)
+    return clip
+
+
+@pytest.mark.parametrize("mode", ["meanshift", "camshift"])
+def test_tracker_reacquires_after_leaving_view(tmp_path, mode):
+    clip = _leaving_clip(tmp_path)
+    detect_clip(clip, mode, out_dir=tmp_path / "out")
+    tr = read_csv(clip / "truth.csv")
+    vis = tr["visible_left"].astype(bool)
+    det = load_detections(tmp_path / "out" / "detections.csv", 60)["red"][:, :2]
+    assert (~vis).any() and vis.any()
+    # re-entries: first visible frame after an invisible run
+    re_entries = [k for k in range(1, 60) if vis[k] and not vis[k - 1]]
+    assert re_entries
+    for k in re_entries:
+        window = range(k, min(k + 4, 60))
+        assert any(np.isfinite(det[j, 0]) for j in window), f"not re-acquired within 3 frames of frame {k}"
+    err = np.hypot(det[vis, 0] - tr["u_left"][vis], det[vis, 1] - tr["v_left"][vis])
+    assert np.nanmedian(err) <= 2.0
+
+
+def test_camshift_window_follows_apparent_size(tmp_path):
+    data = small_multi_marker(frames=40)
+    data["objects"] = [{"name": "red", "color": [230, 30, 30], "radius": 0.06,
+                        "motion": {"type": "constant_velocity", "start": [0.0, 0.0, 0.8], "velocity": [0.0, 0.0, 1.5]}}]
+    data["distractors"] = []
+    clip = tmp_path / "recede"
+    render_clip(parse_scenario(data), clip, fmt="png", workers=1)
+    tracker = MeanShiftTracker(MarkerColor.from_rgb("red", (230, 30, 30)), "camshift")
+    sizes = []
+    for fr in StereoFrameSource(clip):
+        tracker.update(fr.left)
+        sizes.append(tracker.size)
+    # apparent diameter shrinks ~ 1/z from 0.8 m to 2.75 m: the window must shrink by > 2×
+    assert sizes[2] > 2 * sizes[-1]
+
+
+def test_four_point_labels_never_swap(tmp_path):
+    from renderers.scenario import load_scenario
+
+    scen = load_scenario("four_point").with_overrides(frames=100)
+    data = scen.model_dump(mode="json")
+    data["objects"][0]["point_colors"] = None  # one colour: labelling by geometry
+    data["objects"][0]["color"] = [230, 30, 30]
+    data["objects"][0]["motion"]["alpha_noise"] = 0.6  # keep it turning
+    data["rig"]["width"], data["rig"]["height"], data["rig"]["focal"] = 320, 240, 300
+    clip = tmp_path / "fp"
+    render_clip(parse_scenario(data), clip, fmt="png")
+    detect_clip(clip, "blob", out_dir=tmp_path / "out")
+    tr = read_csv(clip / "truth.csv")
+    det = load_detections(tmp_path / "out" / "detections.csv", 100)
+    for j in range(1, 5):
+        name = f"target_{j}"
+        sel = tr["marker"] == name
+        for c, cam in enumerate(("left", "right")):
+            d = det[name][:, 2 * c : 2 * c + 2]
+            truth_uv = np.column_stack([tr[f"u_{cam}"][sel], tr[f"v_{cam}"][sel]])
+            err = np.hypot(*(d - truth_uv).T)
+            assert np.nanmax(err) < 2.0, (name, cam, np.nanmax(err))
+
+
+def test_label_four_points_geometry():
+    pts = np.array([[100.0, 80.0], [150.0, 100.0], [100.0, 130.0], [50.0, 100.0]])  # 1 up, 2 right, 3 down, 4 left
+    rng = np.random.default_rng(0)
+    perm = rng.permutation(4)
+    np.testing.assert_allclose(label_four_points(pts[perm], None), pts)
+
+
+@needs_ball
+def test_real_footage_blob_meanshift_camshift(tmp_path):
+    strict = BlobDetector([MarkerColor.parse("ball:35-55:70:60")], min_area=800)
+    ref = {}
+    for fr in StereoFrameSource(BALL):
+        d = strict.detect(fr.left)
+        if d and d[0].score > 0.55:
+            ref[fr.index] = (d[0].u, d[0].v)
+    assert len(ref) > 200
+    for mode in ("blob", "meanshift", "camshift"):
+        out = tmp_path / mode
+        detect_clip(BALL, mode, ["ball:30-60:60:60"], out_dir=out)
+        det = load_detections(out / "detections.csv", 1004)["ball"]
+        err = [np.hypot(det[k, 0] - u, det[k, 1] - v) for k, (u, v) in ref.items() if np.isfinite(det[k, 0])]
+        assert len(err) > 0.9 * len(ref), mode
+        assert np.median(err) <= 5.0, (mode, np.median(err))
+        # out of view somewhere, and found again afterwards
+        have = np.isfinite(det[:, 0])
+        gaps = [k for k in range(1, 1004) if have[k] and not have[k - 1]]
+        assert gaps, mode
+
+
+def test_real_stereo_clip_with_distortion(tmp_path, png_clip):
+    """Two videos + a stereo_calib-layout calibration with distortion, no truth, no scenario."""
+    clip = tmp_path / "real"
+    clip.mkdir()
+    K = np.array([[300.0, 0, 160], [0, 300, 120], [0, 0, 1]])
+    D = np.array([[-0.25, 0.08, 0.001, -0.001, 0.0]])
+    fs = cv2.FileStorage(str(clip / "intrinsics.yml"), cv2.FILE_STORAGE_WRITE)
+    for k, v in dict(M1=K, D1=D, M2=K, D2=D).items():
+        fs.write(k, v)
+    fs.release()
+    fs = cv2.FileStorage(str(clip / "extrinsics.yml"), cv2.FILE_STORAGE_WRITE)
+    fs.write("R", np.eye(3))
+    fs.write("T", np.array([[-0.3], [0.0], [0.0]]))
+    fs.release()
+    for cam in ("left", "right"):
+        w = cv2.VideoWriter(str(clip / f"{cam}.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 30, (320, 240))
+        for f in sorted((png_clip / cam).glob("*.png")):
+            w.write(cv2.imread(str(f)))
+        w.release()
+    res = detect_clip(clip, "blob", ["red=#e61e1e"], out_dir=tmp_path / "out")
+    cols = read_csv(tmp_path / "out" / "detections.csv")
+    assert len(cols["u"]) > 30 and res.summaries[0].err_median is None
+    # detections are undistorted: compare with cv2.undistortPoints of the raw blob centroid
+    raw = BlobDetector([MarkerColor.parse("red=#e61e1e")]).detect(next(iter(StereoFrameSource(clip))).left)[0]
+    und = cv2.undistortPoints(np.array([[[raw.u, raw.v]]]), K, D, P=K).ravel()
+    first = (cols["frame"] == 0) & (cols["camera"] == "left")
+    np.testing.assert_allclose([cols["u"][first][0], cols["v"][first][0]], und, atol=1e-6)
+    assert np.hypot(*(und - [raw.u, raw.v])) > 0.1
+
+
+def test_bad_inputs(tmp_path, png_clip):
+    # empty video
+    (tmp_path / "empty.mp4").write_bytes(b"")
+    with pytest.raises(ClipError, match="empty video"):
+        StereoFrameSource(tmp_path / "empty.mp4")
+    # corrupt bytes
+    (tmp_path / "corrupt.mp4").write_bytes(np.random.default_rng(0).bytes(5000))
+    with pytest.raises(ClipError, match="corrupt"):
+        StereoFrameSource(tmp_path / "corrupt.mp4")
+    # missing right video
+    clip = tmp_path / "noright"
+    shutil.copytree(png_clip, clip)
+    shutil.rmtree(clip / "right")
+    with pytest.raises(ClipError, match="no right video"):
+        detect_clip(clip)
+    # zero-length PNG folder
+    (clip / "right").mkdir()
+    with pytest.raises(ClipError, match="no images"):
+        detect_clip(clip)
+    # unequal lengths: error by default, truncation with a warning when allowed
+    shutil.rmtree(clip / "right")
+    shutil.copytree(png_clip / "right", clip / "right")
+    (clip / "right" / "000023.png").unlink()
+    with pytest.raises(ClipError, match="left has 24 frames, right has 23"):
+        detect_clip(clip)
+    with pytest.warns(UserWarning, match="truncating"):
+        res = detect_clip(clip, allow_unequal=True, out_dir=tmp_path / "o")
+    assert res.summaries[0].frames == 23
+    # ROI outside the frame
+    with pytest.raises(StereotrackError, match="outside"):
+        detect_clip(png_clip, "meanshift", roi=(400, 10, 20, 20), out_dir=tmp_path / "o2")
+    # no marker colours for a clip without scenario
+    with pytest.raises(StereotrackError, match="--markers"):
+        detect_clip(BALL if BALL.is_file() else clip / "left")
