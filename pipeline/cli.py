@@ -130,10 +130,14 @@ def _methods(methods: str | None) -> list[str] | None:
 
 
 def _metrics_table(metrics: dict, title: str) -> Table:
-    table = Table("method", "3-D RMSE (m)", "final (m)", "reproj. RMSE (px)", "steps/s", title=title)
+    table = Table(title=title, caption="3-D errors in m, reprojection in px, α in rad, z in m")
+    table.add_column("method", no_wrap=True)
+    for col in ("3-D RMSE", "final", "reproj.", "α RMSE", "z RMSE", "steps/s"):
+        table.add_column(col, justify="right", no_wrap=True)
     for m, e in metrics.get("methods", {}).items():
         table.add_row(m, _fmt(e.get("rmse"), ".4f"), _fmt(e.get("final"), ".4f"),
-                      _fmt(e.get("reprojection_rmse_px"), ".2f"), _fmt(e.get("steps_per_second"), ",.0f"))
+                      _fmt(e.get("reprojection_rmse_px"), ".2f"), _fmt(e.get("alpha_rmse_rad"), ".4f"),
+                      _fmt(e.get("distance_rmse_m"), ".4f"), _fmt(e.get("steps_per_second"), ",.0f"))
     return table
 
 

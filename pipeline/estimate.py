@@ -13,10 +13,11 @@ import numpy as np
 from detectors.stage import load_detections
 from pipeline.camera import StereoRig, load_calibration
 from pipeline.errors import StereotrackError
-from pipeline.estimators import POINT_METHODS, Track, create
+from pipeline.estimators import POINT_METHODS, TARGET_METHODS, Track, create
 from pipeline.io import read_csv, write_csv, write_json
 
 ESTIMATE_COLUMNS = ["frame", "t", "marker", "x", "y", "z", "vx", "vy", "vz"]
+TARGET_COLUMNS = [*ESTIMATE_COLUMNS, "alpha", "distance"]
 
 
 @dataclass
@@ -28,6 +29,44 @@ class ClipTruth:
 
 
 @dataclass
+class TargetInfo:
+    """A four-point target in a clip: its name, radius and (rendered clips) truth and dynamics."""
+
+    name: str
+    radius: float
+    config: dict
+    alpha: np.ndarray | None = None
+    distance: np.ndarray | None = None
+
+
+def find_target(clip: Path, target_radius: float | None, obs: dict[str, np.ndarray]) -> TargetInfo | None:
+    """The clip's four-point target: from scenario.yaml (radius and the known dynamics the
+    Kalman–Bucy filter assumes) or, for real footage, detections named NAME_1..NAME_4 plus
+    ``target_radius``."""
+    info = None
+    if (clip / "scenario.yaml").is_file():
+        from renderers.scenario import FourPointTarget, load_scenario
+
+        for obj in load_scenario(clip / "scenario.yaml").objects:
+            if isinstance(obj.motion, FourPointTarget):
+                m = obj.motion
+                cfg = {"a_alpha": m.alpha_matrix[1][1], "alpha_feedback": (-m.alpha_matrix[1][0], 0.0), "a_z": m.a_z}
+                info = TargetInfo(obj.name, target_radius or m.radius, cfg)
+    if info is None:
+        names = {k.rsplit("_", 1)[0] for k in obs if k.rsplit("_", 1)[-1] in "1234" and "_" in k}
+        full = [n for n in names if all(f"{n}_{j}" in obs for j in range(1, 5))]
+        if not full:
+            return None
+        if target_radius is None:
+            raise StereotrackError(f"four-point target '{full[0]}' found: give its radius (--target-radius)", clip)
+        info = TargetInfo(full[0], target_radius, {})
+    if (clip / "target_truth.csv").is_file():
+        tt = read_csv(clip / "target_truth.csv", ["frame", "alpha", "distance"])
+        info.alpha, info.distance = tt["alpha"], tt["distance"]
+    return info
+
+
+@dataclass
 class EstimateResult:
     out_dir: Path
     rig: StereoRig
@@ -36,6 +75,8 @@ class EstimateResult:
     observations: dict[str, np.ndarray]
     tracks: dict[str, dict[str, Track]]  # method → marker → track
     truth: ClipTruth | None
+    target: TargetInfo | None = None
+    target_tracks: dict[str, Track] = field(default_factory=dict)
     metrics: dict[str, Any] = field(default_factory=dict)
 
 
@@ -84,8 +125,13 @@ def estimate_clip(
     out_dir: str | Path | None = None,
     configs: dict[str, dict] | None = None,
     progress: Callable[[int, int], None] | None = None,
+    target_radius: float | None = None,
 ) -> EstimateResult:
-    """Run every requested method on every marker of a clip and write estimates and metrics."""
+    """Run every requested method on every marker of a clip and write estimates and metrics.
+
+    Point methods run on each marker; on clips with a four-point target the target methods
+    (raw measurement, Kalman–Bucy, PnP + KF) run on its four labelled points too.
+    """
     clip = Path(clip)
     out_dir = Path(out_dir) if out_dir else clip / "out"
     rig = load_calibration(clip)
@@ -99,11 +145,29 @@ def estimate_clip(
         raise StereotrackError("detections.csv holds no detections", det_path)
     n = max(len(v) for v in obs.values())
     obs = {k: np.vstack([v, np.full((n - len(v), 4), np.nan)]) for k, v in obs.items()}
-    methods = methods or list(POINT_METHODS)
+    target = find_target(clip, target_radius, obs)
+    methods = methods or list(POINT_METHODS) + (list(TARGET_METHODS) if target else [])
+    unknown = [m for m in methods if m not in POINT_METHODS and m not in TARGET_METHODS]
+    if unknown:
+        create(unknown[0], rig, dt)  # raises the clear "unknown method" error
     configs = configs or {}
     tracks: dict[str, dict[str, Track]] = {}
-    done, total = 0, len(methods) * len(obs)
-    for m in methods:
+    target_tracks: dict[str, Track] = {}
+    point_methods = [m for m in methods if m in POINT_METHODS]
+    target_methods = [m for m in methods if m in TARGET_METHODS]
+    if target_methods and target is None:
+        raise StereotrackError(f"{', '.join(target_methods)} need a four-point target; this clip has none", clip)
+    done, total = 0, len(point_methods) * len(obs) + len(target_methods)
+    for m in target_methods:
+        assert target is not None
+        Yt = np.stack([obs.get(f"{target.name}_{j}", np.full((n, 4), np.nan)) for j in range(1, 5)], axis=1)
+        cfg = {"radius": target.radius, **(target.config if m != "four_point" else {}), **configs.get(m, {})}
+        target_tracks[m] = create(m, rig, dt, cfg).run(Yt)
+        _write_target_estimates(out_dir / "estimates" / f"{m}.csv", target.name, target_tracks[m], dt)
+        done += 1
+        if progress is not None:
+            progress(done, total)
+    for m in point_methods:
         tracks[m] = {}
         for marker, Y in obs.items():
             tracks[m][marker] = create(m, rig, dt, configs.get(m)).run(Y)
@@ -111,7 +175,7 @@ def estimate_clip(
             if progress is not None:
                 progress(done, total)
         _write_estimates(out_dir / "estimates" / f"{m}.csv", tracks[m], dt)
-    result = EstimateResult(out_dir, rig, dt, n, obs, tracks, truth)
+    result = EstimateResult(out_dir, rig, dt, n, obs, tracks, truth, target, target_tracks)
     result.metrics = compute_metrics(result)
     write_json(out_dir / "metrics.json", result.metrics)
     return result
@@ -124,6 +188,21 @@ def _write_estimates(path: Path, tracks: dict[str, Track], dt: float) -> None:
                 yield (k, k * dt, marker, *tr.position[k], *tr.velocity[k])
 
     write_csv(path, ESTIMATE_COLUMNS, rows())
+
+
+def _write_target_estimates(path: Path, name: str, tr: Track, dt: float) -> None:
+    def rows():
+        for k in range(len(tr.position)):
+            yield (k, k * dt, name, *tr.position[k], *tr.velocity[k], tr.extra["alpha"][k], tr.extra["distance"][k])
+
+    write_csv(path, TARGET_COLUMNS, rows())
+
+
+def rmse(a: np.ndarray, b: np.ndarray) -> float | None:
+    """RMSE over frames where both are finite (None when there are none)."""
+    d = np.asarray(a, float)[: len(b)] - np.asarray(b, float)[: len(a)]
+    d = d[np.isfinite(d)]
+    return float(np.sqrt(np.mean(d**2))) if d.size else None
 
 
 def compute_metrics(res: EstimateResult) -> dict[str, Any]:
@@ -151,5 +230,14 @@ def compute_metrics(res: EstimateResult) -> dict[str, Any]:
                 entry.update(error_stats(np.vstack(est), np.vstack(tru)))
                 entry["final"] = float(np.nanmean([v["final"] for v in markers.values()]))
                 entry["markers"] = markers
+        out["methods"][m] = entry
+    for m, t in res.target_tracks.items():
+        entry = {"target": True, "seconds_per_step": t.seconds_per_step,
+                 "steps_per_second": 1.0 / t.seconds_per_step if t.seconds_per_step > 0 else None,
+                 "valid_frames": int(np.isfinite(t.extra["alpha"]).sum())}
+        tg = res.target
+        if tg is not None and tg.alpha is not None and tg.distance is not None:
+            entry["alpha_rmse_rad"] = rmse(t.extra["alpha"], tg.alpha)
+            entry["distance_rmse_m"] = rmse(t.extra["distance"], tg.distance)
         out["methods"][m] = entry
     return out

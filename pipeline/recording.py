@@ -38,6 +38,8 @@ def blueprint(methods: list[str]):
             rrb.Horizontal(
                 rrb.TimeSeriesView(name="3-D error (m)", origin="/metrics/error"),
                 rrb.TimeSeriesView(name="reprojection error (px)", origin="/metrics/reprojection"),
+                rrb.TimeSeriesView(name="target α (rad)", origin="/metrics/target/alpha"),
+                rrb.TimeSeriesView(name="target z (m)", origin="/metrics/target/distance"),
             ),
             row_shares=[3, 2],
         ),

@@ -43,11 +43,13 @@ def _fmt(v) -> str:
 
 def metrics_table(metrics: dict) -> str:
     """Markdown table of the per-method metrics."""
-    head = "| method | 3-D RMSE (m) | mean (m) | median (m) | final (m) | reproj. RMSE (px) | steps/s |"
-    lines = [head, "|" + "---|" * 7]
+    head = ("| method | 3-D RMSE (m) | mean (m) | median (m) | final (m) | reproj. RMSE (px) | α RMSE (rad) "
+            "| z RMSE (m) | steps/s |")
+    lines = [head, "|" + "---|" * 9]
     for m, e in metrics.get("methods", {}).items():
         lines.append(f"| {m} | {_fmt(e.get('rmse'))} | {_fmt(e.get('mean'))} | {_fmt(e.get('median'))} | "
-                     f"{_fmt(e.get('final'))} | {_fmt(e.get('reprojection_rmse_px'))} | {_fmt(e.get('steps_per_second'))} |")
+                     f"{_fmt(e.get('final'))} | {_fmt(e.get('reprojection_rmse_px'))} | {_fmt(e.get('alpha_rmse_rad'))} | "
+                     f"{_fmt(e.get('distance_rmse_m'))} | {_fmt(e.get('steps_per_second'))} |")
     return "\n".join(lines)
 
 
@@ -126,6 +128,28 @@ def write_report(clip: str | Path, out_dir: str | Path | None = None) -> Path:
         _save(fig, figdir / "image_tracks.png")
         plt.close(fig)
         figs.append(("Image-plane tracks", "figures/image_tracks.png"))
+
+    target_csvs = [f for f in sorted((out_dir / "estimates").glob("*.csv"))
+                   if "alpha" in (f.read_text().split("\n", 1)[0].split(","))]
+    if target_csvs:
+        fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+        if (clip / "target_truth.csv").is_file():
+            tt = read_csv(clip / "target_truth.csv")
+            axes[0].plot(tt["t"], tt["alpha"], "k-", lw=2.5, alpha=0.5, label="truth")
+            axes[1].plot(tt["t"], tt["distance"], "k-", lw=2.5, alpha=0.5, label="truth")
+        for c, f in enumerate(target_csvs):
+            cols = read_csv(f)
+            col = np.array(PALETTE[c % len(PALETTE)]) / 255
+            axes[0].plot(cols["t"], cols["alpha"], "-", color=col, lw=1, label=f.stem)
+            axes[1].plot(cols["t"], cols["distance"], "-", color=col, lw=1, label=f.stem)
+        axes[0].set(xlabel="t (s)", ylabel="α (rad)", title="target angle α")
+        axes[1].set(xlabel="t (s)", ylabel="z (m)", title="target distance z")
+        for ax in axes:
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=8)
+        _save(fig, figdir / "target.png")
+        plt.close(fig)
+        figs.append(("Four-point target: α and z", "figures/target.png"))
 
     lines = [f"# stereotrack report: {clip.name}", "",
              f"{metrics.get('frames', '?')} frames, dt = {metrics.get('dt', float('nan')):.4g} s; "

@@ -56,5 +56,11 @@ def process_clip(
         if images_in_recording:
             frames = ((f.index, f.left, f.right) for f in StereoFrameSource(clip, allow_unequal=True))
         truth = est.truth.positions if est.truth else None
-        rrd = write_recording(out_dir / "run.rrd", est.rig, est.dt, est.observations, est.tracks, truth, frames)
+        series = {}
+        for m, tr in est.target_tracks.items():
+            series[f"target/alpha/{m}"] = tr.extra["alpha"]
+            series[f"target/distance/{m}"] = tr.extra["distance"]
+        if est.target is not None and est.target.alpha is not None and est.target.distance is not None:
+            series["target/alpha/truth"], series["target/distance/truth"] = est.target.alpha, est.target.distance
+        rrd = write_recording(out_dir / "run.rrd", est.rig, est.dt, est.observations, est.tracks, truth, frames, series)
     return RunResult(clip, out_dir, det, est, report, rrd, time.perf_counter() - t0)

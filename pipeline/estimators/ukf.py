@@ -36,11 +36,10 @@ class UKFEstimator(Estimator):
             if x0 is None:
                 return Step(NAN3.copy(), NAN3.copy(), predicted=True)
             f.x, f.P = x0, initial_covariance(self.config)  # type: ignore[arg-type]
-            f.x_prior, f.P_prior = f.x.copy(), f.P.copy()
             self.initialized = True
-            f.sigmas_f = f.points_fn.sigma_points(f.x, f.P)  # the update transforms these
-        else:
-            f.predict()
+            # the start state is this frame's triangulation: no update on top of it
+            return Step(x0[:3].copy(), x0[3:].copy(), covariance=f.P.copy())
+        f.predict()
         rows = available_rows(y)
         if len(rows):
             f.update(y[rows], R=self.R[np.ix_(rows, rows)], hx=lambda x: self.rig.project(x[:3])[rows])

@@ -1,0 +1,244 @@
+"""Four-point planar target: angle α and distance z from the image (Soifer, Fursov & Kharitonov;
+SPEC §4.8), and the raw-measurement estimator.
+
+Points 1 and 3 lie on one plate axis, 2 and 4 on the rotation axis, all at radius R from the
+centre. With the centre on the optical axis at distance z and the plate turned by α, the image
+distances (focal length f) of points 1 and 3 from the 2–4 line are::
+
+    y1 = f R cos α / (z + R sin α),     y3 = f R cos α / (z − R sin α)
+
+Exact inversion, valid for any z (derived from the two equations above; ``f = 1`` in normalized
+image coordinates)::
+
+    tan α = f (1/y1 − 1/y3) / 2,         z = f R cos α (1/y1 + 1/y3) / 2
+
+The paper's eqs. (3)–(4), ``α = arcsin(f (y3 − y1) / (R (y3 + y1)))`` and ``z = 2Rf/(y1 + y3)``,
+follow from ``(y3 − y1)/(y3 + y1) = R sin α / z`` with z replaced by f: (3) is exact only at
+``z = f``, and (4) only at ``α = 0`` (at ``z = f`` it returns ``(f² − R² sin² α)/(f cos α)``).
+They are kept as ``formula="paper"`` to measure that bias.
+
+General configurations (the paper's ellipse construction): the centre's image is the intersection
+of the image lines 1–3 and 2–4 (incidence survives projection); a virtual rotation of the camera
+about its centre brings that ray onto the optical axis (the centre-offset correction), the 2–4
+line gives the in-image axis direction, and y1, y3 are the distances of points 1 and 3 from it
+in the rotated image. α and the centre are then mapped back to the reference (left) camera.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from pipeline.camera import Camera, StereoRig
+from pipeline.errors import StereotrackError
+from pipeline.estimators.base import EstimatorConfig, Track
+
+Formula = Literal["exact", "paper"]
+
+
+def alpha_z_from_y(y1: float, y3: float, R: float, f: float = 1.0, formula: Formula = "exact") -> tuple[float, float, str]:
+    """(α, z, flag) from the distances y1, y3 (same units as f). ``flag`` is "" when valid, else
+    why not (degenerate geometry, |arcsin argument| > 1 under noise)."""
+    if not (math.isfinite(y1) and math.isfinite(y3)) or y1 <= 0 or y3 <= 0:
+        return math.nan, math.nan, "degenerate: points 1 and 3 not on opposite sides of the 2–4 axis"
+    if formula == "exact":
+        a = math.atan(f * (1.0 / y1 - 1.0 / y3) / 2.0)
+        return a, f * R * math.cos(a) * (1.0 / y1 + 1.0 / y3) / 2.0, ""
+    s = f * (y3 - y1) / (R * (y3 + y1))
+    flag = ""
+    if abs(s) > 1:
+        flag = "arcsin argument beyond ±1 (clipped)"
+        s = math.copysign(1.0, s)
+    return math.asin(s), 2.0 * R * f / (y1 + y3), flag
+
+
+def _rotation_to_axis(ray: np.ndarray) -> np.ndarray:
+    """Rotation taking direction ``ray`` onto +z (Rodrigues), identity when already there."""
+    r = ray / np.linalg.norm(ray)
+    v = np.cross(r, [0.0, 0.0, 1.0])
+    s, c = np.linalg.norm(v), r[2]
+    if s < 1e-15:
+        return np.eye(3)
+    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + vx + vx @ vx * ((1 - c) / s**2)
+
+
+@dataclass
+class TargetMeasurement:
+    """One camera's (or the fused) measurement in the reference camera's frame."""
+
+    alpha: float
+    distance: float  # z coordinate of the plate centre in the reference frame
+    center: np.ndarray  # plate centre, reference frame
+    axis_angle: float  # in-image angle of the 2–4 axis
+    flag: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return math.isfinite(self.alpha) and math.isfinite(self.distance)
+
+
+INVALID = TargetMeasurement(math.nan, math.nan, np.full(3, math.nan), math.nan, "no measurement")
+
+
+def measure_camera(points: np.ndarray, cam: Camera, R: float, formula: Formula = "exact",
+                   to_reference: np.ndarray | None = None) -> TargetMeasurement:
+    """α and z from one camera's four labelled pixel points (4×2, undistorted).
+
+    ``to_reference`` (4×4) maps this camera's frame to the reference frame (identity for the
+    left camera).
+    """
+    if points.shape != (4, 2) or not np.all(np.isfinite(points)):
+        return TargetMeasurement(math.nan, math.nan, np.full(3, math.nan), math.nan, "fewer than four points")
+    n = cam.normalize(points)
+    h = np.column_stack([n, np.ones(4)])
+    c = np.cross(np.cross(h[0], h[2]), np.cross(h[1], h[3]))  # centre = line13 ∩ line24
+    if abs(c[2]) < 1e-12 * np.linalg.norm(c) or not np.all(np.isfinite(c)):
+        return TargetMeasurement(math.nan, math.nan, np.full(3, math.nan), math.nan, "degenerate: collinear points")
+    c = c / c[2]
+    Rv = _rotation_to_axis(c)  # virtual camera looking at the centre
+    q = h @ Rv.T
+    q = q[:, :2] / q[:, 2:3]
+    # each opposite pair (p, m) = images of C ± R v lies on a line through the (virtual) centre;
+    # its distances r_p, r_m from the centre invert exactly like y1, y3: tilt β of v out of the
+    # image plane and the distance D (the same equations as the exact α, z above).
+    vecs, dists, rs = [], [], []
+    for p_, m_ in ((0, 2), (1, 3)):
+        e = q[p_] - q[m_]
+        if np.linalg.norm(e) < 1e-12:
+            return TargetMeasurement(math.nan, math.nan, np.full(3, math.nan), math.nan, "degenerate: coincident points")
+        e /= np.linalg.norm(e)
+        r_p, r_m = float(q[p_] @ e), float(-(q[m_] @ e))
+        rs.append((r_p, r_m))
+        beta, dist, flag = alpha_z_from_y(r_p, r_m, R, 1.0, "exact")
+        if flag:
+            return TargetMeasurement(math.nan, math.nan, np.full(3, math.nan), math.nan, flag)
+        vecs.append(np.array([math.cos(beta) * e[0], math.cos(beta) * e[1], math.sin(beta)]))
+        dists.append(dist)
+    a_v, b_v = vecs
+    phi_v = math.atan2(b_v[1], b_v[0])
+    if formula == "paper":
+        # eqs. (3)–(4) on the distances of points 1 and 3 from the 2–4 line
+        e = b_v[:2] / np.linalg.norm(b_v[:2])
+        up = np.array([e[1], -e[0]])
+        alpha_p, dist_v, flag = alpha_z_from_y(float(q[0] @ up), float(-(q[2] @ up)), R, 1.0, "paper")
+        if not math.isfinite(alpha_p):
+            return TargetMeasurement(math.nan, math.nan, np.full(3, math.nan), phi_v, flag)
+        c_, s_ = math.cos(phi_v), math.sin(phi_v)
+        Rz = np.array([[c_, -s_, 0.0], [s_, c_, 0.0], [0.0, 0.0, 1.0]])
+        normal_v = Rz @ np.array([0.0, -math.sin(alpha_p), -math.cos(alpha_p)])
+        axis_v = np.array([math.cos(phi_v), math.sin(phi_v), 0.0])
+    else:
+        flag = ""
+        dist_v = float(np.mean(dists))
+        normal_v = np.cross(a_v, b_v)  # (0,−cos α, sin α) × (1,0,0) = (0, sin α, cos α): flip to face the camera
+        normal_v = -normal_v / np.linalg.norm(normal_v)
+        axis_v = b_v
+    normal, axis, center = Rv.T @ normal_v, Rv.T @ axis_v, Rv.T @ np.array([0.0, 0.0, dist_v])
+    if to_reference is not None:
+        normal, axis = to_reference[:3, :3] @ normal, to_reference[:3, :3] @ axis
+        center = to_reference[:3, :3] @ center + to_reference[:3, 3]
+    alpha, axis_angle = alpha_from_normal(normal, axis)
+    return TargetMeasurement(alpha, float(center[2]), center, axis_angle, flag)
+
+
+def alpha_from_normal(normal: np.ndarray, axis: np.ndarray) -> tuple[float, float]:
+    """α and the in-image axis angle φ of a plate with unit ``normal`` turning about ``axis``,
+    inverting ``n = Rz(φ) (0, −sin α, −cos α)`` of :func:`renderers.motion.target_points`."""
+    phi = math.atan2(axis[1], axis[0])
+    c, s = math.cos(phi), math.sin(phi)
+    n_local = np.array([c * normal[0] + s * normal[1], -s * normal[0] + c * normal[1], normal[2]])
+    return math.atan2(-n_local[1], -n_local[2]), phi
+
+
+def camera_to_left(rig: StereoRig, index: int) -> np.ndarray:
+    """4×4 transform from camera ``index``'s frame to the left (reference) frame."""
+    T = np.eye(4)
+    if index == 1:
+        T[:3, :3] = rig.R.T
+        T[:3, 3] = -rig.R.T @ rig.T
+    return T
+
+
+def measure_stereo(rig: StereoRig, obs: np.ndarray, R: float, formula: Formula = "exact",
+                   cameras: Literal["left", "right", "both"] = "both") -> TargetMeasurement:
+    """Measurement from one frame's observation (4 points × [u1, v1, u2, v2]); ``both`` averages
+    the cameras' valid measurements."""
+    idx = {"left": [0], "right": [1], "both": [0, 1]}[cameras]
+    ms = [measure_camera(obs[:, 2 * c : 2 * c + 2], rig.cameras[c], R, formula, camera_to_left(rig, c)) for c in idx]
+    good = [m for m in ms if m.ok]
+    if not good:
+        return TargetMeasurement(math.nan, math.nan, np.full(3, math.nan), math.nan,
+                                 "; ".join(sorted({m.flag for m in ms if m.flag})) or "no measurement")
+    if len(good) == 1:
+        return good[0]
+    return TargetMeasurement(float(np.mean([m.alpha for m in good])), float(np.mean([m.distance for m in good])),
+                             np.mean([m.center for m in good], axis=0), good[0].axis_angle,
+                             "; ".join(m.flag for m in good if m.flag))
+
+
+class TargetConfig(EstimatorConfig):
+    """Settings of the four-point target methods."""
+
+    radius: float = Field(0.2, gt=0)  # R, metres
+    formula: Formula = "exact"
+    cameras: Literal["left", "right", "both"] = "both"
+
+
+class TargetEstimator:
+    """Base of the four-point methods: observations are frames × 4 points × [u1, v1, u2, v2]."""
+
+    name = "four_point"
+    Config: type[TargetConfig] = TargetConfig
+    point_method = False
+
+    def __init__(self, rig: StereoRig, dt: float, config: TargetConfig | dict | None = None) -> None:
+        if not dt > 0:
+            raise StereotrackError(f"time step must be positive, got {dt}")
+        self.rig, self.dt = rig, float(dt)
+        self.config = config if isinstance(config, self.Config) else self.Config.model_validate(config or {})
+        self.reset()
+
+    def reset(self) -> None:
+        self.initialized = False
+
+    def measure(self, obs: np.ndarray) -> TargetMeasurement:
+        c = self.config
+        return measure_stereo(self.rig, np.asarray(obs, dtype=float), c.radius, c.formula, c.cameras)
+
+    def step(self, obs: np.ndarray) -> tuple[float, float, np.ndarray, bool]:
+        """(α, z, centre, predicted) for one frame."""
+        m = self.measure(obs)
+        return m.alpha, m.distance, m.center, not m.ok
+
+    def run(self, Y: np.ndarray) -> Track:
+        Y = np.asarray(Y, dtype=float)
+        if Y.ndim != 3 or Y.shape[1:] != (4, 4):
+            raise StereotrackError(f"four-point observations must be frames × 4 points × 4, got shape {Y.shape}")
+        self.reset()
+        n = len(Y)
+        alpha, dist = np.full(n, np.nan), np.full(n, np.nan)
+        center, pred = np.full((n, 3), np.nan), np.zeros(n, dtype=bool)
+        t0 = time.perf_counter()
+        for k in range(n):
+            alpha[k], dist[k], center[k], pred[k] = self.step(Y[k])
+        sec = (time.perf_counter() - t0) / max(n, 1)
+        nan = np.full(n, np.nan)
+        return Track(self.name, center, np.full((n, 3), np.nan), nan, nan.copy(), pred, sec,
+                     {"alpha": alpha, "distance": dist})
+
+
+TARGET_REGISTRY: dict[str, type[TargetEstimator]] = {}
+
+
+def register_target(cls: type[TargetEstimator]) -> type[TargetEstimator]:
+    TARGET_REGISTRY[cls.name] = cls
+    return cls
+
+
+register_target(TargetEstimator)

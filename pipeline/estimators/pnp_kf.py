@@ -1,0 +1,126 @@
+"""The practitioner's baseline for the four-point target: planar PnP then a discrete Kalman filter.
+
+``cv2.solvePnPGeneric(..., SOLVEPNP_IPPE_SQUARE)`` returns both poses of a planar target consistent with
+the image (the well-known two-fold ambiguity); we keep the one nearer the previous frame's pose
+(the lower reprojection error on the first frame), convert it to α and z in the left camera's
+frame, and filter [α, α̇, z, ż] with ``filterpy.kalman.KalmanFilter`` on the same second-order
+channel models as the Kalman–Bucy filter, discretised exactly (``expm`` / Van Loan).
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+from filterpy.kalman import KalmanFilter
+from scipy.linalg import expm
+
+from pipeline.estimators.four_point import (
+    TargetEstimator,
+    TargetMeasurement,
+    alpha_from_normal,
+    camera_to_left,
+    register_target,
+)
+from pipeline.estimators.kalman_bucy import C4, G4, KalmanBucyConfig, block_diag2, channel_matrix
+
+
+#: IPPE_SQUARE wants the corners of a square of side s = R√2 in its own order; our points
+#: 1 (up), 2 (right), 3 (down), 4 (left) are that square turned by 45°: pass them as 4, 1, 2, 3.
+SQUARE_ORDER = [3, 0, 1, 2]
+#: the 2–4 axis (towards point 2) in the square's frame
+AXIS_IN_SQUARE = np.array([1.0, -1.0, 0.0]) / np.sqrt(2.0)
+
+
+def object_points(R: float) -> np.ndarray:
+    """Square corners for ``SOLVEPNP_IPPE_SQUARE``; the square's z axis faces the camera."""
+    h = R / np.sqrt(2.0)
+    return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
+
+
+def van_loan(A: np.ndarray, GQG: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact discretisation (F, Q_d) of ``ẋ = A x + w`` with white-noise density GQGᵀ."""
+    n = A.shape[0]
+    M = np.zeros((2 * n, 2 * n))
+    M[:n, :n], M[:n, n:], M[n:, n:] = -A, GQG, A.T
+    E = expm(M * dt)
+    F = E[n:, n:].T
+    return F, F @ E[:n, n:]
+
+
+@register_target
+class PnPKFEstimator(TargetEstimator):
+    """IPPE-square planar PnP per camera (averaged over cameras) → discrete KF on [α, α̇, z, ż]."""
+
+    name = "pnp_kf"
+    Config = KalmanBucyConfig
+
+    def reset(self) -> None:
+        super().reset()
+        c: KalmanBucyConfig = self.config  # type: ignore[assignment]
+        A = block_diag2(channel_matrix(c.a_alpha, c.alpha_feedback), channel_matrix(c.a_z, c.z_feedback))
+        F, Qd = van_loan(A, G4 @ np.diag([c.q_alpha, c.q_z]) @ G4.T, self.dt)
+        self.kf = KalmanFilter(dim_x=4, dim_z=2)
+        self.kf.F, self.kf.Q, self.kf.H = F, Qd, C4
+        self.kf.R = np.diag([c.sigma_alpha**2, c.sigma_z**2])
+        self.prev_normals: dict[int, np.ndarray] = {}
+
+    def pnp(self, obs: np.ndarray) -> TargetMeasurement:
+        """α, z and centre from PnP on each available camera, averaged in the left frame."""
+        c: KalmanBucyConfig = self.config  # type: ignore[assignment]
+        idx = {"left": [0], "right": [1], "both": [0, 1]}[c.cameras]
+        alphas, dists, centers = [], [], []
+        for ci in idx:
+            pts = obs[:, 2 * ci : 2 * ci + 2]
+            if not np.all(np.isfinite(pts)):
+                continue
+            cam = self.rig.cameras[ci]
+            try:
+                n_sol, rvecs, tvecs, errs = cv2.solvePnPGeneric(
+                    object_points(c.radius), np.ascontiguousarray(pts[SQUARE_ORDER]), cam.K, None,
+                    flags=cv2.SOLVEPNP_IPPE_SQUARE,
+                )
+            except cv2.error:
+                continue
+            if not n_sol:
+                continue
+            to_left = camera_to_left(self.rig, ci)
+            cands = []
+            for rv, tv, err in zip(rvecs, tvecs, np.ravel(errs), strict=True):
+                Rt, _ = cv2.Rodrigues(rv)
+                Rl = to_left[:3, :3] @ Rt
+                center = to_left[:3, :3] @ tv.ravel() + to_left[:3, 3]
+                normal = Rl[:, 2]  # x × y: towards the camera
+                cands.append((Rl, center, normal, float(err)))
+            prev = self.prev_normals.get(ci)
+            if prev is not None:
+                best = max(cands, key=lambda cd: float(cd[2] @ prev))
+            else:
+                best = min(cands, key=lambda cd: cd[3])
+            self.prev_normals[ci] = best[2]
+            alpha, _ = alpha_from_normal(best[2], best[0] @ AXIS_IN_SQUARE)
+            alphas.append(alpha)
+            dists.append(best[1][2])
+            centers.append(best[1])
+        if not alphas:
+            return TargetMeasurement(math.nan, math.nan, np.full(3, math.nan), math.nan, "no PnP solution")
+        return TargetMeasurement(float(np.mean(alphas)), float(np.mean(dists)), np.mean(centers, axis=0), math.nan)
+
+    def step(self, obs: np.ndarray) -> tuple[float, float, np.ndarray, bool]:
+        c: KalmanBucyConfig = self.config  # type: ignore[assignment]
+        m = self.pnp(np.asarray(obs, dtype=float))
+        if not self.initialized:
+            if not m.ok:
+                return math.nan, math.nan, np.full(3, math.nan), True
+            self.kf.x = np.array([[m.alpha], [0.0], [m.distance], [0.0]])
+            self.kf.P = np.diag([c.sigma_alpha**2, c.sigma_rate0**2, c.sigma_z**2, c.sigma_rate0**2])
+            self.initialized = True
+            self._center_dir = m.center / m.center[2]
+            return m.alpha, m.distance, m.center, False
+        self.kf.predict()
+        if m.ok:
+            self.kf.update(np.array([[m.alpha], [m.distance]]))
+            self._center_dir = m.center / m.center[2]
+        x = self.kf.x.ravel()
+        return float(x[0]), float(x[2]), self._center_dir * x[2], not m.ok
