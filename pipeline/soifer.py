@@ -97,6 +97,7 @@ def run_once(alpha0: float, snr_db: float, settings: FilterSettings, rng: np.ran
         P = np.diag([var, settings.rate_sigma0**2])
     est = np.full(len(alpha), np.nan)
     x = None
+    u_prev = None
     for k, m in enumerate(meas):
         u = np.array([m]) if np.isfinite(m) else None
         if x is None:
@@ -104,6 +105,7 @@ def run_once(alpha0: float, snr_db: float, settings: FilterSettings, rng: np.ran
                 continue
             x = np.array([m, 0.0])  # initialised from the first measurement
             est[k] = m
+            u_prev = u
             continue
         if settings.adaptive_r:
             yy1, yy3 = y_coordinates(np.array([x[0]]))
@@ -111,7 +113,8 @@ def run_once(alpha0: float, snr_db: float, settings: FilterSettings, rng: np.ran
         if settings.gain == "riccati":
             K = P @ C_A.T @ Rinv
             P = riccati_step(P, DT, A_CL, C_A, GQG, Rinv, settings.integration)  # type: ignore[arg-type]
-        x = filter_step(x, u, DT, A_CL, K, C_A, settings.integration)  # type: ignore[arg-type]
+        x = filter_step(x, u, DT, A_CL, K, C_A, settings.integration, u_prev)  # type: ignore[arg-type]
+        u_prev = u
         est[k] = x[0]
     return alpha, meas, est
 

@@ -98,7 +98,7 @@ def measure_camera(points: np.ndarray, cam: Camera, R: float, formula: Formula =
     n = cam.normalize(points)
     h = np.column_stack([n, np.ones(4)])
     c = np.cross(np.cross(h[0], h[2]), np.cross(h[1], h[3]))  # centre = line13 ∩ line24
-    if abs(c[2]) < 1e-12 * np.linalg.norm(c) or not np.all(np.isfinite(c)):
+    if not np.all(np.isfinite(c)) or abs(c[2]) <= 1e-12 * np.linalg.norm(c) or not np.any(c):
         return TargetMeasurement(math.nan, math.nan, np.full(3, math.nan), math.nan, "degenerate: collinear points")
     c = c / c[2]
     Rv = _rotation_to_axis(c)  # virtual camera looking at the centre
@@ -139,6 +139,9 @@ def measure_camera(points: np.ndarray, cam: Camera, R: float, formula: Formula =
         normal_v = np.cross(a_v, b_v)  # (0,−cos α, sin α) × (1,0,0) = (0, sin α, cos α): flip to face the camera
         normal_v = -normal_v / np.linalg.norm(normal_v)
         axis_v = b_v
+    if normal_v[2] >= 0:
+        return TargetMeasurement(math.nan, math.nan, np.full(3, math.nan), phi_v,
+                                 "inconsistent labels: the plate would face away from the camera")
     normal, axis, center = Rv.T @ normal_v, Rv.T @ axis_v, Rv.T @ np.array([0.0, 0.0, dist_v])
     if to_reference is not None:
         normal, axis = to_reference[:3, :3] @ normal, to_reference[:3, :3] @ axis

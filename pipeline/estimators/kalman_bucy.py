@@ -11,8 +11,8 @@ State ``x = [α, α̇, z, ż]``, measurement ``u = C x + v`` with ``C = [[1,0,0,
 ``R`` is the measurement noise *density*: samples of variance σ² every dt act like a density
 σ²·dt. Integration between samples (measurement held over the step): ``euler`` — the paper's
 first-order differences — or ``exact`` — the matrix exponential of the closed loop ``A − K C``
-with its input integral (Van Loan's block exponential), and RK4 sub-steps for the Riccati
-equation. The channels are independent in this model, so "separate" and "joint" coincide
+with the samples interpolated linearly in between (a block exponential), and the Hamiltonian matrix exponential
+for the Riccati equation. The channels are independent in this model, so "separate" and "joint" coincide
 numerically; the joint 4-state form is what runs.
 """
 
@@ -73,32 +73,66 @@ def riccati_rhs(P: np.ndarray, A: np.ndarray, C: np.ndarray, GQG: np.ndarray, Ri
     return A @ P + P @ A.T + GQG - P @ C.T @ Rinv @ C @ P
 
 
-def riccati_step(P: np.ndarray, dt: float, A, C, GQG, Rinv, method: Literal["euler", "exact"], substeps: int = 8) -> np.ndarray:
-    """Advance the Riccati differential equation by dt (Euler, or RK4 sub-steps)."""
+def riccati_step(P: np.ndarray, dt: float, A, C, GQG, Rinv, method: Literal["euler", "exact"]) -> np.ndarray:
+    """Advance the Riccati differential equation by dt.
+
+    ``exact``: with ``P = Y X⁻¹`` the equation is linear, ``d/dt [X; Y] = [[−Aᵀ, S], [GQGᵀ, A]] [X; Y]``
+    (``S = Cᵀ R⁻¹ C``), so one matrix exponential of this Hamiltonian from ``[I; P]`` gives
+    ``P(t + dt)`` exactly, however stiff a small R makes the equation. ``euler``: the paper's
+    first-order difference (unstable when dt·‖P S‖ is large: a clear error then).
+    """
     if method == "euler":
-        return P + dt * riccati_rhs(P, A, C, GQG, Rinv)
-    h = dt / substeps
-    for _ in range(substeps):
-        k1 = riccati_rhs(P, A, C, GQG, Rinv)
-        k2 = riccati_rhs(P + h / 2 * k1, A, C, GQG, Rinv)
-        k3 = riccati_rhs(P + h / 2 * k2, A, C, GQG, Rinv)
-        k4 = riccati_rhs(P + h * k3, A, C, GQG, Rinv)
-        P = P + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-    return 0.5 * (P + P.T)
+        Pn = P + dt * riccati_rhs(P, A, C, GQG, Rinv)
+        if not np.all(np.isfinite(Pn)) or np.min(np.linalg.eigvalsh(0.5 * (Pn + Pn.T))) < -1e-12 * max(1.0, np.abs(Pn).max()):
+            raise StereotrackError("Euler step of the Riccati equation is unstable for this dt and measurement noise; "
+                                   "use integration 'exact'")
+        return Pn
+    n = A.shape[0]
+    S = C.T @ Rinv @ C
+    H = np.block([[-A.T, S], [GQG, A]])
+    E = expm(H * dt)
+    X = E[:n, :n] + E[:n, n:] @ P
+    Y = E[n:, :n] + E[n:, n:] @ P
+    Pn = np.linalg.solve(X.T, Y.T).T
+    return 0.5 * (Pn + Pn.T)
 
 
-def filter_step(x: np.ndarray, u: np.ndarray | None, dt: float, A, K, C, method: Literal["euler", "exact"]) -> np.ndarray:
-    """Integrate ``dx̂/dt = A x̂ + K (u − C x̂)`` over dt with u held (None: model only)."""
+def filter_step(x: np.ndarray, u: np.ndarray | None, dt: float, A, K, C, method: Literal["euler", "exact"],
+                u_prev: np.ndarray | None = None) -> np.ndarray:
+    """Integrate ``dx̂/dt = A x̂ + K (u(t) − C x̂)`` from one sample to the next.
+
+    ``euler``: the paper's first-order difference with the sample held. ``exact``: the matrix
+    exponential of the closed loop ``F = A − K C`` with the input interpolated linearly between
+    the previous sample ``u_prev`` and this one ``u`` (first-order hold; held at ``u`` when there
+    is no previous sample), from one block exponential ``expm([[F, K, 0], [0, 0, I], [0, 0, 0]] dt)``.
+    With no sample (``u`` None) the model alone propagates the state.
+    """
     if u is None:
         return x + dt * (A @ x) if method == "euler" else expm(A * dt) @ x
     F = A - K @ C
     if method == "euler":
-        return x + dt * (F @ x + K @ u)
+        return x + dt * (F @ x + K @ (u if u_prev is None else u_prev))
     n, m = F.shape[0], K.shape[1]
-    M = np.zeros((n + m, n + m))
-    M[:n, :n], M[:n, n:] = F, K
-    E = expm(M * dt)  # [[e^{F dt}, ∫ e^{F s} ds K], [0, I]]
-    return E[:n, :n] @ x + E[:n, n:] @ u
+    M = np.zeros((n + 2 * m, n + 2 * m))
+    M[:n, :n], M[:n, n : n + m], M[n : n + m, n + m :] = F, K, np.eye(m)
+    E = expm(M * dt)
+    u0 = u if u_prev is None else u_prev
+    return E[:n, :n] @ x + E[:n, n : n + m] @ u0 + E[:n, n + m :] @ (u - u0) / dt
+
+
+def propagated_variance(measure, obs: np.ndarray, m0, pixel_sigma: float, eps: float = 0.01) -> tuple[float, float]:
+    """First-order variance of (α, z) from independent pixel noise of std ``pixel_sigma``:
+    ``σ² Σᵢ (∂m/∂pᵢ)²`` by finite differences over every observed pixel coordinate."""
+    va = vz = 0.0
+    for idx in zip(*np.nonzero(np.isfinite(obs)), strict=True):
+        o = obs.copy()
+        o[idx] += eps
+        m = measure(o)
+        if m.ok:
+            va += ((m.alpha - m0.alpha) / eps) ** 2
+            vz += ((m.distance - m0.distance) / eps) ** 2
+    s2 = pixel_sigma**2
+    return max(va * s2, 1e-12), max(vz * s2, 1e-12)
 
 
 class KalmanBucyConfig(TargetConfig):
@@ -109,11 +143,14 @@ class KalmanBucyConfig(TargetConfig):
     a_z: float = -0.2
     z_feedback: tuple[float, float] = (0.0, 0.0)
     #: process-noise densities of the α̈ and z̈ inputs
-    q_alpha: float = Field(0.05, ge=0)
-    q_z: float = Field(0.05, ge=0)
-    #: measurement noise std of α (rad) and z (m) per sample
-    sigma_alpha: float = Field(0.02, gt=0)
-    sigma_z: float = Field(0.01, gt=0)
+    q_alpha: float = Field(0.01, ge=0)
+    q_z: float = Field(0.01, ge=0)
+    #: measurement noise std of α (rad) and z (m) per sample; None: propagated from ``pixel_sigma``
+    #: through the measurement's Jacobian at the first frame
+    sigma_alpha: float | None = Field(None, gt=0)
+    sigma_z: float | None = Field(None, gt=0)
+    #: std of the detections (px), for the propagated measurement noise
+    pixel_sigma: float = Field(0.3, gt=0)
     gain: Literal["steady", "riccati"] = "riccati"
     integration: Literal["euler", "exact"] = "exact"
     #: initial std of the rates (α̇ rad/s, ż m/s); the levels start from the first measurement
@@ -133,11 +170,24 @@ class KalmanBucyEstimator(TargetEstimator):
         self.A = block_diag2(channel_matrix(c.a_alpha, c.alpha_feedback), channel_matrix(c.a_z, c.z_feedback))
         check_model(self.A, C4)
         self.GQG = G4 @ np.diag([c.q_alpha, c.q_z]) @ G4.T
-        self.R = np.diag([c.sigma_alpha**2, c.sigma_z**2]) * self.dt  # density of sampled noise
+        self.x = np.zeros(4)
+        if c.sigma_alpha is not None and c.sigma_z is not None:
+            self._set_noise(c.sigma_alpha**2, c.sigma_z**2)
+
+    def _set_noise(self, var_alpha: float, var_z: float) -> None:
+        c: KalmanBucyConfig = self.config  # type: ignore[assignment]
+        self.meas_var = np.array([var_alpha, var_z])
+        self.R = np.diag(self.meas_var) * self.dt  # density of sampled noise
         self.Rinv = np.linalg.inv(self.R)
         if c.gain == "steady":
             self.K, self.P = steady_state_gain(self.A, C4, self.GQG, self.R)
-        self.x = np.zeros(4)
+
+    def _start(self, obs: np.ndarray, m) -> None:
+        """Measurement noise for the first frame (propagated from pixels unless configured)."""
+        c: KalmanBucyConfig = self.config  # type: ignore[assignment]
+        if c.sigma_alpha is None or c.sigma_z is None:
+            va, vz = propagated_variance(self.measure, obs, m, c.pixel_sigma)
+            self._set_noise(c.sigma_alpha**2 if c.sigma_alpha else va, c.sigma_z**2 if c.sigma_z else vz)
 
     def step(self, obs: np.ndarray) -> tuple[float, float, np.ndarray, bool]:
         c: KalmanBucyConfig = self.config  # type: ignore[assignment]
@@ -145,9 +195,11 @@ class KalmanBucyEstimator(TargetEstimator):
         if not self.initialized:
             if not m.ok:
                 return math.nan, math.nan, np.full(3, math.nan), True
+            self._start(np.asarray(obs, dtype=float), m)
             self.x = np.array([m.alpha, 0.0, m.distance, 0.0])
+            self._u_prev = np.array([m.alpha, m.distance])
             if c.gain == "riccati":
-                self.P = np.diag([c.sigma_alpha**2, c.sigma_rate0**2, c.sigma_z**2, c.sigma_rate0**2])
+                self.P = np.diag([self.meas_var[0], c.sigma_rate0**2, self.meas_var[1], c.sigma_rate0**2])
                 self.K = self.P @ C4.T @ self.Rinv
             self.initialized = True
             self._center_dir = m.center / m.center[2]
@@ -159,7 +211,8 @@ class KalmanBucyEstimator(TargetEstimator):
                 self.P = riccati_step(self.P, self.dt, self.A, C4, self.GQG, self.Rinv, c.integration)
             else:  # no measurement: the covariance grows with the model only
                 self.P = riccati_step(self.P, self.dt, self.A, np.zeros_like(C4), self.GQG, self.Rinv, c.integration)
-        self.x = filter_step(self.x, u, self.dt, self.A, self.K, C4, c.integration)
+        self.x = filter_step(self.x, u, self.dt, self.A, self.K, C4, c.integration, self._u_prev)
+        self._u_prev = u
         if m.ok:
             self._center_dir = m.center / m.center[2]
         return float(self.x[0]), float(self.x[2]), self._center_dir * self.x[2], u is None

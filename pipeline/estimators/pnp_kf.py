@@ -23,7 +23,7 @@ from pipeline.estimators.four_point import (
     camera_to_left,
     register_target,
 )
-from pipeline.estimators.kalman_bucy import C4, G4, KalmanBucyConfig, block_diag2, channel_matrix
+from pipeline.estimators.kalman_bucy import C4, G4, KalmanBucyConfig, block_diag2, channel_matrix, propagated_variance
 
 
 #: IPPE_SQUARE wants the corners of a square of side s = R√2 in its own order; our points
@@ -63,7 +63,6 @@ class PnPKFEstimator(TargetEstimator):
         F, Qd = van_loan(A, G4 @ np.diag([c.q_alpha, c.q_z]) @ G4.T, self.dt)
         self.kf = KalmanFilter(dim_x=4, dim_z=2)
         self.kf.F, self.kf.Q, self.kf.H = F, Qd, C4
-        self.kf.R = np.diag([c.sigma_alpha**2, c.sigma_z**2])
         self.prev_normals: dict[int, np.ndarray] = {}
 
     def pnp(self, obs: np.ndarray) -> TargetMeasurement:
@@ -113,8 +112,15 @@ class PnPKFEstimator(TargetEstimator):
         if not self.initialized:
             if not m.ok:
                 return math.nan, math.nan, np.full(3, math.nan), True
+            var = [c.sigma_alpha**2 if c.sigma_alpha else None, c.sigma_z**2 if c.sigma_z else None]
+            if None in var:
+                saved = {k: v.copy() for k, v in self.prev_normals.items()}
+                va, vz = propagated_variance(self.pnp, np.asarray(obs, dtype=float), m, c.pixel_sigma)
+                self.prev_normals = saved
+                var = [var[0] or va, var[1] or vz]
+            self.kf.R = np.diag(var)
             self.kf.x = np.array([[m.alpha], [0.0], [m.distance], [0.0]])
-            self.kf.P = np.diag([c.sigma_alpha**2, c.sigma_rate0**2, c.sigma_z**2, c.sigma_rate0**2])
+            self.kf.P = np.diag([var[0], c.sigma_rate0**2, var[1], c.sigma_rate0**2])
             self.initialized = True
             self._center_dir = m.center / m.center[2]
             return m.alpha, m.distance, m.center, False
