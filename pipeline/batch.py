@@ -115,8 +115,10 @@ def run_batch(
     elif todo:
         from dask.distributed import Client, LocalCluster, as_completed
 
+        import logging
+
         cluster = LocalCluster(n_workers=max(1, workers), threads_per_worker=1, processes=True,
-                               dashboard_address=None) if scheduler == "local" else None
+                               dashboard_address=None, silence_logs=logging.WARNING) if scheduler == "local" else None
         try:
             with Client(cluster if cluster is not None else scheduler) as client:
                 futs = [client.submit(_process_one, *a, pure=False) for a in args]

@@ -119,6 +119,31 @@ def error_stats(est: np.ndarray, truth: np.ndarray) -> dict[str, float]:
             "final": float(e[-1]), "frames": int(ok.sum())}
 
 
+KALMAN_FAMILY = ("kf3d", "ekf", "ukf", "kalman_bucy", "pnp_kf")
+
+
+def estimate_pixel_sigma(rig: StereoRig, observations: dict[str, np.ndarray]) -> float | None:
+    """Detection noise (px) from the data: the DLT leaves one degree of freedom of the four
+    stereo coordinates, so the squared reprojection residual of a triangulated point is
+    ``σ² χ²(1)``; σ̂² is its mean over all frames and markers. None without stereo frames."""
+    from pipeline.estimators.triangulation import triangulate
+
+    sq = []
+    for Y in observations.values():
+        ok = np.all(np.isfinite(Y), axis=1)
+        if ok.any():
+            X = triangulate(rig, Y[ok])
+            good = np.all(np.isfinite(X), axis=1)
+            r = rig.project(X[good]) - Y[ok][good]
+            sq.append(np.sum(r**2, axis=1))
+    if not sq:
+        return None
+    allsq = np.concatenate(sq)
+    # a robust mean: drop the worst 2 % (mislabelled or occluded frames)
+    allsq = np.sort(allsq)[: max(1, int(0.98 * len(allsq)))]
+    return float(max(np.sqrt(np.mean(allsq)), 0.02))
+
+
 def estimate_clip(
     clip: str | Path,
     methods: list[str] | None = None,
@@ -150,7 +175,11 @@ def estimate_clip(
     unknown = [m for m in methods if m not in POINT_METHODS and m not in TARGET_METHODS]
     if unknown:
         create(unknown[0], rig, dt)  # raises the clear "unknown method" error
-    configs = configs or {}
+    configs = {k: dict(v) for k, v in (configs or {}).items()}
+    sigma = estimate_pixel_sigma(rig, obs)
+    if sigma is not None:  # the Kalman family's measurement noise, unless configured
+        for m in KALMAN_FAMILY:
+            configs.setdefault(m, {}).setdefault("pixel_sigma", sigma)
     tracks: dict[str, dict[str, Track]] = {}
     target_tracks: dict[str, Track] = {}
     point_methods = [m for m in methods if m in POINT_METHODS]
@@ -177,6 +206,7 @@ def estimate_clip(
         _write_estimates(out_dir / "estimates" / f"{m}.csv", tracks[m], dt)
     result = EstimateResult(out_dir, rig, dt, n, obs, tracks, truth, target, target_tracks)
     result.metrics = compute_metrics(result)
+    result.metrics["pixel_sigma_estimate"] = sigma
     write_json(out_dir / "metrics.json", result.metrics)
     return result
 

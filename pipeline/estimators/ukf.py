@@ -35,7 +35,14 @@ class UKFEstimator(Estimator):
             x0 = self.initial_state(y)
             if x0 is None:
                 return Step(NAN3.copy(), NAN3.copy(), predicted=True)
-            f.x, f.P = x0, initial_covariance(self.config)  # type: ignore[arg-type]
+            P0 = initial_covariance(self.config)  # type: ignore[arg-type]
+            if self.config.init.mode == "triangulation":
+                # start from the triangulation's own uncertainty: sigma points spread over metres
+                # would leave the region where h is nearly linear
+                J = self.rig.jacobian(x0[:3])
+                cfg: KalmanConfig = self.config  # type: ignore[assignment]
+                P0[:3, :3] = cfg.pixel_sigma**2 * np.linalg.inv(J.T @ J)
+            f.x, f.P = x0, P0
             self.initialized = True
             # the start state is this frame's triangulation: no update on top of it
             return Step(x0[:3].copy(), x0[3:].copy(), covariance=f.P.copy())

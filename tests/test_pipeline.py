@@ -1,0 +1,176 @@
+"""End to end: render → detect → estimate → metrics → report → recording, the CLI, and batch."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from pipeline.batch import find_clips, run_batch
+from pipeline.cli import app
+from pipeline.io import read_csv
+from pipeline.run import process_clip
+from renderers.render import render_clip
+from renderers.scenario import parse_scenario
+from tests.conftest import REPO
+
+METHODS = ["triangulation", "ekf", "kf3d", "spsa", "alphabeta"]
+
+
+def noisy_receding(seed: int = 1) -> dict:
+    """320×240, 40 frames, a small marker and strong sensor noise: triangulation is noisy here."""
+    return {"name": "e2e", "frames": 40, "fps": 30, "seed": seed,
+            "rig": {"width": 320, "height": 240, "focal": 300, "baseline": 0.25, "toe_in_deg": 2},
+            "render": {"noise_std": 8, "blur_sigma": 1.0},
+            "objects": [{"name": "red", "color": [230, 30, 30], "radius": 0.03,
+                         "motion": {"type": "constant_velocity", "start": [-0.2, 0.05, 2.0], "velocity": [0.2, 0.0, 1.2]}}]}
+
+
+@pytest.fixture(scope="module")
+def e2e_run(tmp_path_factory):
+    clip = tmp_path_factory.mktemp("e2e") / "clip"
+    render_clip(parse_scenario(noisy_receding()), clip, fmt="mp4")
+    return process_clip(clip, methods=METHODS)
+
+
+def test_end_to_end_accuracy(e2e_run):
+    m = e2e_run.estimate.metrics["methods"]
+    assert m["ekf"]["rmse"] < m["triangulation"]["rmse"]
+    assert m["kf3d"]["rmse"] < m["triangulation"]["rmse"]
+    assert m["spsa"]["rmse"] < 0.5 and np.isfinite(m["spsa"]["final"])  # bounded
+    assert 0.02 < e2e_run.estimate.metrics["pixel_sigma_estimate"] < 1.0
+    out = e2e_run.out_dir
+    on_disk = json.loads((out / "metrics.json").read_text())
+    assert on_disk["methods"]["ekf"]["rmse"] == pytest.approx(m["ekf"]["rmse"])
+    for meth in METHODS:
+        cols = read_csv(out / "estimates" / f"{meth}.csv", ["frame", "t", "marker", "x", "y", "z", "vx", "vy", "vz"])
+        assert len(cols["frame"]) == 40
+
+
+def test_report_written(e2e_run):
+    text = e2e_run.report.read_text()
+    assert "| ekf |" in text and "figures/trajectories.png" in text and "figures/error.png" in text
+    for fig in ("trajectories.png", "error.png", "image_tracks.png"):
+        png = e2e_run.out_dir / "figures" / fig
+        assert png.is_file() and png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_recording_read_back(e2e_run):
+    from rerun.chunk import RrdReader
+
+    reader = RrdReader(e2e_run.recording)
+    assert reader.recordings() and reader.blueprints()  # the blueprint is saved as the default
+    rows: dict[str, int] = {}
+    static: set[str] = set()
+    for chunk in reader.stream():
+        rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
+        if chunk.is_static:
+            static.add(chunk.entity_path)
+    assert {"/world/left", "/world/right"} <= static  # calibration logged once, static
+    assert rows["/world/left/image"] == 40 and rows["/world/right/image"] == 40
+    assert rows["/world/left/detections"] == 40
+    assert rows["/world/truth/points"] == 40
+    for meth in METHODS:
+        assert rows[f"/world/estimates/{meth}/points"] == 40
+        assert rows[f"/metrics/error/{meth}/red"] >= 35
+
+
+def test_run_cli_on_sample_clip(tmp_path):
+    clip = tmp_path / "sample"
+    shutil.copytree(REPO / "data" / "clips" / "four_point_small", clip)
+    result = CliRunner().invoke(app, ["run", str(clip), "--methods", "ekf,kalman_bucy,pnp_kf,four_point"])
+    assert result.exit_code == 0, result.output
+    assert "kalman_bucy" in result.output and (clip / "out" / "run.rrd").is_file()
+    metrics = json.loads((clip / "out" / "metrics.json").read_text())["methods"]
+    assert metrics["kalman_bucy"]["alpha_rmse_rad"] < 0.05
+
+
+def test_cli_errors_are_one_line(tmp_path):
+    env = {**os.environ, "COLUMNS": "200"}
+    for args in (["detect", str(tmp_path / "nope")], ["estimate", str(tmp_path)], ["run", "no_such_scenario"]):
+        proc = subprocess.run([sys.executable, "-m", "pipeline.cli", *args], capture_output=True, text=True, env=env,
+                              timeout=120)
+        assert proc.returncode == 2, proc.stderr
+        assert "Traceback" not in proc.stderr and "error:" in proc.stderr
+
+
+def _batch_input(root: Path) -> Path:
+    inp = root / "in"
+    for i, name in enumerate(("a", "b")):
+        shutil.copytree(REPO / "data" / "clips" / "sample_small", inp / name)
+        if i:  # a second, different clip
+            shutil.copytree(REPO / "data" / "clips" / "four_point_small", inp / name, dirs_exist_ok=True)
+    bad = inp / "c_corrupt"
+    shutil.copytree(REPO / "data" / "clips" / "sample_small", bad)
+    (bad / "right.mp4").write_bytes(b"\x00garbage" * 100)
+    return inp
+
+
+def _summary(out: Path) -> list[tuple[str, str, str]]:
+    cols = read_csv(out / "summary.csv")
+    status = ["ok" if s == "skipped" else s for s in cols["status"]]  # skipped = complete from before
+    return sorted(zip(cols["clip"], status, cols["method"], strict=True))
+
+
+def test_batch_local_then_rerun_then_dask(tmp_path):
+    inp = _batch_input(tmp_path)
+    assert [p.name for p in find_clips(inp)] == ["a", "b", "c_corrupt"]
+    out = tmp_path / "out"
+    res = CliRunner().invoke(app, ["batch", str(inp), "-o", str(out), "--workers", "2", "--methods", "triangulation,ekf"])
+    assert res.exit_code == 1  # one clip failed
+    outcomes = {o[0]: o[1] for o in _summary(out)}
+    assert outcomes == {"a": "ok", "b": "ok", "c_corrupt": "failed"}
+    cols = read_csv(out / "summary.csv")
+    err = [e for c, e in zip(cols["clip"], cols["error"], strict=True) if c == "c_corrupt"][0]
+    assert "right.mp4" in err
+    assert (out / "a" / "report.md").is_file() and (out / "b" / "metrics.json").is_file()
+    assert not (out / "c_corrupt").exists() and not list(out.glob(".*partial*"))
+    assert "summary" in (out / "summary.md").read_text()
+    # a second run redoes nothing that is complete
+    mtime = (out / "a" / "metrics.json").stat().st_mtime_ns
+    again = run_batch(inp, out, workers=1, methods=["triangulation", "ekf"])
+    assert {o.clip: o.status for o in again} == {"a": "skipped", "b": "skipped", "c_corrupt": "failed"}
+    assert (out / "a" / "metrics.json").stat().st_mtime_ns == mtime
+    # the same batch on a Dask LocalCluster gives the same summary
+    out2 = tmp_path / "out_dask"
+    dask = run_batch(inp, out2, workers=2, scheduler="local", methods=["triangulation", "ekf"])
+    assert {o.clip: o.status for o in dask} == {"a": "ok", "b": "ok", "c_corrupt": "failed"}
+    assert _summary(out2) == _summary(out)
+    ours, theirs = read_csv(out / "summary.csv"), read_csv(out2 / "summary.csv")
+    np.testing.assert_allclose(np.sort(ours["rmse_m"][np.isfinite(ours["rmse_m"])]),
+                               np.sort(theirs["rmse_m"][np.isfinite(theirs["rmse_m"])]), rtol=1e-9)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL])
+def test_batch_killed_and_restarted(tmp_path, sig):
+    inp = tmp_path / "in"
+    for i in range(4):
+        shutil.copytree(REPO / "data" / "clips" / "sample_small", inp / f"clip{i}")
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "pipeline.cli", "batch", str(inp), "-o", str(out), "--workers", "1"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.time() + 120
+    while time.time() < deadline and not list(out.glob(".*.partial")) and not list(out.glob("clip*")):
+        time.sleep(0.05)
+    time.sleep(0.3)
+    os.killpg(proc.pid, sig)
+    proc.wait(timeout=60)
+    # nothing half-written is presented as a clip's output
+    for d in out.glob("clip*"):
+        assert (d / "metrics.json").is_file() and (d / "report.md").is_file() and (d / "run.rrd").is_file()
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    assert not list(out.glob(".*partial*"))
+    for i in range(4):
+        m = json.loads((out / f"clip{i}" / "metrics.json").read_text())
+        assert m["methods"]["ekf"]["rmse"] < 0.05
+    assert {c for c in read_csv(out / "summary.csv")["clip"]} == {f"clip{i}" for i in range(4)}
