@@ -23,11 +23,22 @@ numpy to pay off); ``run_batch`` is the same iteration vectorised over tracks.
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 from pydantic import Field
 
-from pipeline.estimators.base import NAN3, Estimator, EstimatorConfig, InitConfig, Step, register
+from pipeline.estimators.base import (
+    NAN3,
+    Estimator,
+    EstimatorConfig,
+    InitConfig,
+    Step,
+    Track,
+    check_observations,
+    register,
+    reprojection_errors,
+)
 
 BIG_COST = 1.0e6  # cost of a trial point behind a camera (keeps the iteration finite)
 
@@ -76,13 +87,15 @@ class SPSAEstimator(Estimator):
         super().reset()
         R, T = self.rig.R, self.rig.T
         self._RT = (*R.ravel().tolist(), *T.ravel().tolist())
+        cfg: SPSAConfig = self.config  # type: ignore[assignment]
+        self._alpha, self._beta, self._th = cfg.alpha, cfg.beta, cfg.th
         self._K = [(c.K[0, 0], c.K[0, 1], c.K[0, 2], c.K[1, 1], c.K[1, 2]) for c in self.rig.cameras]
         self.theta = [0.0] * 6  # frame units: [p, v·dt]
         self._phase = 0  # 0: next frame is x_{2k−1}; 1: next frame is x_{2k}
         self._delta: list[float] = []
         self._z_odd: tuple[float, ...] | None = None
         self._y_odd: tuple = ()
-        self._signs = self.rng.integers(0, 2, size=(4096, self.state_dim))
+        self._deltas: list[list[float]] = []
         self._sign_i = 0
 
     @property
@@ -103,31 +116,40 @@ class SPSAEstimator(Estimator):
         return tuple(out), ok_l, ok_r
 
     def _draw_delta(self) -> list[float]:
-        if self._sign_i >= len(self._signs):
-            self._signs = self.rng.integers(0, 2, size=(4096, self.state_dim))
+        """Next perturbation Δ (components ±1/√d), drawn from the seeded generator in blocks."""
+        if self._sign_i >= len(self._deltas):
+            a = 1.0 / math.sqrt(self.state_dim)
+            self._deltas = np.where(self.rng.integers(0, 2, size=(256, self.state_dim)) == 1, a, -a).tolist()
             self._sign_i = 0
-        row = self._signs[self._sign_i]
         self._sign_i += 1
-        a = 1.0 / math.sqrt(self.state_dim)
-        return [a if b else -a for b in row.tolist()]
+        return self._deltas[self._sign_i - 1]
 
     def _out(self, th: list[float], predicted: bool) -> Step:
         inv = 1.0 / self.dt
         return Step(np.array(th[:3]), np.array([th[3] * inv, th[4] * inv, th[5] * inv]), predicted=predicted)
 
+    def _start(self, y: np.ndarray) -> bool:
+        """Initialise θ from the configured start; False while no start is possible."""
+        x0 = self.initial_state(y)
+        if x0 is None:
+            return False
+        self.theta = [*x0[:3].tolist(), *(x0[3:] * self.dt).tolist()]
+        self.initialized = True
+        self._phase = 0
+        return True
+
     def _step(self, y: np.ndarray) -> Step:
-        cfg: SPSAConfig = self.config  # type: ignore[assignment]
         if not self.initialized:
-            x0 = self.initial_state(y)
-            if x0 is None:
+            if not self._start(y):
                 return Step(NAN3.copy(), NAN3.copy(), predicted=True)
-            self.theta = [*x0[:3].tolist(), *(x0[3:] * self.dt).tolist()]
-            self.initialized = True
-            self._phase = 0
             return self._out(self.theta, False)
+        th, predicted = self._iterate(*self._normalize(y))
+        return self._out(th, predicted)
+
+    def _iterate(self, yn: tuple, ok_l: bool, ok_r: bool) -> tuple[list[float], bool]:
+        """One frame of Algorithm 1 on a normalized observation; returns (θ for this frame, gap)."""
         t = self.theta
-        yn, ok_l, ok_r = self._normalize(y)
-        b = cfg.beta
+        b = self._beta
         if self._phase == 0:
             # x_{2k−1} = A(θ − βΔ): position p − βΔp + (v − βΔv)
             D = self._delta = self._draw_delta()
@@ -138,8 +160,7 @@ class SPSAEstimator(Estimator):
                 t[2] - b * D[2] + t[5] - b * D[5],
             )
             self._phase = 1
-            pred = [t[0] + t[3], t[1] + t[4], t[2] + t[5], t[3], t[4], t[5]]  # θ_{2k−1} = Aθ
-            return self._out(pred, not (ok_l or ok_r))
+            return [t[0] + t[3], t[1] + t[4], t[2] + t[5], t[3], t[4], t[5]], not (ok_l or ok_r)  # θ_{2k−1} = Aθ
         self._phase = 0
         D = self._delta
         yo, ol, orr = self._y_odd
@@ -155,15 +176,49 @@ class SPSAEstimator(Estimator):
             z_odd = _cost(xo[0], xo[1], xo[2], yo, use_l, use_r, self._RT)
             z_even = _cost(xe[0], xe[1], xe[2], yn, use_l, use_r, self._RT)
             d = (z_even - z_odd) / (2 * b)
-            if d > cfg.th:
-                d = cfg.th
-            elif d < -cfg.th:
-                d = -cfg.th
-            if math.isfinite(d):
-                a = cfg.alpha * d
-                new = [new[i] - a * D[i] for i in range(6)]
+            th = self._th
+            if d > th:
+                d = th
+            elif d < -th:
+                d = -th
+            if d == d:  # not NaN
+                a = self._alpha * d
+                new = [new[0] - a * D[0], new[1] - a * D[1], new[2] - a * D[2],
+                       new[3] - a * D[3], new[4] - a * D[4], new[5] - a * D[5]]
         self.theta = new
-        return self._out(new, not (use_l or use_r))
+        return new, not (use_l or use_r)
+
+    def run(self, Y: np.ndarray) -> Track:
+        """The whole clip in one tight loop: observations normalized at once, no per-frame objects
+        (identical results to repeated :meth:`step`)."""
+        Y = check_observations(Y)
+        self.reset()
+        n = len(Y)
+        t0 = time.perf_counter()
+        Yn = self.rig.normalize(Y)
+        ok = np.isfinite(Yn)
+        okl = (ok[:, 0] & ok[:, 1]).tolist()
+        okr = (ok[:, 2] & ok[:, 3]).tolist()
+        rows = Yn.tolist()
+        states: list = [None] * n
+        pred = [True] * n
+        k = 0
+        while k < n and not self.initialized:
+            if self._start(Y[k]):
+                states[k], pred[k] = list(self.theta), False
+            k += 1
+        iterate = self._iterate
+        for j in range(k, n):
+            states[j], pred[j] = iterate(tuple(rows[j]), okl[j], okr[j])
+        elapsed = time.perf_counter() - t0
+        d = self.state_dim
+        S = np.array([s if s is not None else [np.nan] * d for s in states], dtype=float).reshape(n, d)
+        if self.state_dim == 3:
+            pos, vel = S[:, :3], np.full((n, 3), np.nan)
+        else:
+            pos, vel = S[:, :3], S[:, 3:] / self.dt
+        return Track(self.name, pos, vel, reprojection_errors(self.rig, pos, Y), np.full(n, np.nan),
+                     np.array(pred), elapsed / max(n, 1))
 
     def run_batch(self, Y: np.ndarray) -> np.ndarray:
         return batch_spsa(self, np.asarray(Y, dtype=float))

@@ -27,24 +27,27 @@ class SPSAVGGEstimator(SPSAEstimator):
     Config = SPSAConfig
     state_dim = 3
 
-    def _step(self, y: np.ndarray) -> Step:
+    def _start(self, y: np.ndarray) -> bool:
+        x0 = self.initial_state(y)
+        if x0 is None:
+            return False
+        self.theta = x0[:3].tolist()
+        self.initialized = True
+        self._phase = 0
+        return True
+
+    def _out(self, th: list[float], predicted: bool) -> Step:
+        return Step(np.array(th[:3]), NAN3.copy(), predicted=predicted)
+
+    def _iterate(self, yn: tuple, ok_l: bool, ok_r: bool) -> tuple[list[float], bool]:
         cfg: SPSAConfig = self.config  # type: ignore[assignment]
-        if not self.initialized:
-            x0 = self.initial_state(y)
-            if x0 is None:
-                return Step(NAN3.copy(), NAN3.copy(), predicted=True)
-            self.theta = x0[:3].tolist()
-            self.initialized = True
-            self._phase = 0
-            return Step(np.array(self.theta), NAN3.copy())
         t = self.theta
-        yn, ok_l, ok_r = self._normalize(y)
         b = cfg.beta
         if self._phase == 0:
             self._delta = self._draw_delta()
             self._y_odd = (yn, ok_l, ok_r)
             self._phase = 1
-            return Step(np.array(t), NAN3.copy(), predicted=not (ok_l or ok_r))
+            return list(t), not (ok_l or ok_r)  # θ_{2n−1} = θ_{2n−2}
         self._phase = 0
         D = self._delta
         yo, ol, orr = self._y_odd
@@ -55,7 +58,7 @@ class SPSAVGGEstimator(SPSAEstimator):
             d = max(-cfg.th, min(cfg.th, (z_even - z_odd) / (2 * b)))
             if math.isfinite(d):
                 self.theta = [t[i] - cfg.alpha * d * D[i] for i in range(3)]
-        return Step(np.array(self.theta), NAN3.copy(), predicted=not (use_l or use_r))
+        return list(self.theta), not (use_l or use_r)
 
     def run_batch(self, Y: np.ndarray) -> np.ndarray:
         return np.stack([self.run(y).position for y in np.asarray(Y, dtype=float)])
