@@ -10,7 +10,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import expm
 
 from renderers.scenario import (
     ConstantAcceleration,
@@ -84,6 +83,8 @@ def target_points(center: np.ndarray, alpha: np.ndarray, radius: float, axis_ang
 
 def _second_order(A: np.ndarray, x0: np.ndarray, noise: float, n: int, dt: float, rng: np.random.Generator) -> np.ndarray:
     """Integrate ``ẋ = A x + [0, q]`` exactly between frames (``expm(A dt)``), white noise on the rate."""
+    from scipy.linalg import expm  # imported here: render workers start faster without scipy
+
     F = expm(A * dt)
     out = np.empty((n, 2))
     x = np.asarray(x0, dtype=float)

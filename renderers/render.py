@@ -9,6 +9,7 @@ frames), so a stereo clip uses both cores of a small machine.
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
 import queue
 import shutil
 import warnings
@@ -42,14 +43,40 @@ class RenderResult:
     warnings: list[str]
 
 
-def postprocess(img: np.ndarray, blur_sigma: float, noise_std: float, rng: np.random.Generator) -> np.ndarray:
-    """Optical blur (Gaussian, σ in px) then additive Gaussian sensor noise (σ in grey levels)."""
+class SensorNoise:
+    """Additive Gaussian sensor noise (σ in grey levels), seeded per clip and camera.
+
+    Drawing a fresh normal deviate per pixel per frame costs more than rendering the frame, so a
+    bank of eight noise fields slightly larger than the image is drawn once and each frame takes
+    one of them at a random offset (both chosen from ``default_rng([seed, camera, frame])``):
+    still white in space, independent enough in time for tracking, and the same bits every run.
+    """
+
+    MARGIN = 64
+
+    def __init__(self, shape: tuple[int, int, int], sigma: float, seed: int, camera: int, bank: int = 8) -> None:
+        self.shape, self.sigma, self.seed, self.camera = shape, sigma, seed, camera
+        if sigma > 0:
+            h, w, c = shape
+            self.bank = np.empty((bank, h + self.MARGIN, w + self.MARGIN, c), np.int16)
+            for i in range(bank):  # OpenCV's generator is several times faster than numpy's here
+                cv2.setRNGSeed(int(np.random.SeedSequence([seed, 30_000 + camera, i]).generate_state(1)[0]) & 0x7FFFFFFF)
+                cv2.randn(self.bank[i], (0.0,) * c, (float(sigma),) * c)  # per channel
+
+    def apply(self, img: np.ndarray, frame: int) -> np.ndarray:
+        if self.sigma <= 0:
+            return img
+        rng = np.random.default_rng([self.seed, 20_000 + self.camera, frame])
+        i, dy, dx = rng.integers(len(self.bank)), *rng.integers(0, self.MARGIN, 2)
+        h, w, _ = self.shape
+        return cv2.add(img, self.bank[i, dy : dy + h, dx : dx + w], dtype=cv2.CV_8U)
+
+
+def postprocess(img: np.ndarray, blur_sigma: float, noise: SensorNoise, frame: int) -> np.ndarray:
+    """Optical blur (Gaussian, σ in px), then sensor noise."""
     if blur_sigma > 0:
         img = cv2.GaussianBlur(img, (0, 0), blur_sigma)
-    if noise_std > 0:
-        noisy = img.astype(np.float32) + rng.standard_normal(img.shape, dtype=np.float32) * np.float32(noise_std)
-        img = np.clip(noisy, 0, 255).astype(np.uint8)
-    return img
+    return noise.apply(img, frame)
 
 
 class FrameWriter:
@@ -109,11 +136,12 @@ def render_camera(
         writer = FrameWriter(clip_dir, CAMERA_NAMES[cam_index], fmt, scenario.fps, rig.image_size)
         try:
             rs = scenario.render
+            w, h = rig.image_size
+            noise = SensorNoise((h, w, 3), rs.noise_std, scenario.seed, cam_index)
             for k in range(scenario.frames):
                 scene.set_frame(k)
                 img = scene.render(renderer, cam_index)
-                rng = np.random.default_rng([scenario.seed, 20_000 + cam_index, k])
-                writer.write(postprocess(img, rs.blur_sigma, rs.noise_std, rng))
+                writer.write(postprocess(img, rs.blur_sigma, noise, k))
                 if tick is not None:
                     tick(k)
             writer.close()
@@ -190,11 +218,19 @@ def render_clip(
 
 def _render_parallel(scenario: Scenario, clip_dir: Path, fmt: Format, progress: Callable[[int, int], None] | None) -> None:
     ctx = mp.get_context("spawn")
+    # one camera per process and core: Mesa's llvmpipe would otherwise start a thread per core in
+    # each process and the two would fight over the same cores (a user's own setting wins)
+    saved = os.environ.get("LP_NUM_THREADS")
+    os.environ["LP_NUM_THREADS"] = saved or "1"
     q: mp.Queue = ctx.Queue()
     payload = scenario.model_dump_json()
     procs = [ctx.Process(target=_worker, args=(payload, c, str(clip_dir), fmt, q), daemon=True) for c in range(2)]
-    for p in procs:
-        p.start()
+    try:
+        for p in procs:
+            p.start()
+    finally:
+        if saved is None:
+            del os.environ["LP_NUM_THREADS"]
     done, finished, error = [0, 0], set(), None
     try:
         while len(finished) < 2 and error is None:
