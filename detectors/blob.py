@@ -94,33 +94,58 @@ class BlobDetector:
             p.filterByConvexity = p.filterByInertia = False
             self._sbd = cv2.SimpleBlobDetector_create(p)
 
-    def detect(self, bgr: np.ndarray, hsv: np.ndarray | None = None) -> list[Detection]:
-        """All detections in one frame (sub-pixel centroids, OpenCV pixel convention)."""
-        hsv = cv2.cvtColor(bgr, cv2.COLOR_BGR2HSV) if hsv is None else hsv
+    def detect(self, bgr: np.ndarray, hsv: np.ndarray | None = None,
+               rois: dict[str, tuple[int, int, int, int]] | None = None) -> list[Detection]:
+        """All detections in one frame (sub-pixel centroids, OpenCV pixel convention).
+
+        ``rois`` (marker → x, y, w, h) restricts a marker's search to a window, typically around
+        its previous detection; a marker not found in its window is searched in the whole frame,
+        so windows only save time, never detections.
+        """
+        full: list[np.ndarray | None] = [hsv]
+
+        def whole() -> np.ndarray:
+            if full[0] is None:
+                full[0] = cv2.cvtColor(bgr, cv2.COLOR_BGR2HSV)
+            return full[0]
+
         out: list[Detection] = []
         for mk in self.markers:
-            mask = mk.mask(hsv)
-            if self.backend == "simpleblob":
-                found = [Detection(mk.name, kp.pt[0], kp.pt[1], np.pi * (kp.size / 2) ** 2, 1.0)
-                         for kp in self._sbd.detect(mask)]
-                out += sorted(found, key=lambda d: -d.area)[: self.max_per_marker]
-                continue
-            n, labels, stats, cents = cv2.connectedComponentsWithStats(mask, connectivity=8)
-            if n <= 1:
-                continue
-            found = []
-            for i in range(1, n):
-                x, y, w, h, area = stats[i]
-                if area < self.min_area or area > self.max_area:
-                    continue
-                roundness = area / (np.pi * (max(w, h) / 2.0) ** 2)
-                if roundness < self.min_roundness or min(w, h) < 0.5 * max(w, h):
-                    continue
-                u, v = self._refine(labels, i, bgr, hsv, x, y, w, h, mk)
-                found.append(Detection(mk.name, u, v, float(area), float(min(roundness, 1.0))))
-            found.sort(key=lambda d: (-d.score * d.area))
+            found: list[Detection] = []
+            roi = (rois or {}).get(mk.name)
+            if roi is not None and self.backend == "components":
+                x, y, w, h = roi
+                sub = bgr[y : y + h, x : x + w]
+                if sub.size:
+                    found = self._detect_one(mk, sub, cv2.cvtColor(sub, cv2.COLOR_BGR2HSV), x, y)
+            if not found:
+                found = self._detect_one(mk, bgr, whole(), 0, 0)
             out += found[: self.max_per_marker]
         return out
+
+    def _detect_one(self, mk: MarkerColor, bgr: np.ndarray, hsv: np.ndarray, ox: int, oy: int) -> list[Detection]:
+        mask = mk.mask(hsv)
+        if self.backend == "simpleblob":
+            found = [Detection(mk.name, kp.pt[0] + ox, kp.pt[1] + oy, np.pi * (kp.size / 2) ** 2, 1.0)
+                     for kp in self._sbd.detect(mask)]
+            return sorted(found, key=lambda d: -d.area)
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+        found = []
+        H, W = mask.shape
+        for i in range(1, n):
+            x, y, w, h, area = stats[i]
+            if area < self.min_area or area > self.max_area:
+                continue
+            if ox or oy:  # a blob cut by the window's edge: let the whole-frame search see it whole
+                if (x == 0 and ox > 0) or (y == 0 and oy > 0) or x + w >= W or y + h >= H:
+                    continue
+            roundness = area / (np.pi * (max(w, h) / 2.0) ** 2)
+            if roundness < self.min_roundness or min(w, h) < 0.5 * max(w, h):
+                continue
+            u, v = self._refine(labels, i, bgr, hsv, x, y, w, h, mk)
+            found.append(Detection(mk.name, u + ox, v + oy, float(area), float(min(roundness, 1.0))))
+        found.sort(key=lambda d: (-d.score * d.area))
+        return found
 
     @staticmethod
     def _refine(labels, i, bgr, hsv, x, y, w, h, mk: MarkerColor) -> tuple[float, float]:

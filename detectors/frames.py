@@ -3,6 +3,8 @@ OpenCV reads, or folders of numbered PNGs), or a single video as a one-camera cl
 
 from __future__ import annotations
 
+import queue
+import threading
 import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -81,6 +83,45 @@ class CameraReader:
             self.cap.release()
 
 
+_DONE = object()
+
+
+def _prefetch(it: Iterator[np.ndarray], depth: int = 8) -> Iterator[np.ndarray]:
+    """Decode ahead in a background thread (OpenCV releases the GIL while decoding), so decoding
+    one camera overlaps with decoding the other and with detection. Errors are re-raised here."""
+    q: queue.Queue = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+
+    def run() -> None:
+        try:
+            for item in it:
+                while not stop.is_set():
+                    try:
+                        q.put(item, timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+            q.put(_DONE)
+        except BaseException as exc:  # noqa: BLE001 - handed to the consumer
+            q.put(exc)
+
+    th = threading.Thread(target=run, daemon=True)
+    th.start()
+    try:
+        while True:
+            item = q.get()
+            if item is _DONE:
+                return
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+    finally:
+        stop.set()
+        th.join(timeout=5)
+
+
 @dataclass
 class StereoFrame:
     """One synchronized frame pair (``right`` is None for a single-camera clip)."""
@@ -96,8 +137,10 @@ class StereoFrameSource:
     ``allow_unequal`` (then truncated to the shorter, with a warning). A path to a single video
     is a one-camera clip."""
 
-    def __init__(self, clip: str | Path, allow_unequal: bool = False, fps: float | None = None) -> None:
+    def __init__(self, clip: str | Path, allow_unequal: bool = False, fps: float | None = None,
+                 prefetch: bool = True) -> None:
         clip = Path(clip)
+        self.prefetch = prefetch
         if not clip.exists():
             raise ClipError("no such clip folder or video", clip)
         if clip.is_file():
@@ -129,7 +172,7 @@ class StereoFrameSource:
         return self.count
 
     def __iter__(self) -> Iterator[StereoFrame]:
-        its = [iter(r) for r in self.readers]
+        its = [_prefetch(iter(r)) for r in self.readers] if self.prefetch else [iter(r) for r in self.readers]
         k = 0
         try:
             while True:
@@ -144,5 +187,9 @@ class StereoFrameSource:
                 yield StereoFrame(k, k / self.fps, imgs[0], imgs[1] if len(imgs) > 1 else None)  # type: ignore[arg-type]
                 k += 1
         finally:
+            for it in its:  # stop the decode-ahead threads before releasing their captures
+                close = getattr(it, "close", None)
+                if close is not None:
+                    close()
             for r in self.readers:
                 r.close()

@@ -120,12 +120,15 @@ def detect_clip(
         raise StereotrackError(f"unknown detector {detector!r} (blob, meanshift, camshift)")
     rows: list[tuple] = []
     previous: dict[tuple[int, str], np.ndarray] = {}
+    windows: list[dict[str, tuple[int, int, int, int]]] = [{}, {}]  # blob search windows per camera
+    grouped = {n for names in groups.values() for n in names}
     total = len(source)
     for fr in source:
         images = [fr.left] if fr.right is None else [fr.left, fr.right]
         for c, img in enumerate(images):
             if detector == "blob":
-                dets = _best_per_marker(blob.detect(img), groups, previous, c)
+                dets = _best_per_marker(blob.detect(img, rois=windows[c]), groups, previous, c)
+                windows[c] = {d.marker: _window(d, img.shape) for d in dets if d.marker not in grouped}
             else:
                 dets = [d for t in trackers[c] if (d := t.update(img)) is not None]
             for d in dets:
@@ -140,6 +143,14 @@ def detect_clip(
     result = DetectResult(path, rows)
     result.summaries = summarize(rows, clip, fr.index + 1 if total else 0, n_cams)
     return result
+
+
+def _window(d: Detection, shape: tuple[int, ...]) -> tuple[int, int, int, int]:
+    """Search window for the next frame: the blob's size plus room for fast motion."""
+    r = max(np.sqrt(d.area / np.pi), 2.0)
+    half = int(3 * r + 24)
+    x0, y0 = max(int(d.u) - half, 0), max(int(d.v) - half, 0)
+    return x0, y0, min(2 * half, shape[1] - x0), min(2 * half, shape[0] - y0)
 
 
 def _best_per_marker(dets: list[Detection], groups: dict[str, list[str]], previous: dict, cam: int) -> list[Detection]:
