@@ -1,7 +1,7 @@
 """Batch throughput: clips per minute for 1 and 2 local workers and for a 2-worker Dask
 LocalCluster over the same folder of clips, in one run.
 
-    python benchmarks/batch.py [--clips 8] [--frames 60]
+    python benchmarks/batch.py [--clips 12] [--frames 60]
 """
 
 from __future__ import annotations
@@ -15,16 +15,16 @@ from pathlib import Path
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
-from pipeline.batch import run_batch  # noqa: E402
-from renderers.render import render_clip  # noqa: E402
-from renderers.scenario import load_scenario  # noqa: E402
+from pipeline.batch import run_batch
+from renderers.render import render_clip
+from renderers.scenario import load_scenario
 
 METHODS = ["triangulation", "kf3d", "ekf", "spsa", "alphabeta"]
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--clips", type=int, default=8)
+    ap.add_argument("--clips", type=int, default=12)
     ap.add_argument("--frames", type=int, default=60)
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:

@@ -15,13 +15,13 @@ from pathlib import Path
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
-import cv2  # noqa: E402
+import cv2
 
-from detectors.blob import BlobDetector, MarkerColor  # noqa: E402
-from detectors.meanshift import MeanShiftTracker  # noqa: E402
-from detectors.stage import detect_clip  # noqa: E402
-from renderers.render import render_clip  # noqa: E402
-from renderers.scenario import load_scenario  # noqa: E402
+from detectors.blob import BlobDetector, MarkerColor
+from detectors.meanshift import MeanShiftTracker
+from detectors.stage import detect_clip
+from renderers.render import render_clip
+from renderers.scenario import load_scenario
 
 SIZES = [(640, 480), (1280, 720)]
 

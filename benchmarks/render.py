@@ -15,10 +15,10 @@ import time
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
-from renderers.motion import simulate_truth  # noqa: E402
-from renderers.render import render_clip  # noqa: E402
-from renderers.scenario import load_scenario  # noqa: E402
-from renderers.scene import StereoScene, create_offscreen_renderer  # noqa: E402
+from renderers.motion import simulate_truth
+from renderers.render import render_clip
+from renderers.scenario import load_scenario
+from renderers.scene import StereoScene, create_offscreen_renderer
 
 SIZES = [(320, 240), (640, 480), (1280, 720)]
 

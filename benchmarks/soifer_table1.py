@@ -72,7 +72,7 @@ def main() -> None:
     figs.mkdir(parents=True, exist_ok=True)
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
     for ax, snr in zip(axes, (30, 20), strict=True):
-        alpha, meas, est = run_once(math.pi / 6, snr, BEST_SETTINGS, np.random.default_rng(1))
+        alpha, _meas, est = run_once(math.pi / 6, snr, BEST_SETTINGS, np.random.default_rng(1))
         t = np.arange(len(alpha)) * 0.05
         y1, y3 = y_coordinates(alpha)
         rng = np.random.default_rng(1)
@@ -118,7 +118,7 @@ def end_to_end() -> list[str]:
                 agg.setdefault(m, []).append((e["alpha_rmse_rad"], e["distance_rmse_m"]))
     mean = {m: np.mean(v, axis=0) for m, v in agg.items()}
     best_a = min(mean, key=lambda m: mean[m][0])
-    lines += ["", f"Mean over seeds — α RMSE: " + ", ".join(f"{m} {v[0]:.4f}" for m, v in mean.items())
+    lines += ["", "Mean over seeds — α RMSE: " + ", ".join(f"{m} {v[0]:.4f}" for m, v in mean.items())
               + "; z RMSE: " + ", ".join(f"{m} {v[1]:.4f}" for m, v in mean.items()) + ".",
               f"Lowest α error here: **{best_a}**. Kalman–Bucy vs its own raw measurement: "
               f"{mean['four_point'][0] / mean['kalman_bucy'][0]:.2f}× lower α RMSE. (On simulated pixel noise of "

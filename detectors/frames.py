@@ -104,7 +104,7 @@ def _prefetch(it: Iterator[np.ndarray], depth: int = 8) -> Iterator[np.ndarray]:
                 if stop.is_set():
                     return
             q.put(_DONE)
-        except BaseException as exc:  # noqa: BLE001 - handed to the consumer
+        except BaseException as exc:
             q.put(exc)
 
     th = threading.Thread(target=run, daemon=True)

@@ -76,9 +76,9 @@ class MeanShiftTracker:
 
     def _clip(self, cx: float, cy: float, w: float, h: float, shape) -> tuple[int, int, int, int]:
         H, W = shape[:2]
-        w, h = max(int(round(w)), 4), max(int(round(h)), 4)
-        x = int(round(cx - w / 2))
-        y = int(round(cy - h / 2))
+        w, h = max(round(w), 4), max(round(h), 4)
+        x = round(cx - w / 2)
+        y = round(cy - h / 2)
         x, y = min(max(x, 0), max(W - w, 0)), min(max(y, 0), max(H - h, 0))
         return x, y, min(w, W), min(h, H)
 
@@ -148,10 +148,13 @@ class MeanShiftTracker:
         pixels of similar hue inside the window (a hand holding the ball) do not pull it."""
         x0, y0, ww, hh = self._clip(u, v, 2.0 * w, 2.0 * h, bp.shape)
         sub = (bp[y0 : y0 + hh, x0 : x0 + ww] > 0).astype(np.uint8)
-        n, labels, stats, cents = cv2.connectedComponentsWithStats(sub, connectivity=8)
+        n, _labels, stats, cents = cv2.connectedComponentsWithStats(sub, connectivity=8)
         if n <= 1:
             return u, v, 0.0
         cu, cv_ = u - x0, v - y0
         # prefer large regions close to the predicted centre
-        best = max(range(1, n), key=lambda i: stats[i, 4] / (1.0 + np.hypot(cents[i, 0] - cu, cents[i, 1] - cv_) / max(w, 1)) ** 2)
+        def preference(i: int) -> float:
+            return stats[i, 4] / (1.0 + np.hypot(cents[i, 0] - cu, cents[i, 1] - cv_) / max(w, 1)) ** 2
+
+        best = max(range(1, n), key=preference)
         return float(x0 + cents[best, 0]), float(y0 + cents[best, 1]), float(stats[best, 4] * 255.0)

@@ -46,9 +46,16 @@ def find_clips(input_dir: str | Path) -> list[Path]:
     return clips
 
 
-def _process_one(clip: str, out_root: str, detector: str, methods: list[str] | None) -> ClipOutcome:
-    """Worker entry point (runs in a pool process or on a Dask worker)."""
+def _process_one(clip: str, out_root: str, detector: str, methods: list[str] | None, single_thread: bool = False
+                 ) -> ClipOutcome:
+    """Worker entry point (runs in a pool process or on a Dask worker). ``single_thread`` keeps
+    OpenCV to one thread so that parallel workers do not oversubscribe the cores."""
     import json
+
+    if single_thread:
+        import cv2
+
+        cv2.setNumThreads(1)
 
     from pipeline.run import process_clip
 
@@ -64,7 +71,7 @@ def _process_one(clip: str, out_root: str, detector: str, methods: list[str] | N
     except StereotrackError as exc:
         shutil.rmtree(partial, ignore_errors=True)
         return ClipOutcome(name, "failed", error=str(exc))
-    except Exception as exc:  # noqa: BLE001 - a clip's failure is data for the summary
+    except Exception as exc:
         shutil.rmtree(partial, ignore_errors=True)
         last = traceback.extract_tb(exc.__traceback__)[-1]
         return ClipOutcome(name, "failed", error=f"{type(exc).__name__}: {exc} ({Path(last.filename).name}:{last.lineno})")
@@ -102,7 +109,7 @@ def run_batch(
     done = len(outcomes)
     if progress is not None:
         progress(done, len(clips))
-    args = [(str(c), str(out_root), detector, methods) for c in todo]
+    args = [(str(c), str(out_root), detector, methods, workers > 1) for c in todo]
     if todo and scheduler is None:
         with cf.ProcessPoolExecutor(max_workers=max(1, workers), mp_context=mp.get_context("spawn")) as pool:
             futs = [pool.submit(_process_one, *a) for a in args]
@@ -113,9 +120,9 @@ def run_batch(
                 if progress is not None:
                     progress(done, len(clips))
     elif todo:
-        from dask.distributed import Client, LocalCluster, as_completed
-
         import logging
+
+        from dask.distributed import Client, LocalCluster, as_completed
 
         cluster = LocalCluster(n_workers=max(1, workers), threads_per_worker=1, processes=True,
                                dashboard_address=None, silence_logs=logging.WARNING) if scheduler == "local" else None

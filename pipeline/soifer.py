@@ -54,7 +54,7 @@ EXACT_FORMULA_SETTINGS = FilterSettings("ours with the general exact formula", "
 def true_alpha(alpha0: float, euler: bool = True) -> np.ndarray:
     """α at every sample: the closed loop integrated by first-order differences, as the paper
     simulated it (``euler=False``: the exact solution)."""
-    n = int(round(T_END / DT)) + 1
+    n = round(T_END / DT) + 1
     F = np.eye(2) + A_CL * DT if euler else expm(A_CL * DT)
     x, out = np.array([alpha0, 0.0]), np.empty(n)
     for k in range(n):
@@ -77,7 +77,9 @@ def measurement_variance(y1: float, y3: float, sigma2: float, formula: str) -> f
     return sigma2 * (d1 * d1 + d3 * d3)
 
 
-def run_once(alpha0: float, snr_db: float, settings: FilterSettings, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def run_once(
+    alpha0: float, snr_db: float, settings: FilterSettings, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(truth, raw measurement, filtered estimate) of α over one 2.5 s run."""
     alpha = true_alpha(alpha0)
     sigma2 = 0.25 / 10 ** (snr_db / 10)

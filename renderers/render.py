@@ -166,7 +166,7 @@ def _worker(scenario_json: str, cam_index: int, clip_dir: str, fmt: Format, q: m
         q.put(("done", cam_index, None))
     except StereotrackError as exc:
         q.put(("error", cam_index, (type(exc).__name__, str(exc))))
-    except BaseException as exc:  # noqa: BLE001 - report any failure to the parent
+    except BaseException as exc:
         q.put(("error", cam_index, ("StereotrackError", f"{type(exc).__name__}: {exc}")))
 
 

@@ -30,7 +30,7 @@ def create_offscreen_renderer(width: int, height: int):  # -> pyrender.Offscreen
         import pyrender
 
         return pyrender.OffscreenRenderer(width, height)
-    except Exception as exc:  # noqa: BLE001 - any GL/driver failure means "no backend"
+    except Exception as exc:
         reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise RenderBackendError(
             f"no OpenGL backend for off-screen rendering (PYOPENGL_PLATFORM={platform}: {reason}); {GL_HELP}"
@@ -109,7 +109,8 @@ class StereoScene:
             self._camera_nodes.append(node)
         if not self.flat:
             light = pyrender.DirectionalLight(color=np.ones(3), intensity=2.5)
-            self.scene.add(light, pose=_pose(_frame_from_normal(np.array([0.3, 0.5, 1.0])), np.zeros(3)) @ np.diag([1, -1, -1, 1]))
+            light_pose = _pose(_frame_from_normal(np.array([0.3, 0.5, 1.0])), np.zeros(3)) @ np.diag([1, -1, -1, 1])
+            self.scene.add(light, pose=light_pose)
 
     def _background_mesh(self):
         """A large plane at ``background_distance`` with a smooth low-saturation grey texture

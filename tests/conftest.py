@@ -9,8 +9,8 @@ import pytest
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
-from renderers.render import render_clip  # noqa: E402
-from renderers.scenario import load_scenario, parse_scenario  # noqa: E402
+from renderers.render import render_clip
+from renderers.scenario import load_scenario, parse_scenario
 
 REPO = Path(__file__).resolve().parent.parent
 SHARED = REPO.parent / "shared"

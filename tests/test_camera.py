@@ -162,7 +162,7 @@ def test_malformed_calibration_is_a_clear_error(tmp_path, content, message):
 def test_missing_calibration_and_zero_baseline(tmp_path):
     with pytest.raises(CalibrationError, match="not found"):
         load_calibration(tmp_path / "nope.yaml")
-    with pytest.raises(CalibrationError, match="no calib.yaml"):
+    with pytest.raises(CalibrationError, match=r"no calib\.yaml"):
         load_calibration(tmp_path)
     K = np.diag([500.0, 500.0, 1.0])
     same = StereoRig(Camera(K), Camera(K), (640, 480))

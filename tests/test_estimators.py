@@ -3,6 +3,8 @@ orderings measured in the same run, agreement with filterpy, gaps and bad input.
 
 from __future__ import annotations
 
+import itertools
+
 import cv2
 import numpy as np
 import pytest
@@ -54,9 +56,9 @@ def test_triangulation_matches_opencv(receding):
 
 
 def test_claim_a_triangulation_error_grows_with_noise(receding):
-    rig, dt, X, _ = receding
+    rig, _dt, X, _ = receding
     errs = [np.mean([rmse(triangulate(rig, observe(rig, X, s, seed)[0]), X) for seed in SEEDS]) for s in (0.5, 1, 2, 4)]
-    assert all(a < b for a, b in zip(errs, errs[1:], strict=False)), errs
+    assert all(a < b for a, b in itertools.pairwise(errs)), errs
 
 
 def test_claim_b_noise_free_vgg_latches_algorithm1_follows(receding):

@@ -71,7 +71,7 @@ def test_riccati_algebraic_and_differential():
     A = block_diag2(channel_matrix(-1.0, (1.0, 0.73)), channel_matrix(-0.2))
     GQG = G4 @ np.diag([0.05, 0.05]) @ G4.T
     R = np.diag([0.02**2, 0.01**2]) * 0.05
-    K, P = steady_state_gain(A, C4, GQG, R)
+    _K, P = steady_state_gain(A, C4, GQG, R)
     residual = A @ P + P @ A.T + GQG - P @ C4.T @ np.linalg.inv(R) @ C4 @ P
     assert np.max(np.abs(residual)) < 1e-10
     Pt = np.diag([0.1, 0.5, 0.1, 0.5])
@@ -83,7 +83,7 @@ def test_riccati_algebraic_and_differential():
 def test_unobservable_model_is_a_clear_error():
     with pytest.raises(StereotrackError, match="not observable"):
         check_model(np.zeros((4, 4)), np.array([[0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]]))
-    with pytest.raises(StereotrackError, match="stabilising|stable"):
+    with pytest.raises(StereotrackError, match=r"stabilising|stable"):
         steady_state_gain(np.array([[0.0, 1.0], [0.0, 0.0]]), np.array([[0.0, 1.0]]), np.zeros((2, 2)), np.eye(1))
 
 

@@ -130,7 +130,7 @@ def test_batch_local_then_rerun_then_dask(tmp_path):
     outcomes = {o[0]: o[1] for o in _summary(out)}
     assert outcomes == {"a": "ok", "b": "ok", "c_corrupt": "failed"}
     cols = read_csv(out / "summary.csv")
-    err = [e for c, e in zip(cols["clip"], cols["error"], strict=True) if c == "c_corrupt"][0]
+    err = next(e for c, e in zip(cols["clip"], cols["error"], strict=True) if c == "c_corrupt")
     assert "right.mp4" in err
     assert (out / "a" / "report.md").is_file() and (out / "b" / "metrics.json").is_file()
     assert not (out / "c_corrupt").exists() and not list(out.glob(".*partial*"))

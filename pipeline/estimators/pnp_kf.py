@@ -25,7 +25,6 @@ from pipeline.estimators.four_point import (
 )
 from pipeline.estimators.kalman_bucy import C4, G4, KalmanBucyConfig, block_diag2, channel_matrix, propagated_variance
 
-
 #: IPPE_SQUARE wants the corners of a square of side s = R√2 in its own order; our points
 #: 1 (up), 2 (right), 3 (down), 4 (left) are that square turned by 45°: pass them as 4, 1, 2, 3.
 SQUARE_ORDER = [3, 0, 1, 2]
