@@ -296,24 +296,15 @@ def load_calibration(path: str | Path) -> StereoRig:
         if intr is None or extr is None:
             raise CalibrationError("no calib.yaml (nor intrinsics.yml + extrinsics.yml) in this folder", path)
         return _load_stereo_calib_layout(intr, extr)
-    fs = _open_storage(path)
-    try:
-        K1, K2 = (_read_intrinsics(fs, i, path) for i in (1, 2))
-        D1, D2 = _read_dist(fs, "D1", path), _read_dist(fs, "D2", path)
-        R = _read_mat(fs, "R", path, (3, 3))
-        T = _read_mat(fs, "T", path, (3,))
-        size = _read_size(fs, path)
-    finally:
-        fs.release()
-    rig = StereoRig(Camera(K1, D=D1), Camera(K2, R, T, D2), size)
-    rig.check(path)
-    return rig
+    return _load_stereo_calib_layout(path, path)
 
 
 def _load_stereo_calib_layout(intr: Path, extr: Path) -> StereoRig:
+    """Intrinsics (``K1/M1 D1 K2/M2 D2``, image size) from ``intr``, ``R T`` from ``extr`` (the same
+    file for ``calib.yaml``)."""
     fs = _open_storage(intr)
     try:
-        K1, K2 = _read_mat(fs, "M1", intr, (3, 3)), _read_mat(fs, "M2", intr, (3, 3))
+        K1, K2 = (_read_intrinsics(fs, i, intr) for i in (1, 2))
         D1, D2 = _read_dist(fs, "D1", intr), _read_dist(fs, "D2", intr)
         size = _read_size(fs, intr)
     finally:
