@@ -159,6 +159,10 @@ def estimate_clip(
     """
     clip = Path(clip)
     out_dir = Path(out_dir) if out_dir else clip / "out"
+    for m in methods or []:
+        if m not in POINT_METHODS and m not in TARGET_METHODS:
+            known = ", ".join([*POINT_METHODS, *TARGET_METHODS])
+            raise StereotrackError(f"unknown method {m!r} (known: {known})")
     rig = load_calibration(clip)
     dt = 1.0 / clip_fps(clip)
     truth = load_truth(clip)
@@ -172,9 +176,6 @@ def estimate_clip(
     obs = {k: np.vstack([v, np.full((n - len(v), 4), np.nan)]) for k, v in obs.items()}
     target = find_target(clip, target_radius, obs)
     methods = methods or list(POINT_METHODS) + (list(TARGET_METHODS) if target else [])
-    unknown = [m for m in methods if m not in POINT_METHODS and m not in TARGET_METHODS]
-    if unknown:
-        create(unknown[0], rig, dt)  # raises the clear "unknown method" error
     configs = {k: dict(v) for k, v in (configs or {}).items()}
     sigma = estimate_pixel_sigma(rig, obs)
     if sigma is not None:  # the Kalman family's measurement noise, unless configured
@@ -185,7 +186,7 @@ def estimate_clip(
     point_methods = [m for m in methods if m in POINT_METHODS]
     target_methods = [m for m in methods if m in TARGET_METHODS]
     if target_methods and target is None:
-        raise StereotrackError(f"{', '.join(target_methods)} need a four-point target; this clip has none", clip)
+        raise StereotrackError(f"method(s) {', '.join(target_methods)} require a four-point target; this clip has none", clip)
     done, total = 0, len(point_methods) * len(obs) + len(target_methods)
     for m in target_methods:
         assert target is not None
