@@ -79,6 +79,7 @@ class BlobDetector:
         min_roundness: float = 0.5,
         max_per_marker: int = 1,
         backend: Literal["components", "simpleblob"] = "components",
+        coarse: bool = True,
     ) -> None:
         if not markers:
             raise StereotrackError("no markers to detect: give --markers or a clip with scenario.yaml")
@@ -86,6 +87,8 @@ class BlobDetector:
         self.min_area, self.max_area, self.min_roundness = min_area, max_area, min_roundness
         self.max_per_marker = max_per_marker
         self.backend = backend
+        self.coarse = coarse  # half-resolution whole-frame search on frames ≥ 640 px wide
+        self._small: np.ndarray | None = None
         if backend == "simpleblob":
             p = cv2.SimpleBlobDetector_Params()
             p.filterByColor, p.blobColor = True, 255
@@ -119,9 +122,36 @@ class BlobDetector:
                 if sub.size:
                     found = self._detect_one(mk, sub, cv2.cvtColor(sub, cv2.COLOR_BGR2HSV), x, y)
             if not found:
-                found = self._detect_one(mk, bgr, whole(), 0, 0)
+                if self.coarse and bgr.shape[1] >= 640 and self.backend == "components":
+                    found = self._detect_coarse(mk, bgr)
+                else:
+                    found = self._detect_one(mk, bgr, whole(), 0, 0)
             out += found[: self.max_per_marker]
         return out
+
+    def _detect_coarse(self, mk: MarkerColor, bgr: np.ndarray) -> list[Detection]:
+        """Whole-frame search at half resolution (every other pixel, so a blob 3 px across or more
+        keeps at least one sample), then the full-resolution detection in a window around each
+        candidate: about 4× less work per frame, the same centroids."""
+        if self._small is None or self._small.shape[:2] != (bgr.shape[0] // 2, bgr.shape[1] // 2):
+            self._small = np.empty((bgr.shape[0] // 2, bgr.shape[1] // 2, 3), np.uint8)
+        small = cv2.resize(bgr, (bgr.shape[1] // 2, bgr.shape[0] // 2), dst=self._small, interpolation=cv2.INTER_NEAREST)
+        mask = mk.mask(cv2.cvtColor(small, cv2.COLOR_BGR2HSV))
+        n, _, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+        found: list[Detection] = []
+        H, W = bgr.shape[:2]
+        for i in range(1, n):
+            x, y, w, h, area = stats[i]
+            if 4 * area > self.max_area:
+                continue
+            x0, y0 = max(2 * x - 6, 0), max(2 * y - 6, 0)
+            x1, y1 = min(2 * (x + w) + 6, W), min(2 * (y + h) + 6, H)
+            sub = bgr[y0:y1, x0:x1]
+            for d in self._detect_one(mk, sub, cv2.cvtColor(sub, cv2.COLOR_BGR2HSV), x0, y0):
+                if not any(abs(d.u - e.u) < 1 and abs(d.v - e.v) < 1 for e in found):
+                    found.append(d)
+        found.sort(key=lambda d: (-d.score * d.area))
+        return found
 
     def _detect_one(self, mk: MarkerColor, bgr: np.ndarray, hsv: np.ndarray, ox: int, oy: int) -> list[Detection]:
         mask = mk.mask(hsv)
