@@ -89,10 +89,22 @@ def clip_fps(clip: Path) -> float:
     from detectors.frames import CameraReader, find_camera_source
 
     try:
-        fps = CameraReader(find_camera_source(clip, "left")).fps
+        reader = CameraReader(find_camera_source(clip, "left"))
     except StereotrackError:
-        fps = 0.0
-    return fps or 30.0
+        return 30.0
+    reader.close()
+    return reader.fps or 30.0
+
+
+def read_positions(path: Path) -> tuple[dict[str, np.ndarray], int]:
+    """A long-format table (``frame, marker, x, y, z``: truth.csv, estimates/*.csv) → marker →
+    positions (frames × 3, NaN where absent), and the frame count."""
+    cols = read_csv(path, ["frame", "marker", "x", "y", "z"])
+    n = int(np.nanmax(cols["frame"])) + 1 if len(cols["frame"]) else 0
+    pos: dict[str, np.ndarray] = {}
+    for k, name, x, y, z in zip(cols["frame"].astype(int), cols["marker"], cols["x"], cols["y"], cols["z"], strict=True):
+        pos.setdefault(str(name), np.full((n, 3), np.nan))[k] = (x, y, z)
+    return pos, n
 
 
 def load_truth(clip: Path) -> ClipTruth | None:
@@ -100,12 +112,7 @@ def load_truth(clip: Path) -> ClipTruth | None:
     path = clip / "truth.csv"
     if not path.is_file():
         return None
-    cols = read_csv(path, ["frame", "marker", "x", "y", "z"])
-    n = int(np.nanmax(cols["frame"])) + 1 if len(cols["frame"]) else 0
-    pos: dict[str, np.ndarray] = {}
-    for k, name, x, y, z in zip(cols["frame"].astype(int), cols["marker"], cols["x"], cols["y"], cols["z"], strict=True):
-        pos.setdefault(str(name), np.full((n, 3), np.nan))[k] = (x, y, z)
-    return ClipTruth(pos, n)
+    return ClipTruth(*read_positions(path))
 
 
 def error_stats(est: np.ndarray, truth: np.ndarray) -> dict[str, float]:

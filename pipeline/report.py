@@ -12,22 +12,14 @@ import numpy as np
 
 from detectors.stage import load_detections
 from pipeline.errors import StereotrackError
-from pipeline.estimate import load_truth
+from pipeline.estimate import load_truth, read_positions
 from pipeline.io import atomic_path, read_csv, write_text
 from pipeline.recording import PALETTE
 
 
 def load_estimates(out_dir: Path) -> dict[str, dict[str, np.ndarray]]:
     """``estimates/<method>.csv`` → method → marker → positions (frames × 3)."""
-    result: dict[str, dict[str, np.ndarray]] = {}
-    for f in sorted((out_dir / "estimates").glob("*.csv")):
-        cols = read_csv(f, ["frame", "marker", "x", "y", "z"])
-        n = int(np.nanmax(cols["frame"])) + 1 if len(cols["frame"]) else 0
-        per: dict[str, np.ndarray] = {}
-        for k, m, x, y, z in zip(cols["frame"].astype(int), cols["marker"], cols["x"], cols["y"], cols["z"], strict=True):
-            per.setdefault(str(m), np.full((n, 3), np.nan))[k] = (x, y, z)
-        result[f.stem] = per
-    return result
+    return {f.stem: read_positions(f)[0] for f in sorted((out_dir / "estimates").glob("*.csv"))}
 
 
 def _save(fig, path: Path) -> None:

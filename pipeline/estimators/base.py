@@ -125,7 +125,7 @@ class Estimator(ABC):
         from pipeline.estimators.triangulation import triangulate
 
         X = triangulate(self.rig, y[None])[0] if np.all(np.isfinite(y)) else np.full(3, np.nan)
-        buf = self.__dict__.setdefault("_init_buffer", [])
+        buf = self._init_buffer
         buf.append(X)
         if not np.all(np.isfinite(X)) or np.any(self.rig.left.depth(X[None]) <= 0):
             if len(buf) > 4 * init.frames:

@@ -89,7 +89,6 @@ class SPSAEstimator(Estimator):
         self._RT = (*R.ravel().tolist(), *T.ravel().tolist())
         cfg: SPSAConfig = self.config  # type: ignore[assignment]
         self._alpha, self._beta, self._th = cfg.alpha, cfg.beta, cfg.th
-        self._K = [(c.K[0, 0], c.K[0, 1], c.K[0, 2], c.K[1, 1], c.K[1, 2]) for c in self.rig.cameras]
         self.theta = [0.0] * 6  # frame units: [p, v·dt]
         self._phase = 0  # 0: next frame is x_{2k−1}; 1: next frame is x_{2k}
         self._delta: list[float] = []
@@ -105,15 +104,9 @@ class SPSAEstimator(Estimator):
         return np.array([t[0], t[1], t[2], t[3] / self.dt, t[4] / self.dt, t[5] / self.dt])
 
     def _normalize(self, y: np.ndarray) -> tuple[tuple, bool, bool]:
-        out = []
-        for c in range(2):
-            fx, s, cx, fy, cy = self._K[c]
-            u, v = float(y[2 * c]), float(y[2 * c + 1])
-            yy = (v - cy) / fy
-            out += [(u - cx - s * yy) / fx, yy]
-        ok_l = math.isfinite(out[0]) and math.isfinite(out[1])
-        ok_r = math.isfinite(out[2]) and math.isfinite(out[3])
-        return tuple(out), ok_l, ok_r
+        """Normalized observation (through the camera model) and which cameras are present."""
+        out = tuple(self.rig.normalize(y).tolist())
+        return out, math.isfinite(out[0]) and math.isfinite(out[1]), math.isfinite(out[2]) and math.isfinite(out[3])
 
     def _draw_delta(self) -> list[float]:
         """Next perturbation Δ (components ±1/√d), drawn from the seeded generator in blocks."""
@@ -224,19 +217,16 @@ class SPSAEstimator(Estimator):
         return batch_spsa(self, np.asarray(Y, dtype=float))
 
 
-def _cost_batch(rig, P: np.ndarray, yn: np.ndarray, use: np.ndarray) -> np.ndarray:
-    """Vectorised ``‖h(p) − y‖²`` (normalized) for M positions, cameras masked by ``use`` (M×2)."""
-    zl = P[:, 2]
-    Pr = P @ rig.R.T + rig.T
-    zr = Pr[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        hl = P[:, :2] / zl[:, None]
-        hr = Pr[:, :2] / zr[:, None]
-        cl = np.sum((hl - yn[:, :2]) ** 2, axis=1)
-        cr = np.sum((hr - yn[:, 2:]) ** 2, axis=1)
-    cl = np.where(zl > 1e-9, cl, BIG_COST)
-    cr = np.where(zr > 1e-9, cr, BIG_COST)
-    return np.where(use[:, 0], cl, 0.0) + np.where(use[:, 1], cr, 0.0)
+def _cost_batch(nrig, P: np.ndarray, yn: np.ndarray, use: np.ndarray) -> np.ndarray:
+    """Vectorised ``‖h(p) − y‖²`` for M positions through the normalized rig (``K = I``), cameras
+    masked by ``use`` (M×2); a trial point behind a camera costs ``BIG_COST`` there."""
+    out = np.zeros(len(P))
+    for c, cam in enumerate(nrig.cameras):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            cost = np.sum((cam.project(P) - yn[:, 2 * c : 2 * c + 2]) ** 2, axis=1)
+        cost = np.where(cam.depth(P) > 1e-9, cost, BIG_COST)
+        out += np.where(use[:, c], cost, 0.0)
+    return out
 
 
 def batch_spsa(est: SPSAEstimator, Y: np.ndarray, init_states: np.ndarray | None = None) -> np.ndarray:
@@ -263,6 +253,7 @@ def batch_spsa(est: SPSAEstimator, Y: np.ndarray, init_states: np.ndarray | None
         th[:, :3] = triangulate(est.rig, Y[:, 0])
     out[:, 0] = th[:, :3]
     b, a = cfg.beta, 1.0 / math.sqrt(6)
+    nrig = est.rig.normalized()
     rng = est.rng
     k = 1
     while k < n:
@@ -273,7 +264,7 @@ def batch_spsa(est: SPSAEstimator, Y: np.ndarray, init_states: np.ndarray | None
             break
         use = ok[:, k] & ok[:, k + 1]
         xe = th[:, :3] + b * D[:, :3] + 2 * (th[:, 3:] + b * D[:, 3:])
-        d = (_cost_batch(est.rig, xe, Yn[:, k + 1], use) - _cost_batch(est.rig, xo, Yn[:, k], use)) / (2 * b)
+        d = (_cost_batch(nrig, xe, Yn[:, k + 1], use) - _cost_batch(nrig, xo, Yn[:, k], use)) / (2 * b)
         d = np.clip(d, -cfg.th, cfg.th)
         d = np.where(np.isfinite(d) & use.any(axis=1), d, 0.0)
         th[:, :3] += 2 * th[:, 3:]
