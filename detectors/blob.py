@@ -36,6 +36,18 @@ class MarkerColor:
         hue = round(h * 180) % 180
         return cls(name, (hue - hue_tol) % 180, (hue + hue_tol) % 180, max(40, int(s * 255 * 0.45)), max(40, int(v * 255 * 0.35)))
 
+    @staticmethod
+    def parse_window(spec: str) -> tuple[str, tuple[int, int, int, int], int] | None:
+        """``NAME@x,y,w,h[@FRAME]`` → (name, window, left frame index, default 0), or None when
+        ``spec`` is not a window spec."""
+        if "@" not in spec:
+            return None
+        m = re.fullmatch(r"([\w\-]+)@(-?\d+),(-?\d+),(\d+),(\d+)(?:@(\d+))?", spec.strip())
+        if not m:
+            raise StereotrackError(f"bad marker spec {spec!r}: a window-learned marker is NAME@x,y,w,h[@FRAME] (pixels)")
+        x, y, w, h = (int(g) for g in m.groups()[1:5])
+        return m.group(1), (x, y, w, h), int(m.group(6) or 0)
+
     @classmethod
     def parse(cls, spec: str) -> MarkerColor:
         """``NAME:HLO-HHI[:SMIN[:VMIN]]`` (OpenCV HSV units) or ``NAME=#RRGGBB``."""
@@ -50,6 +62,37 @@ class MarkerColor:
         if not (0 <= vals[0] <= 179 and 0 <= vals[1] <= 179):  # type: ignore[operator]
             raise StereotrackError(f"bad marker spec {spec!r}: hue must lie in 0..179")
         return cls(m.group(1), vals[0], vals[1], vals[2] if vals[2] is not None else 80, vals[3] if vals[3] is not None else 60)  # type: ignore[arg-type]
+
+    @classmethod
+    def learn(cls, name: str, bgr: np.ndarray, roi: tuple[int, int, int, int], source: str = "") -> MarkerColor:
+        """The HSV range of the object in window ``roi`` (x, y, w, h) of a frame — the CamShift
+        tutorial's workflow. Coloured pixels (S ≥ 50, V ≥ 40) vote in a hue histogram; the range
+        spans the 2nd–98th percentile of hue around its peak, widened by 3; S and V minima are
+        the 5th percentiles of those pixels, relaxed by 30 % so shading on the object still passes."""
+        H, W = bgr.shape[:2]
+        x, y, w, h = roi
+        if w <= 0 or h <= 0 or x < 0 or y < 0 or x + w > W or y + h > H:
+            raise StereotrackError(f"marker window {name}@{x},{y},{w},{h} lies outside the {W}×{H} frame{source}")
+        hsv = cv2.cvtColor(bgr[y : y + h, x : x + w], cv2.COLOR_BGR2HSV).reshape(-1, 3).astype(int)
+        coloured = hsv[(hsv[:, 1] >= 50) & (hsv[:, 2] >= 40)]
+        if len(coloured) < max(12, 0.05 * w * h):
+            raise StereotrackError(f"marker window {name}@{x},{y},{w},{h} holds almost no coloured pixels{source}: "
+                                   "put the window on the marker")
+        hist = np.bincount(coloured[:, 0], minlength=180).astype(float)
+        hist = np.convolve(np.concatenate([hist[-3:], hist, hist[:3]]), np.ones(7), "valid")
+        peak = int(np.argmax(hist))
+        rel = (coloured[:, 0] - peak + 90) % 180 - 90  # hue relative to the peak, wrapped to −90..89
+        near = np.abs(rel) <= 25
+        lo, hi = np.percentile(rel[near], [2, 98])
+        h_lo, h_hi = int(np.floor(peak + lo - 3)) % 180, int(np.ceil(peak + hi + 3)) % 180
+        sv = coloured[near]
+        s_min = int(max(40, 0.7 * np.percentile(sv[:, 1], 5)))
+        v_min = int(max(30, 0.7 * np.percentile(sv[:, 2], 5)))
+        return cls(name, h_lo, h_hi, s_min, v_min)
+
+    def spec(self) -> str:
+        """This range as a ``--markers`` spec (``NAME:HLO-HHI:SMIN:VMIN``)."""
+        return f"{self.name}:{self.h_lo}-{self.h_hi}:{self.s_min}:{self.v_min}"
 
     def mask(self, hsv: np.ndarray) -> np.ndarray:
         if self.h_lo <= self.h_hi:
@@ -98,12 +141,15 @@ class BlobDetector:
             self._sbd = cv2.SimpleBlobDetector_create(p)
 
     def detect(self, bgr: np.ndarray, hsv: np.ndarray | None = None,
-               rois: dict[str, tuple[int, int, int, int]] | None = None) -> list[Detection]:
+               rois: dict[str, tuple[int, int, int, int]] | None = None,
+               expected_area: dict[str, float] | None = None) -> list[Detection]:
         """All detections in one frame (sub-pixel centroids, OpenCV pixel convention).
 
         ``rois`` (marker → x, y, w, h) restricts a marker's search to a window, typically around
-        its previous detection; a marker not found in its window is searched in the whole frame,
-        so windows only save time, never detections.
+        its previous detection. A marker not found in its window, or found only as a blob much
+        smaller than ``expected_area`` (its recent size: a small object of the same colour that
+        wandered into the window while the marker left it), is searched in the whole frame and
+        the better candidate kept, so windows only save time, never detections.
         """
         full: list[np.ndarray | None] = [hsv]
 
@@ -121,6 +167,13 @@ class BlobDetector:
                 sub = bgr[y : y + h, x : x + w]
                 if sub.size:
                     found = self._detect_one(mk, sub, cv2.cvtColor(sub, cv2.COLOR_BGR2HSV), x, y)
+                expect = (expected_area or {}).get(mk.name)
+                if found and expect and found[0].area < 0.4 * expect:
+                    windowed = found
+                    found = self._detect_coarse(mk, bgr) if self.coarse and bgr.shape[1] >= 640 \
+                        else self._detect_one(mk, bgr, whole(), 0, 0)
+                    if not found or windowed[0].score * windowed[0].area >= found[0].score * found[0].area:
+                        found = windowed
             if not found:
                 if self.coarse and bgr.shape[1] >= 640 and self.backend == "components":
                     found = self._detect_coarse(mk, bgr)

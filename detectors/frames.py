@@ -4,6 +4,7 @@ OpenCV reads, or folders of numbered PNGs), or a single video as a one-camera cl
 from __future__ import annotations
 
 import queue
+import re
 import threading
 import warnings
 from collections.abc import Iterator
@@ -30,23 +31,51 @@ def find_camera_source(clip_dir: Path, name: str) -> Path:
     raise ClipError(f"no {name} video ({'/'.join(e[1:] for e in VIDEO_EXTS)}) or {name}/ frame folder", clip_dir)
 
 
-class CameraReader:
-    """Sequential BGR frames of one camera (a video file or a folder of numbered images)."""
+_FRAME_NUMBER = re.compile(r"(\d+)$")
 
-    def __init__(self, source: Path) -> None:
+
+def index_frame_files(folder: Path) -> dict[int, Path]:
+    """Frame number → image file of a folder of numbered frames. The number is the last run of
+    digits of the file name (``frame_000012.png`` → 12), so a missing file is a gap, never a
+    shift of every later frame; two files with one number are an error naming both."""
+    files: dict[int, Path] = {}
+    for p in sorted(folder.iterdir()):
+        if p.suffix.lower() not in IMAGE_EXTS or p.name.startswith("."):
+            continue
+        m = _FRAME_NUMBER.search(p.stem)
+        if m is None:
+            raise ClipError(f"image {p.name} has no frame number in its name (expected e.g. 000012{p.suffix})", folder)
+        k = int(m.group(1))
+        if k in files:
+            raise ClipError(f"images {files[k].name} and {p.name} both claim frame {k}", folder)
+        files[k] = p
+    return files
+
+
+class CameraReader:
+    """Sequential BGR frames of one camera (a video file or a folder of numbered images).
+
+    For a frame folder, frame ``k`` is the file numbered ``first + k``; a frame whose file is
+    missing (a gap in the numbering) is yielded as None, with a warning naming the gap.
+    """
+
+    def __init__(self, source: Path, first_index: int | None = None) -> None:
         self.source = Path(source)
-        self.files: list[Path] | None = None
+        self.files: dict[int, Path] | None = None
         self.cap: cv2.VideoCapture | None = None
         if self.source.is_dir():
-            self.files = sorted(p for p in self.source.iterdir() if p.suffix.lower() in IMAGE_EXTS)
+            self.files = index_frame_files(self.source)
             if not self.files:
                 raise ClipError("frame folder holds no images", self.source)
-            first = cv2.imread(str(self.files[0]))
+            self.first = min(self.files) if first_index is None else first_index
+            first_file = self.files[min(self.files)]
+            first = cv2.imread(str(first_file))
             if first is None:
-                raise ClipError(f"cannot decode image {self.files[0].name}", self.source)
+                raise ClipError(f"cannot decode image {first_file.name}", self.source)
             self.size = (first.shape[1], first.shape[0])
-            self.count = len(self.files)
+            self.count = max(self.files) - self.first + 1
             self.fps = 0.0
+            self.gaps = [k - self.first for k in range(self.first, max(self.files) + 1) if k not in self.files]
         else:
             if not self.source.is_file():
                 raise ClipError("file not found", self.source)
@@ -62,13 +91,28 @@ class CameraReader:
             self.size = (first.shape[1], first.shape[0])
             self.count = int(self.cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
             self.fps = float(self.cap.get(cv2.CAP_PROP_FPS) or 0.0)
+            self.gaps = []
 
-    def __iter__(self) -> Iterator[np.ndarray]:
+    def warn_gaps(self) -> None:
+        """One warning line for missing frame numbers (those frames count as missed)."""
+        if self.gaps:
+            shown = ", ".join(str(g + self.first) for g in self.gaps[:5]) + (" …" if len(self.gaps) > 5 else "")
+            warnings.warn(f"{self.source}: {len(self.gaps)} frame number(s) missing ({shown}): "
+                          "treated as frames with no detection", stacklevel=3)
+
+    def __iter__(self) -> Iterator[np.ndarray | None]:
         if self.files is not None:
-            for f in self.files:
+            for k in range(self.first, self.first + self.count):
+                f = self.files.get(k)
+                if f is None:
+                    yield None
+                    continue
                 img = cv2.imread(str(f))
                 if img is None:
                     raise ClipError(f"cannot decode image {f.name}", self.source)
+                if (img.shape[1], img.shape[0]) != self.size:
+                    raise ClipError(f"image {f.name} is {img.shape[1]}×{img.shape[0]}, the folder's frames are "
+                                    f"{self.size[0]}×{self.size[1]}", self.source)
                 yield img
         else:
             assert self.cap is not None
@@ -128,7 +172,7 @@ class StereoFrame:
 
     index: int
     t: float
-    left: np.ndarray
+    left: np.ndarray | None  # None: this camera's frame is missing (a gap in a frame folder)
     right: np.ndarray | None
 
 
@@ -146,7 +190,13 @@ class StereoFrameSource:
         if clip.is_file():
             self.readers = [CameraReader(clip)]
         else:
-            self.readers = [CameraReader(find_camera_source(clip, "left")), CameraReader(find_camera_source(clip, "right"))]
+            srcs = [find_camera_source(clip, "left"), find_camera_source(clip, "right")]
+            first = None
+            if all(s.is_dir() for s in srcs):  # both folders number frames from the same origin
+                first = min(min(index_frame_files(s) or {0: None}) for s in srcs)
+            self.readers = [CameraReader(s, first) for s in srcs]
+        for r in self.readers:
+            r.warn_gaps()
         self.clip = clip
         self.allow_unequal = allow_unequal
         counts = [r.count for r in self.readers]
@@ -174,16 +224,20 @@ class StereoFrameSource:
     def __iter__(self) -> Iterator[StereoFrame]:
         its = [_prefetch(iter(r)) for r in self.readers] if self.prefetch else [iter(r) for r in self.readers]
         k = 0
+        end = object()
         try:
             while True:
-                imgs = [next(it, None) for it in its]
-                if all(i is None for i in imgs):
+                got = [next(it, end) for it in its]
+                if all(i is end for i in got):
                     break
-                if any(i is None for i in imgs):
-                    n_left = k if imgs[0] is None else k + 1
+                if k >= self.count and any(i is end for i in got):
+                    break  # truncated to the shorter camera
+                if any(i is end for i in got):
+                    n_left = k if got[0] is end else k + 1
                     if not self.allow_unequal:
                         raise ClipError(f"left and right videos end at different frames (around frame {n_left})", self.clip)
                     break
+                imgs = [None if i is end else i for i in got]
                 yield StereoFrame(k, k / self.fps, imgs[0], imgs[1] if len(imgs) > 1 else None)  # type: ignore[arg-type]
                 k += 1
         finally:

@@ -3,22 +3,32 @@ per-camera summary, with pixel errors against ``truth.csv`` when the clip has on
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+import cv2
 import numpy as np
+import yaml
 from scipy.optimize import linear_sum_assignment
 
 from detectors.blob import BlobDetector, Detection, MarkerColor
-from detectors.frames import StereoFrameSource
+from detectors.frames import CameraReader, StereoFrameSource
 from detectors.meanshift import MeanShiftTracker
-from pipeline.camera import StereoRig, load_calibration
+from pipeline.camera import StereoRig, has_calibration, load_calibration
+from pipeline.checks import Check, colour_checks, rig_for_frames, warn_failed
 from pipeline.errors import StereotrackError
-from pipeline.io import read_csv, write_csv
+from pipeline.io import read_csv, write_csv, write_json
 
 DETECTION_COLUMNS = ["frame", "camera", "marker", "u", "v", "area", "score"]
+#: The detect stage's record beside detections.csv: frames, frame size, markers used, checks.
+DETECT_INFO = "detect.json"
+#: A clip folder (or a batch's input root) may name its markers here, in ``--markers`` syntax.
+MARKERS_FILE = "markers.yaml"
+#: Whole frames sampled per camera for the colour-range checks.
+CHECK_SAMPLES = 10
 CAMERAS = ("left", "right")
 DetectorName = Literal["blob", "meanshift", "camshift"]
 
@@ -40,16 +50,71 @@ class DetectResult:
     path: Path
     rows: list[tuple]
     summaries: list[CameraSummary] = field(default_factory=list)
+    learned: dict[str, str] = field(default_factory=dict)  # window-learned marker → the range chosen
+    checks: list[Check] = field(default_factory=list)
 
 
-def markers_for_clip(clip: Path, specs: list[str] | None) -> tuple[list[MarkerColor], dict[str, list[str]]]:
-    """Marker colour ranges (from ``--markers`` specs, else the clip's scenario.yaml) and, for
-    four-point targets whose points share one colour, the group name → its four point names."""
+def read_markers_file(path: str | Path) -> list[str]:
+    """``markers.yaml``: a list of ``--markers`` specs, or a mapping with key ``markers`` holding one."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise StereotrackError(f"cannot read marker list ({str(exc).splitlines()[0]})", path) from None
+    if isinstance(data, dict):
+        if set(data) != {"markers"}:
+            raise StereotrackError(f"expected one key 'markers', found {', '.join(map(str, data))}", path)
+        data = data["markers"]
+    if not isinstance(data, list) or not data or not all(isinstance(s, str) for s in data):
+        raise StereotrackError("'markers' must be a non-empty list of specs such as 'ball:30-60:60:60', "
+                               "'red=#e61e1e' or 'ball@100,120,40,40'", path)
+    for spec in data:  # validate now, naming the file
+        try:
+            if MarkerColor.parse_window(spec) is None:
+                MarkerColor.parse(spec)
+        except StereotrackError as exc:
+            raise StereotrackError(str(exc), path) from None
+    return data
+
+
+def resolve_marker_specs(clip: Path, specs: list[str] | None, default: list[str] | None = None) -> list[str] | None:
+    """The marker specs that apply to ``clip``: ``--markers``, else the clip's own ``markers.yaml``,
+    else ``default`` (a batch root's ``markers.yaml``); None leaves the colours to scenario.yaml."""
     if specs:
-        return [MarkerColor.parse(s) for s in specs], {}
+        return specs
+    folder = clip if clip.is_dir() else clip.parent
+    if (folder / MARKERS_FILE).is_file():
+        return read_markers_file(folder / MARKERS_FILE)
+    return default
+
+
+def markers_for_clip(clip: Path, specs: list[str] | None, left_frame: Callable[[int], np.ndarray | None] | None = None,
+                     learned: dict[str, str] | None = None) -> tuple[list[MarkerColor], dict[str, list[str]]]:
+    """Marker colour ranges (from ``--markers`` specs, else ``markers.yaml``, else the clip's
+    scenario.yaml) and, for four-point targets whose points share one colour, the group name →
+    its four point names. A ``NAME@x,y,w,h[@FRAME]`` spec learns its range from that window of
+    the left camera's frame FRAME (default the first), read through ``left_frame``; the ranges
+    chosen go into ``learned``."""
+    specs = resolve_marker_specs(clip, specs)
+    if specs:
+        colors = []
+        for spec in specs:
+            win = MarkerColor.parse_window(spec)
+            if win is None:
+                colors.append(MarkerColor.parse(spec))
+                continue
+            frame = left_frame(win[2]) if left_frame is not None else None
+            if frame is None:
+                raise StereotrackError(f"marker {spec!r} learns its colour from left frame {win[2]}, which is missing", clip)
+            mk = MarkerColor.learn(win[0], frame, win[1], f" (left frame {win[2]} of {clip})")
+            colors.append(mk)
+            if learned is not None:
+                learned[mk.name] = mk.spec()
+        return colors, {}
     scen_path = clip / "scenario.yaml" if clip.is_dir() else None
     if scen_path is None or not scen_path.is_file():
-        raise StereotrackError("no scenario.yaml to take marker colours from: give --markers NAME:HLO-HHI or NAME=#RRGGBB", clip)
+        raise StereotrackError(f"no marker colours: give --markers NAME:HLO-HHI, NAME=#RRGGBB or NAME@x,y,w,h, "
+                               f"or put them in {MARKERS_FILE} (no scenario.yaml to take them from)", clip)
     from renderers.scenario import load_scenario
 
     scen = load_scenario(scen_path)
@@ -95,20 +160,27 @@ def detect_clip(
     allow_unequal: bool = False,
     out_dir: str | Path | None = None,
     progress: Callable[[int, int], None] | None = None,
+    calib_units: str | None = None,
 ) -> DetectResult:
-    """Detect every marker in every frame of both cameras and write ``detections.csv``.
+    """Detect every marker in every frame of both cameras and write ``detections.csv`` and
+    ``detect.json`` (frames, frame size, the marker ranges used, the colour checks).
 
     Coordinates written are undistorted with the clip's calibration when it has one (real rigs
-    have lens distortion; estimators need pinhole coordinates).
+    have lens distortion; estimators need pinhole coordinates); a calibration for another image
+    size is an error, or scaled with a warning when only the resolution differs.
     """
     clip = Path(clip)
     source = StereoFrameSource(clip, allow_unequal=allow_unequal)
     base = clip if clip.is_dir() else clip.parent
     out_dir = Path(out_dir) if out_dir else base / "out"
     rig: StereoRig | None = None
-    if clip.is_dir() and any((clip / n).is_file() for n in ("calib.yaml", "calib.yml", "intrinsics.yml")):
-        rig = load_calibration(clip)
-    markers, groups = markers_for_clip(clip, marker_specs)
+    checks: list[Check] = []
+    if has_calibration(clip):
+        rig, size_check = rig_for_frames(load_calibration(clip, calib_units), source.size, clip)
+        checks += [size_check] if size_check else []
+    learned: dict[str, str] = {}
+    specs = resolve_marker_specs(clip, marker_specs)
+    markers, groups = markers_for_clip(clip, specs, lambda k: _left_frame(source, k), learned)
     n_cams = 2 if source.stereo else 1
     if detector == "blob":
         blob = BlobDetector(markers, max_per_marker=4)
@@ -121,14 +193,31 @@ def detect_clip(
     rows: list[tuple] = []
     previous: dict[tuple[int, str], np.ndarray] = {}
     windows: list[dict[str, tuple[int, int, int, int]]] = [{}, {}]  # blob search windows per camera
+    areas: list[dict[str, deque]] = [{}, {}]  # recent blob areas per camera and marker
     grouped = {n for names in groups.values() for n in names}
     total = len(source)
+    sample_at = set(np.linspace(0, max(total - 1, 0), min(CHECK_SAMPLES, max(total, 1))).astype(int).tolist())
+    samples: dict[tuple[str, str], list] = {}
+    sampler = BlobDetector(markers, max_per_marker=2, coarse=False)
+    n_done = 0
     for fr in source:
-        images = [fr.left] if fr.right is None else [fr.left, fr.right]
+        images = [fr.left] if n_cams == 1 else [fr.left, fr.right]
         for c, img in enumerate(images):
+            if img is None:  # a missing frame file: no detection in this camera
+                windows[c] = {}
+                continue
+            if fr.index in sample_at:
+                _sample_colours(sampler, img, CAMERAS[c], grouped | set(groups), samples)
             if detector == "blob":
-                dets = _best_per_marker(blob.detect(img, rois=windows[c]), groups, previous, c)
+                expected = {m: float(np.median(a)) for m, a in areas[c].items() if a}
+                dets = _best_per_marker(blob.detect(img, rois=windows[c], expected_area=expected), groups, previous, c)
                 windows[c] = {d.marker: _window(d, img.shape) for d in dets if d.marker not in grouped}
+                seen = {d.marker for d in dets}
+                for d in dets:
+                    areas[c].setdefault(d.marker, deque(maxlen=5)).append(d.area)
+                for m in list(areas[c]):
+                    if m not in seen:
+                        areas[c].pop(m)
             else:
                 dets = [d for t in trackers[c] if (d := t.update(img)) is not None]
             for d in dets:
@@ -136,13 +225,45 @@ def detect_clip(
                 if rig is not None:
                     u, v = rig.cameras[c].undistort(np.array([[u, v]]))[0]
                 rows.append((fr.index, CAMERAS[c], d.marker, u, v, d.area, d.score))
+        n_done = fr.index + 1
         if progress is not None:
-            progress(fr.index + 1, total)
+            progress(n_done, total)
+    checks += colour_checks(samples)
+    warn_failed(checks)
     path = out_dir / "detections.csv"
     write_csv(path, DETECTION_COLUMNS, rows)
-    result = DetectResult(path, rows)
-    result.summaries = summarize(rows, clip, fr.index + 1 if total else 0, n_cams)
+    write_json(out_dir / DETECT_INFO, {
+        "clip": str(clip), "frames": n_done, "frame_size": list(source.size), "stereo": source.stereo,
+        "detector": detector, "markers": [m.spec() for m in markers], "learned": learned,
+        "checks": [c.as_dict() for c in checks]})
+    result = DetectResult(path, rows, learned=learned, checks=checks)
+    result.summaries = summarize(rows, clip, n_done, n_cams)
     return result
+
+
+def _left_frame(source: StereoFrameSource, k: int) -> np.ndarray | None:
+    """Left frame ``k``, read by a reader of its own (the source is iterated afterwards)."""
+    reader = CameraReader(source.readers[0].source, getattr(source.readers[0], "first", None))
+    try:
+        for i, img in enumerate(reader):
+            if i == k:
+                return img
+        return None
+    finally:
+        reader.close()
+
+
+def _sample_colours(sampler: BlobDetector, img: np.ndarray, cam: str, skip: set[str],
+                    samples: dict[tuple[str, str], list]) -> None:
+    """Whole-frame mask coverage and the two largest blobs of each marker's colour (colour checks)."""
+    hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV)
+    for mk in sampler.markers:
+        if mk.name in skip:
+            continue
+        mask_px = int(cv2.countNonZero(mk.mask(hsv)))
+        found = sampler._detect_one(mk, img, hsv, 0, 0)
+        areas = [*sorted((d.area for d in found), reverse=True), 0.0, 0.0]
+        samples.setdefault((mk.name, cam), []).append((mask_px / (img.shape[0] * img.shape[1]), mask_px, areas[0], areas[1]))
 
 
 def _window(d: Detection, shape: tuple[int, ...]) -> tuple[int, int, int, int]:
@@ -206,23 +327,30 @@ def summarize(rows: list[tuple], clip: Path, n_frames: int, n_cams: int) -> list
 
 def load_detections(path: str | Path, n_frames: int | None = None) -> dict[str, np.ndarray]:
     """``detections.csv`` → per marker an array frames × 4 ``[u1, v1, u2, v2]`` (NaN = missed),
-    keeping the highest-scoring detection per frame, camera and marker."""
-    cols = read_csv(path, DETECTION_COLUMNS)
+    keeping the highest-scoring detection per frame, camera and marker.
+
+    ``n_frames`` is the clip's frame count: a row outside ``0 .. n_frames − 1`` is an error naming
+    the line, as are non-numeric or non-finite fields and unknown cameras.
+    """
+    path = Path(path)
+    cols = read_csv(path, DETECTION_COLUMNS, numeric=["area", "score"], finite=["frame", "u", "v"])
     if len(cols["frame"]) == 0:
         return {}
     frames = cols["frame"]
-    if not np.all(np.isfinite(frames)):
-        raise StereotrackError("non-numeric frame index", path)
+    bad = (frames != np.round(frames)) | (frames < 0) | (frames >= (n_frames if n_frames is not None else np.inf))
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        where = f"outside the clip's frames 0..{n_frames - 1}" if n_frames is not None else "not a frame index"
+        raise StereotrackError(f"line {i + 2}: frame {frames[i]:g} is {where}", path)
     n = max(int(frames.max()) + 1, n_frames or 0)
     out: dict[str, np.ndarray] = {}
     best: dict[tuple[str, int, int], float] = {}
-    for k, cam, name, u, v, score in zip(frames.astype(int), cols["camera"], cols["marker"], cols["u"], cols["v"],
-                                          cols["score"], strict=True):
+    for i, (k, cam, name, u, v, score) in enumerate(zip(frames.astype(int), cols["camera"], cols["marker"], cols["u"],
+                                                         cols["v"], cols["score"], strict=True)):
         c = {"left": 0, "right": 1}.get(str(cam))
         if c is None:
-            raise StereotrackError(f"unknown camera {cam!r} (expected left/right)", path)
-        if not (np.isfinite(u) and np.isfinite(v)):
-            continue  # a NaN observation is a miss
+            raise StereotrackError(f"line {i + 2}: unknown camera {cam!r} (expected left/right)", path)
+        score = score if np.isfinite(score) else 0.0
         arr = out.setdefault(str(name), np.full((n, 4), np.nan))
         key = (str(name), int(k), c)
         if key in best and best[key] >= score:

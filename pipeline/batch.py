@@ -15,8 +15,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from pipeline.camera import has_calibration
 from pipeline.errors import StereotrackError
-from pipeline.io import write_csv, write_text
+from pipeline.io import ensure_dir, write_csv, write_text
 
 SUMMARY_COLUMNS = ["clip", "status", "method", "rmse_m", "final_m", "reprojection_rmse_px", "steps_per_second", "error"]
 
@@ -39,15 +40,15 @@ def find_clips(input_dir: str | Path) -> list[Path]:
         if d.name.startswith(".") or d.name in ("out", "left", "right", "estimates", "figures"):
             continue
         names = {p.name for p in d.iterdir()}
-        has_calib = bool(names & {"calib.yaml", "calib.yml", "intrinsics.yml", "intrinsics.yaml"})
+        has_calib = has_calibration(d)
         has_left = any(n.startswith("left") for n in names)
         if has_calib or (has_left and any(n.startswith("right") for n in names)):
             clips.append(d)
     return clips
 
 
-def _process_one(clip: str, out_root: str, detector: str, methods: list[str] | None, single_thread: bool = False
-                 ) -> ClipOutcome:
+def _process_one(clip: str, out_root: str, detector: str, methods: list[str] | None, single_thread: bool = False,
+                 marker_specs: list[str] | None = None, calib_units: str | None = None) -> ClipOutcome:
     """Worker entry point (runs in a pool process or on a Dask worker). ``single_thread`` keeps
     OpenCV to one thread so that parallel workers do not oversubscribe the cores."""
     import json
@@ -63,7 +64,17 @@ def _process_one(clip: str, out_root: str, detector: str, methods: list[str] | N
     final, partial = Path(out_root) / name, Path(out_root) / f".{name}.partial"
     shutil.rmtree(partial, ignore_errors=True)
     try:
-        process_clip(clip_p, partial, detector=detector, methods=methods, images_in_recording=False)
+        import warnings
+
+        from detectors.stage import resolve_marker_specs
+
+        specs = resolve_marker_specs(clip_p, None, marker_specs)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            process_clip(clip_p, partial, detector=detector, methods=methods, images_in_recording=False,
+                         marker_specs=specs, calib_units=calib_units)
+        for w in caught:  # the clip's warnings reach the user through the summary
+            print(f"warning: {w.message}", flush=True)
         if final.exists():
             shutil.rmtree(final)
         partial.rename(final)
@@ -86,15 +97,26 @@ def run_batch(
     detector: str = "blob",
     methods: list[str] | None = None,
     progress: Callable[[int, int], None] | None = None,
+    marker_specs: list[str] | None = None,
+    calib_units: str | None = None,
 ) -> list[ClipOutcome]:
     """Process every clip under ``input_dir``; write ``summary.csv`` and ``summary.md``.
+
+    ``marker_specs`` (``--markers``) apply to every clip; else a clip's own ``markers.yaml``, else
+    ``INPUT/markers.yaml``, else the clip's scenario.yaml gives its markers.
 
     ``scheduler``: None for a local process pool; ``"local"`` for a Dask ``LocalCluster`` of
     ``workers`` processes; a ``tcp://host:port`` address for an existing Dask scheduler.
     """
+    from detectors.stage import MARKERS_FILE, read_markers_file
+
     clips = find_clips(input_dir)
-    out_root = Path(output_dir)
-    out_root.mkdir(parents=True, exist_ok=True)
+    if not clips:
+        raise StereotrackError("no clip folders here (a clip holds left/right videos or frame folders and a calibration)",
+                               input_dir)
+    if not marker_specs and (Path(input_dir) / MARKERS_FILE).is_file():
+        marker_specs = read_markers_file(Path(input_dir) / MARKERS_FILE)
+    out_root = ensure_dir(output_dir)
     for stale in out_root.glob(".*.partial"):
         shutil.rmtree(stale, ignore_errors=True)
     outcomes: dict[str, ClipOutcome] = {}
@@ -109,7 +131,7 @@ def run_batch(
     done = len(outcomes)
     if progress is not None:
         progress(done, len(clips))
-    args = [(str(c), str(out_root), detector, methods, workers > 1) for c in todo]
+    args = [(str(c), str(out_root), detector, methods, workers > 1, marker_specs, calib_units) for c in todo]
     if todo and scheduler is None:
         with cf.ProcessPoolExecutor(max_workers=max(1, workers), mp_context=mp.get_context("spawn")) as pool:
             futs = [pool.submit(_process_one, *a) for a in args]
@@ -127,10 +149,17 @@ def run_batch(
         cluster = LocalCluster(n_workers=max(1, workers), threads_per_worker=1, processes=True,
                                dashboard_address=None, silence_logs=logging.WARNING) if scheduler == "local" else None
         try:
-            with Client(cluster if cluster is not None else scheduler) as client:
-                futs = [client.submit(_process_one, *a, pure=False) for a in args]
+            try:
+                client = Client(cluster if cluster is not None else scheduler, timeout="10s")
+            except (OSError, TimeoutError, ValueError) as exc:
+                raise StereotrackError(f"cannot reach the Dask scheduler at {scheduler} ({_first_line(exc)})") from None
+            with client:
+                futs = {client.submit(_process_one, *a, pure=False): Path(a[0]).name for a in args}
                 for f in as_completed(futs):
-                    o = f.result()
+                    try:
+                        o = f.result()
+                    except Exception as exc:  # a worker died, or the cluster lost the task
+                        o = ClipOutcome(futs[f], "failed", error=f"Dask: {type(exc).__name__}: {_first_line(exc)}")
                     outcomes[o.clip] = o
                     done += 1
                     if progress is not None:
@@ -141,6 +170,11 @@ def run_batch(
     ordered = [outcomes[c.name] for c in clips]
     write_summary(out_root, ordered)
     return ordered
+
+
+def _first_line(exc: BaseException) -> str:
+    lines = str(exc).strip().splitlines()
+    return lines[0] if lines else type(exc).__name__
 
 
 def write_summary(out_root: Path, outcomes: list[ClipOutcome]) -> None:

@@ -10,6 +10,7 @@ through :func:`project` / :class:`Camera` / :class:`StereoRig`; there is no seco
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -197,6 +198,36 @@ class StereoRig:
         u, v = uv[..., 0], uv[..., 1]
         return (u >= -0.5 + margin) & (u <= w - 0.5 - margin) & (v >= -0.5 + margin) & (v <= h - 0.5 - margin)
 
+    def scaled_to(self, size: tuple[int, int]) -> StereoRig:
+        """The same rig for images resized to ``size`` (width, height): K's rows scale with the
+        image (pixel centres stay at integers, so ``c' = (c + 0.5)·s − 0.5``)."""
+        sx, sy = size[0] / self.image_size[0], size[1] / self.image_size[1]
+        S = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
+        return StereoRig(Camera(S @ self.left.K, self.left.R, self.left.t, self.left.D),
+                         Camera(S @ self.right.K, self.right.R, self.right.t, self.right.D), (int(size[0]), int(size[1])))
+
+    def fundamental(self) -> np.ndarray:
+        """Fundamental matrix ``F`` with ``x_rightᵀ F x_left = 0``: ``K2⁻ᵀ [T]ₓ R K1⁻¹`` (H&Z 9.2)."""
+        T = self.T
+        Tx = np.array([[0.0, -T[2], T[1]], [T[2], 0.0, -T[0]], [-T[1], T[0], 0.0]])
+        return np.linalg.inv(self.right.K).T @ Tx @ self.R @ np.linalg.inv(self.left.K)
+
+    def epipolar_distance(self, obs: np.ndarray) -> np.ndarray:
+        """Symmetric point-to-epipolar-line distance (px) of stereo observations ``[u1, v1, u2, v2]``
+        (N×4): the mean of the right point's distance to ``F x1`` and the left's to ``Fᵀ x2``."""
+        obs = np.asarray(obs, dtype=float).reshape(-1, 4)
+        F = self.fundamental()
+        x1 = np.column_stack([obs[:, :2], np.ones(len(obs))])
+        x2 = np.column_stack([obs[:, 2:], np.ones(len(obs))])
+        l2, l1 = x1 @ F.T, x2 @ F
+        alg = np.abs(np.sum(x2 * l2, axis=1))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return 0.5 * (alg / np.hypot(l2[:, 0], l2[:, 1]) + alg / np.hypot(l1[:, 0], l1[:, 1]))
+
+    def depths(self, X: np.ndarray) -> np.ndarray:
+        """Depth of world points in the left and the right camera (N×2); ≤ 0 means behind it."""
+        return np.stack([self.left.depth(X), self.right.depth(X)], axis=-1)
+
     def check(self, source: str | Path | None = None) -> None:
         """Reject rigs no estimator can use (coincident cameras, singular intrinsics)."""
         for name, cam in (("left", self.left), ("right", self.right)):
@@ -213,6 +244,23 @@ class StereoRig:
 # ---------------------------------------------------------------------------------------------
 
 _DIST_LENGTHS = (4, 5, 8, 12, 14)
+
+#: File names of a clip folder's calibration, in the order they are looked for.
+CALIB_NAMES = ("calib.yaml", "calib.yml", "calib.xml", "calib.json")
+#: OpenCV ``stereo_calib`` sample layout: intrinsics + extrinsics files.
+INTRINSICS_NAMES = ("intrinsics.yml", "intrinsics.yaml", "intrinsics.xml")
+EXTRINSICS_NAMES = ("extrinsics.yml", "extrinsics.yaml", "extrinsics.xml")
+#: Length units a calibration may declare (``units: mm`` in calib.yaml), as metres per unit.
+LENGTH_UNITS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3}
+#: A baseline longer than this with no declared unit is almost surely not in metres.
+SUSPICIOUS_BASELINE = 5.0
+
+
+def has_calibration(folder: str | Path) -> bool:
+    """Whether ``folder`` holds a calibration in one of the layouts :func:`load_calibration` reads."""
+    folder = Path(folder)
+    names = (*CALIB_NAMES, *INTRINSICS_NAMES)
+    return folder.is_dir() and any((folder / n).is_file() for n in names)
 
 
 def _open_storage(path: Path) -> cv2.FileStorage:
@@ -277,7 +325,7 @@ def _read_size(fs: cv2.FileStorage, path: Path) -> tuple[int, int]:
     return (0, 0)
 
 
-def load_calibration(path: str | Path) -> StereoRig:
+def load_calibration(path: str | Path, units: str | None = None) -> StereoRig:
     """Load a stereo calibration.
 
     ``path`` is a ``calib.yaml`` (keys ``K1 D1 K2 D2 R T`` and ``image_width``/``image_height``, as
@@ -285,21 +333,46 @@ def load_calibration(path: str | Path) -> StereoRig:
     in the layout of OpenCV's ``stereo_calib`` sample (``intrinsics.yml`` with ``M1 D1 M2 D2``,
     ``extrinsics.yml`` with ``R T ...``). Both OpenCV 4 (``%YAML:1.0``) and 5 (``%YAML 1.2``) files
     load. Distortion may have 4, 5, 8, 12 or 14 coefficients.
+
+    Lengths (``T``) come out in metres: the file may declare its unit (``units: mm|cm|m``), and
+    ``units`` (the CLI's ``--calib-units``) overrides it. With no declared unit and a baseline
+    longer than 5, a warning names the likely unit (OpenCV's chessboard tools use whatever
+    unit the square size was typed in, very often millimetres).
     """
     path = Path(path)
+    if units is not None and units not in LENGTH_UNITS:
+        raise CalibrationError(f"unknown length unit {units!r} (use m, cm or mm)")
     if path.is_dir():
-        for name in ("calib.yaml", "calib.yml", "calib.xml", "calib.json"):
+        for name in CALIB_NAMES:
             if (path / name).is_file():
-                return load_calibration(path / name)
-        intr = next((path / n for n in ("intrinsics.yml", "intrinsics.yaml", "intrinsics.xml") if (path / n).is_file()), None)
-        extr = next((path / n for n in ("extrinsics.yml", "extrinsics.yaml", "extrinsics.xml") if (path / n).is_file()), None)
+                return load_calibration(path / name, units)
+        intr = next((path / n for n in INTRINSICS_NAMES if (path / n).is_file()), None)
+        extr = next((path / n for n in EXTRINSICS_NAMES if (path / n).is_file()), None)
         if intr is None or extr is None:
             raise CalibrationError("no calib.yaml (nor intrinsics.yml + extrinsics.yml) in this folder", path)
-        return _load_stereo_calib_layout(intr, extr)
-    return _load_stereo_calib_layout(path, path)
+        return _load_stereo_calib_layout(intr, extr, units)
+    return _load_stereo_calib_layout(path, path, units)
 
 
-def _load_stereo_calib_layout(intr: Path, extr: Path) -> StereoRig:
+def _read_units(fs: cv2.FileStorage, path: Path) -> str | None:
+    node = fs.getNode("units")
+    if node.empty():
+        return None
+    unit = node.string().strip().lower() if node.isString() else ""
+    if unit not in LENGTH_UNITS:
+        raise CalibrationError(f"field 'units' must be m, cm or mm, not {unit or node.real()!r}", path)
+    return unit
+
+
+def _check_intrinsics(K: np.ndarray, key: str, path: Path) -> None:
+    """Focal lengths must be positive: a negative one mirrors the image and gives NaN depths."""
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise CalibrationError(f"field '{key}' has focal length fx={K[0, 0]:g}, fy={K[1, 1]:g}: both must be > 0", path)
+    if not np.allclose(K[2], [0.0, 0.0, 1.0]):
+        raise CalibrationError(f"field '{key}' is not a camera matrix (last row must be 0 0 1, got {K[2].tolist()})", path)
+
+
+def _load_stereo_calib_layout(intr: Path, extr: Path, units: str | None = None) -> StereoRig:
     """Intrinsics (``K1/M1 D1 K2/M2 D2``, image size) from ``intr``, ``R T`` from ``extr`` (the same
     file for ``calib.yaml``)."""
     fs = _open_storage(intr)
@@ -307,6 +380,7 @@ def _load_stereo_calib_layout(intr: Path, extr: Path) -> StereoRig:
         K1, K2 = (_read_intrinsics(fs, i, intr) for i in (1, 2))
         D1, D2 = _read_dist(fs, "D1", intr), _read_dist(fs, "D2", intr)
         size = _read_size(fs, intr)
+        declared = _read_units(fs, intr)
     finally:
         fs.release()
     fs = _open_storage(extr)
@@ -314,18 +388,37 @@ def _load_stereo_calib_layout(intr: Path, extr: Path) -> StereoRig:
         R, T = _read_mat(fs, "R", extr, (3, 3)), _read_mat(fs, "T", extr, (3,))
         if size == (0, 0):
             size = _read_size(fs, extr)
+        declared = declared or _read_units(fs, extr)
     finally:
         fs.release()
+    for key, K in (("K1", K1), ("K2", K2)):
+        _check_intrinsics(K, key, intr)
+    if size != (0, 0) and (size[0] <= 0 or size[1] <= 0):
+        raise CalibrationError(f"image size {size[0]}×{size[1]} is not positive", intr)
+    unit = units or declared
+    baseline = float(np.linalg.norm(R.T @ T))
+    if unit is None and baseline > SUSPICIOUS_BASELINE:
+        likely, scale = ("millimetres", "mm") if baseline > 30 else ("centimetres", "cm")
+        warnings.warn(f"{extr}: baseline is {baseline:g} with no declared unit; this looks like {likely} "
+                      f"({baseline * LENGTH_UNITS[scale]:g} m): add 'units: {scale}' to the file or pass "
+                      f"--calib-units {scale}", stacklevel=2)
+    T = T * LENGTH_UNITS[unit or "m"]
     rig = StereoRig(Camera(K1, D=D1), Camera(K2, R, T, D2), size)
     rig.check(extr)
     return rig
 
 
-def save_calibration(rig: StereoRig, path: str | Path) -> None:
-    """Write ``calib.yaml`` through ``cv2.FileStorage`` (atomically), with derived ``P1``, ``P2``."""
+def save_calibration(rig: StereoRig, path: str | Path, units: str | None = None) -> None:
+    """Write ``calib.yaml`` through ``cv2.FileStorage`` (atomically), with derived ``P1``, ``P2``.
+    ``units`` declares the length unit of ``T`` in the file (``T`` is scaled from metres to it)."""
     path = Path(path)
+    if units is not None:
+        s = 1.0 / LENGTH_UNITS[units]
+        rig = StereoRig(rig.left, Camera(rig.right.K, rig.right.R, rig.right.t * s, rig.right.D), rig.image_size)
     with atomic_path(path) as tmp:
         fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
+        if units is not None:
+            fs.write("units", units)
         fs.write("image_width", int(rig.image_size[0]))
         fs.write("image_height", int(rig.image_size[1]))
         fs.write("K1", rig.left.K)

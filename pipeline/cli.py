@@ -10,6 +10,7 @@ from typing import Annotated
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
@@ -100,29 +101,45 @@ def detect_cmd(
     clip: Annotated[Path, typer.Argument(help="Clip folder (left/right videos or PNG folders) or a single video.")],
     detector: Annotated[str, typer.Option(help="blob, meanshift or camshift.")] = "blob",
     markers: Annotated[list[str] | None, typer.Option(
-        "--markers", help="Marker colour, NAME:HLO-HHI[:SMIN[:VMIN]] (OpenCV HSV) or NAME=#RRGGBB; repeatable "
-        "or comma-separated. Default: the colours in the clip's scenario.yaml.")] = None,
+        "--markers", help="Marker colour, NAME:HLO-HHI[:SMIN[:VMIN]] (OpenCV HSV), NAME=#RRGGBB, or NAME@x,y,w,h to learn "
+        "the range from that window of the first left frame; repeatable or comma-separated. Default: the clip's "
+        "markers.yaml, else the colours in its scenario.yaml.")] = None,
     roi: Annotated[str | None, typer.Option(help="Initial tracking window x,y,w,h (meanshift/camshift).")] = None,
     allow_unequal: Annotated[bool, typer.Option("--allow-unequal", help="Truncate unequal left/right lengths.")] = False,
     output: Annotated[Path | None, typer.Option("-o", "--output", help="Output folder (default CLIP/out).")] = None,
+    calib_units: Annotated[str | None, typer.Option(
+        "--calib-units", help="Length unit of the calibration's T (m, cm or mm) when calib.yaml does not declare "
+        "'units'; outputs are in metres.")] = None,
 ) -> None:
     """Find the markers in every frame; write detections.csv and print a per-camera summary."""
     from detectors.stage import detect_clip
 
-    specs = [s for m in markers or [] for s in m.split(",") if s.strip()] or None
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        with progress_bar() as bar:
-            task = bar.add_task(f"detect ({detector})", total=None)
-            result = detect_clip(clip, detector, specs, _parse_roi(roi), allow_unequal, output,  # type: ignore[arg-type]
-                                 progress=lambda done, total: bar.update(task, completed=done, total=total or None))
-    for w in caught:
-        console.print(f"[yellow]warning:[/] {w.message}")
+    with progress_bar() as bar:
+        task = bar.add_task(f"detect ({detector})", total=None)
+        result = detect_clip(clip, detector, _specs(markers), _parse_roi(roi), allow_unequal, output,  # type: ignore[arg-type]
+                             progress=lambda done, total: bar.update(task, completed=done, total=total or None),
+                             calib_units=calib_units)
+    _print_learned(result.learned)
     table = Table("camera", "frames", "detections", "misses", "px err median", "p95", "max", title=str(result.path))
     for s in result.summaries:
         table.add_row(s.camera, str(s.frames), str(s.detections), "—" if s.misses is None else str(s.misses),
                       _fmt(s.err_median), _fmt(s.err_p95), _fmt(s.err_max))
     out.print(table)
+
+
+def _specs(markers: list[str] | None) -> list[str] | None:
+    """``--markers`` values: repeatable and comma-separated (a window spec's commas are its own)."""
+    import re
+
+    out = []
+    for m in markers or []:
+        out += [p for p in re.split(r",(?![0-9-])", m) if p.strip()]
+    return out or None
+
+
+def _print_learned(learned: dict[str, str]) -> None:
+    for name, spec in learned.items():
+        out.print(f"learned marker {name!r} from its window: --markers {spec}")
 
 
 def _methods(methods: str | None) -> list[str] | None:
@@ -146,6 +163,9 @@ def estimate_cmd(
     clip: Annotated[Path, typer.Argument(help="Clip folder with calib.yaml and out/detections.csv.")],
     methods: Annotated[str | None, typer.Option(help="Comma-separated methods (default: all point methods).")] = None,
     output: Annotated[Path | None, typer.Option("-o", "--output", help="Output folder (default CLIP/out).")] = None,
+    calib_units: Annotated[str | None, typer.Option(
+        "--calib-units", help="Length unit of the calibration's T (m, cm or mm) when calib.yaml does not declare "
+        "'units'; outputs are in metres.")] = None,
 ) -> None:
     """Estimate 3-D tracks with each method; write estimates/<method>.csv and metrics.json."""
     from pipeline.estimate import estimate_clip
@@ -153,7 +173,7 @@ def estimate_cmd(
     with progress_bar() as bar:
         task = bar.add_task("estimate", total=None)
         res = estimate_clip(clip, _methods(methods), output,
-                            progress=lambda d, t: bar.update(task, completed=d, total=t))
+                            progress=lambda d, t: bar.update(task, completed=d, total=t), calib_units=calib_units)
     out.print(_metrics_table(res.metrics, str(res.out_dir / "metrics.json")))
 
 
@@ -179,8 +199,18 @@ def run_cmd(
     detector: Annotated[str, typer.Option(help="blob, meanshift or camshift.")] = "blob",
     methods: Annotated[str | None, typer.Option(help="Comma-separated methods (default: all).")] = None,
     fmt: Annotated[str, typer.Option("--format", help="Rendered clip format: mp4 or png.")] = "mp4",
+    markers: Annotated[list[str] | None, typer.Option(
+        "--markers", help="Marker colour, NAME:HLO-HHI[:SMIN[:VMIN]] (OpenCV HSV), NAME=#RRGGBB, or NAME@x,y,w,h to learn "
+        "the range from that window of the first left frame; repeatable or comma-separated. Default: the clip's "
+        "markers.yaml, else the colours in its scenario.yaml.")] = None,
+    calib_units: Annotated[str | None, typer.Option(
+        "--calib-units", help="Length unit of the calibration's T (m, cm or mm) when calib.yaml does not declare "
+        "'units'; outputs are in metres.")] = None,
 ) -> None:
-    """Run every stage on one clip: (render), detect, estimate, metrics, report, recording."""
+    """Run every stage on one clip: (render), detect, estimate, metrics, report, recording.
+
+    A clip folder of real footage needs two videos (or PNG folders), a calibration and its markers
+    (--markers or a markers.yaml in the folder)."""
     from pipeline.run import DEFAULT_SCENARIO, process_clip
 
     t0 = __import__("time").perf_counter()
@@ -202,7 +232,9 @@ def run_cmd(
             bar.update(task, description=name, completed=0, total=None)
 
         res = process_clip(clip, detector=detector, methods=_methods(methods), stage=stage,
-                           progress=lambda d, t: bar.update(task, completed=d, total=t))
+                           progress=lambda d, t: bar.update(task, completed=d, total=t),
+                           marker_specs=_specs(markers), calib_units=calib_units)
+    _print_learned(res.detect.learned)
     out.print(_metrics_table(res.estimate.metrics, f"{clip} — {res.estimate.n_frames} frames"))
     out.print(f"outputs in {res.out_dir}: detections.csv, estimates/, metrics.json, report.md, run.rrd")
     out.print(f"replay: stereotrack view {clip}    ({__import__('time').perf_counter() - t0:.1f} s)")
@@ -235,8 +267,18 @@ def batch_cmd(
     force: Annotated[bool, typer.Option("--force", help="Redo clips whose outputs are complete.")] = False,
     detector: Annotated[str, typer.Option(help="blob, meanshift or camshift.")] = "blob",
     methods: Annotated[str | None, typer.Option(help="Comma-separated methods (default: all).")] = None,
+    markers: Annotated[list[str] | None, typer.Option(
+        "--markers", help="Marker colour, NAME:HLO-HHI[:SMIN[:VMIN]] (OpenCV HSV), NAME=#RRGGBB, or NAME@x,y,w,h to learn "
+        "the range from that window of the first left frame; repeatable or comma-separated. Default: the clip's "
+        "markers.yaml, else the colours in its scenario.yaml.")] = None,
+    calib_units: Annotated[str | None, typer.Option(
+        "--calib-units", help="Length unit of the calibration's T (m, cm or mm) when calib.yaml does not declare "
+        "'units'; outputs are in metres.")] = None,
 ) -> None:
-    """Process every clip folder under INPUT_DIR; exit code 1 if any clip failed."""
+    """Process every clip folder under INPUT_DIR; exit code 1 if any clip failed.
+
+    Markers: --markers for every clip, else each clip's markers.yaml, else INPUT_DIR/markers.yaml,
+    else each clip's scenario.yaml."""
     from pipeline.batch import run_batch
 
     sched = scheduler or (dask if dask else None)
@@ -245,7 +287,8 @@ def batch_cmd(
     with progress_bar() as bar:
         task = bar.add_task("clips", total=None)
         outcomes = run_batch(input_dir, output, workers, sched, force, detector, _methods(methods),
-                             progress=lambda d, t: bar.update(task, completed=d, total=t))
+                             progress=lambda d, t: bar.update(task, completed=d, total=t),
+                             marker_specs=_specs(markers), calib_units=calib_units)
     table = Table("clip", "status", "error", title=str(output / "summary.csv"))
     for o in outcomes:
         table.add_row(o.clip, o.status, o.error)
@@ -284,12 +327,28 @@ def render_batch_cmd(
     out.print(f"wrote {len(seed_list)} clips to {output}")
 
 
+_shown: set[str] = set()
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """Warnings as one line ``warning: FILE: problem`` (no source line, no category), each once."""
+    if str(message) in _shown:
+        return
+    _shown.add(str(message))
+    console.print(f"[yellow]warning:[/] {escape(str(message))}", highlight=False, soft_wrap=True)
+
+
 def main() -> None:
     """Console-script entry point: user errors become one line on stderr and exit code 2."""
+    warnings.showwarning = _show_warning
     try:
         app()
     except StereotrackError as exc:
-        console.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
+        console.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
+        sys.exit(2)
+    except OSError as exc:  # an output path that cannot be written, a disk that filled up
+        where = f"{exc.filename}: " if exc.filename else ""
+        console.print(f"[bold red]error:[/] {escape(where + str(exc.strerror or exc))}", highlight=False, soft_wrap=True)
         sys.exit(2)
     except KeyboardInterrupt:
         console.print("[bold red]interrupted[/]")

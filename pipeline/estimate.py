@@ -3,6 +3,8 @@ when the clip has truth, ``out/metrics.json`` (SPEC §3)."""
 
 from __future__ import annotations
 
+import json
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -10,8 +12,9 @@ from typing import Any
 
 import numpy as np
 
-from detectors.stage import load_detections
+from detectors.stage import DETECT_INFO, load_detections
 from pipeline.camera import StereoRig, load_calibration
+from pipeline.checks import Check, jump_checks, rig_for_frames, stereo_checks, warn_failed
 from pipeline.errors import StereotrackError
 from pipeline.estimators import POINT_METHODS, TARGET_METHODS, Track, create
 from pipeline.io import read_csv, write_csv, write_json
@@ -96,23 +99,67 @@ def clip_fps(clip: Path) -> float:
     return reader.fps or 30.0
 
 
-def read_positions(path: Path) -> tuple[dict[str, np.ndarray], int]:
+def read_positions(path: Path, n_frames: int | None = None) -> tuple[dict[str, np.ndarray], int]:
     """A long-format table (``frame, marker, x, y, z``: truth.csv, estimates/*.csv) → marker →
-    positions (frames × 3, NaN where absent), and the frame count."""
-    cols = read_csv(path, ["frame", "marker", "x", "y", "z"])
-    n = int(np.nanmax(cols["frame"])) + 1 if len(cols["frame"]) else 0
+    positions (frames × 3, NaN where absent), and the frame count. A row whose frame lies
+    outside ``0 .. n_frames − 1`` is an error naming the line."""
+    cols = read_csv(path, ["frame", "marker", "x", "y", "z"], numeric=["x", "y", "z"], finite=["frame"])
+    frames = cols["frame"]
+    bad = (frames != np.round(frames)) | (frames < 0) | (frames >= (n_frames if n_frames is not None else np.inf))
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        where = f"outside the clip's frames 0..{n_frames - 1}" if n_frames is not None else "not a frame index"
+        raise StereotrackError(f"line {i + 2}: frame {frames[i]:g} is {where}", path)
+    n = int(np.nanmax(frames)) + 1 if len(frames) else 0
     pos: dict[str, np.ndarray] = {}
     for k, name, x, y, z in zip(cols["frame"].astype(int), cols["marker"], cols["x"], cols["y"], cols["z"], strict=True):
         pos.setdefault(str(name), np.full((n, 3), np.nan))[k] = (x, y, z)
     return pos, n
 
 
-def load_truth(clip: Path) -> ClipTruth | None:
-    """``truth.csv`` → per-marker positions, or None for real footage."""
+def load_truth(clip: Path, n_frames: int | None = None) -> ClipTruth | None:
+    """``truth.csv`` → per-marker positions, or None for real footage. With the clip's frame
+    count: rows past the clip are an error, a truth shorter than the clip a warning (the
+    frames without truth are not scored)."""
     path = clip / "truth.csv"
     if not path.is_file():
         return None
-    return ClipTruth(*read_positions(path))
+    truth = ClipTruth(*read_positions(path, n_frames))
+    if n_frames is not None and truth.n_frames < n_frames:
+        warnings.warn(f"{path}: truth covers {truth.n_frames} of the clip's {n_frames} frames; "
+                      f"the last {n_frames - truth.n_frames} are not scored", stacklevel=2)
+    return truth
+
+
+@dataclass
+class FootageInfo:
+    """What the detect stage saw of the footage (``detect.json``), or the footage's headers."""
+
+    frames: int | None
+    frame_size: tuple[int, int] | None
+    checks: list[Check]
+
+
+def footage_info(clip: Path, out_dir: Path) -> FootageInfo:
+    """Frame count and size of the clip, from ``detect.json`` when the detect stage wrote one,
+    else from the footage itself (opened, not decoded), else unknown."""
+    info = out_dir / DETECT_INFO
+    if info.is_file():
+        try:
+            d = json.loads(info.read_text())
+            checks = [Check(**c) for c in d.get("checks", [])]
+            return FootageInfo(int(d["frames"]), tuple(d["frame_size"]), checks)  # type: ignore[arg-type]
+        except (ValueError, KeyError, TypeError) as exc:
+            raise StereotrackError(f"unreadable detect record ({exc}): rerun `stereotrack detect`", info) from None
+    from detectors.frames import StereoFrameSource
+
+    try:
+        src = StereoFrameSource(clip, allow_unequal=True, prefetch=False)
+    except StereotrackError:
+        return FootageInfo(None, None, [])
+    for r in src.readers:
+        r.close()
+    return FootageInfo(len(src), src.size, [])
 
 
 def error_stats(est: np.ndarray, truth: np.ndarray) -> dict[str, float]:
@@ -158,11 +205,15 @@ def estimate_clip(
     configs: dict[str, dict] | None = None,
     progress: Callable[[int, int], None] | None = None,
     target_radius: float | None = None,
+    calib_units: str | None = None,
 ) -> EstimateResult:
     """Run every requested method on every marker of a clip and write estimates and metrics.
 
     Point methods run on each marker; on clips with a four-point target the target methods
-    (raw measurement, Kalman–Bucy, PnP + KF) run on its four labelled points too.
+    (raw measurement, Kalman–Bucy, PnP + KF) run on its four labelled points too. Input checks
+    (left/right swapped, epipolar consistency, points behind a camera, track jumps, and the
+    detect stage's colour and image-size checks) are warned about and written to
+    ``metrics.json`` under ``checks``.
     """
     clip = Path(clip)
     out_dir = Path(out_dir) if out_dir else clip / "out"
@@ -170,17 +221,30 @@ def estimate_clip(
         if m not in POINT_METHODS and m not in TARGET_METHODS:
             known = ", ".join([*POINT_METHODS, *TARGET_METHODS])
             raise StereotrackError(f"unknown method {m!r} (known: {known})")
-    rig = load_calibration(clip)
-    dt = 1.0 / clip_fps(clip)
-    truth = load_truth(clip)
     det_path = out_dir / "detections.csv"
     if not det_path.is_file():
         raise StereotrackError("no detections.csv: run `stereotrack detect` first", det_path)
-    obs = load_detections(det_path, truth.n_frames if truth else None)
+    footage = footage_info(clip, out_dir)
+    rig = load_calibration(clip, calib_units)
+    checks = list(footage.checks)
+    if footage.frame_size is not None and not any(c.name == "image_size" for c in checks):
+        rig, size_check = rig_for_frames(rig, footage.frame_size, clip)
+        checks += [size_check] if size_check else []
+    elif any(c.name == "image_size" for c in checks) and footage.frame_size is not None:
+        rig = rig.scaled_to(footage.frame_size)
+    dt = 1.0 / clip_fps(clip)
+    truth = load_truth(clip, footage.frames)
+    obs = load_detections(det_path, footage.frames)
     if not obs:
         raise StereotrackError("detections.csv holds no detections", det_path)
     n = max(len(v) for v in obs.values())
+    if truth is not None:
+        n = max(n, truth.n_frames)
     obs = {k: np.vstack([v, np.full((n - len(v), 4), np.nan)]) for k, v in obs.items()}
+    calib_name = next((p.name for p in clip.iterdir() if p.name.startswith(("calib", "extrinsics"))), "the calibration")
+    new_checks = stereo_checks(rig, obs, calib_name) + jump_checks(obs, rig.image_size[0] or 640)
+    warn_failed(new_checks)
+    checks += new_checks
     target = find_target(clip, target_radius, obs)
     methods = methods or list(POINT_METHODS) + (list(TARGET_METHODS) if target else [])
     configs = {k: dict(v) for k, v in (configs or {}).items()}
@@ -215,6 +279,8 @@ def estimate_clip(
     result = EstimateResult(out_dir, rig, dt, n, obs, tracks, truth, target, target_tracks)
     result.metrics = compute_metrics(result)
     result.metrics["pixel_sigma_estimate"] = sigma
+    result.metrics["calibration_units"] = calib_units
+    result.metrics["checks"] = [c.as_dict() for c in checks]
     write_json(out_dir / "metrics.json", result.metrics)
     return result
 
@@ -250,6 +316,9 @@ def compute_metrics(res: EstimateResult) -> dict[str, Any]:
     for m, per_marker in res.tracks.items():
         entry: dict[str, Any] = {}
         reps = np.concatenate([t.reprojection_error for t in per_marker.values()])
+        positions = np.vstack([t.position for t in per_marker.values()])
+        fin = np.all(np.isfinite(positions), axis=1)
+        entry["behind_camera"] = int(np.any(res.rig.depths(positions[fin]) <= 0, axis=1).sum())
         entry["reprojection_rmse_px"] = float(np.sqrt(np.nanmean(reps**2))) if np.isfinite(reps).any() else None
         sps = [t.seconds_per_step for t in per_marker.values()]
         entry["seconds_per_step"] = float(np.mean(sps))

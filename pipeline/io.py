@@ -24,8 +24,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     interrupted write leaves at worst a hidden ``.*.partial*`` file, never a half-written target.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.partial-", suffix=path.suffix, dir=path.parent)
+    fd, tmp = _mkstemp_beside(path)
     os.close(fd)
     tmp_path = Path(tmp)
     umask = os.umask(0)
@@ -37,6 +36,31 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     except BaseException:
         tmp_path.unlink(missing_ok=True)
         raise
+
+
+def ensure_dir(path: str | Path) -> Path:
+    """Create folder ``path`` (and parents), or fail with one line naming it: a read-only parent,
+    a path under a file, a file in the way, /proc."""
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise StereotrackError("cannot create folder: a file of that name is in the way", path) from None
+    except OSError as exc:
+        raise StereotrackError(f"cannot create folder ({exc.strerror or exc})", path) from None
+    if not path.is_dir():
+        raise StereotrackError("cannot create folder: a file of that name is in the way", path)
+    return path
+
+
+def _mkstemp_beside(path: Path) -> tuple[int, str]:
+    ensure_dir(path.parent)
+    if path.is_dir():
+        raise StereotrackError("cannot write file: a folder of that name is in the way", path)
+    try:
+        return tempfile.mkstemp(prefix=f".{path.stem}.partial-", suffix=path.suffix, dir=path.parent)
+    except OSError as exc:
+        raise StereotrackError(f"cannot write here ({exc.strerror or exc})", path) from None
 
 
 def write_text(path: str | Path, text: str) -> None:
@@ -86,26 +110,61 @@ def _fmt(v: Any) -> Any:
     return v
 
 
-def read_csv(path: str | Path, required: Sequence[str] = ()) -> dict[str, np.ndarray]:
-    """Read a CSV table into columns (numeric where possible); missing columns are an error."""
+#: Columns that are names, never numbers (a marker called ``0`` stays ``"0"``).
+TEXT_COLUMNS = frozenset({"marker", "camera", "clip", "status", "method", "error"})
+
+
+def read_csv(path: str | Path, required: Sequence[str] = (), numeric: Sequence[str] = (),
+             finite: Sequence[str] = ()) -> dict[str, np.ndarray]:
+    """Read a CSV table into columns; missing columns are an error.
+
+    Text columns (:data:`TEXT_COLUMNS`) stay strings. Columns in ``numeric`` must hold numbers
+    and those in ``finite`` finite numbers: a violation is one error naming the file, the row
+    (as a text editor numbers it, the header being line 1) and the value. Other columns are
+    numeric where every value parses, text otherwise.
+    """
     path = Path(path)
     if not path.is_file():
         raise StereotrackError("file not found", path)
-    with open(path, newline="") as fh:
-        reader = csv.reader(fh)
-        try:
-            header = next(reader)
-        except StopIteration:
-            raise StereotrackError("empty file (no header row)", path) from None
-        rows = [r for r in reader if r]
+    try:
+        with open(path, newline="") as fh:
+            reader = csv.reader(fh)
+            try:
+                header = [h.strip() for h in next(reader)]
+            except StopIteration:
+                raise StereotrackError("empty file (no header row)", path) from None
+            rows = [r for r in reader if r]
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise StereotrackError(f"cannot read CSV ({getattr(exc, 'strerror', None) or exc})", path) from None
     missing = [c for c in required if c not in header]
     if missing:
         raise StereotrackError(f"missing column(s) {', '.join(missing)}", path)
     cols: dict[str, np.ndarray] = {}
+    must = set(numeric) | set(finite)
     for i, name in enumerate(header):
-        values = [r[i] if i < len(r) else "" for r in rows]
+        values = [r[i].strip() if i < len(r) else "" for r in rows]
+        if name in TEXT_COLUMNS:
+            cols[name] = np.array(values, dtype=object)
+            continue
         try:
             cols[name] = np.array([float(v) if v != "" else np.nan for v in values], dtype=float)
         except ValueError:
+            if name in must:
+                row = next(j for j, v in enumerate(values) if not _is_number(v))
+                raise StereotrackError(f"line {row + 2}: column '{name}' is not a number ({values[row]!r})", path) from None
             cols[name] = np.array(values, dtype=object)
+        if name in finite and not np.all(np.isfinite(cols[name])):
+            row = int(np.flatnonzero(~np.isfinite(cols[name]))[0])
+            raise StereotrackError(f"line {row + 2}: column '{name}' is {values[row] or 'empty'!s}, not a finite number",
+                                   path)
     return cols
+
+
+def _is_number(v: str) -> bool:
+    if v == "":
+        return True
+    try:
+        float(v)
+    except ValueError:
+        return False
+    return True

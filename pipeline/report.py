@@ -22,6 +22,45 @@ def load_estimates(out_dir: Path) -> dict[str, dict[str, np.ndarray]]:
     return {f.stem: read_positions(f)[0] for f in sorted((out_dir / "estimates").glob("*.csv"))}
 
 
+def _hide_behind_camera(clip: Path, est: dict[str, dict[str, np.ndarray]], units: str | None
+                        ) -> dict[str, dict[str, np.ndarray]]:
+    """Estimates with points behind either camera set to NaN: they are counted in the metrics
+    and the Checks section, never drawn as if they were metres in front of the rig."""
+    from pipeline.camera import has_calibration, load_calibration
+
+    if not has_calibration(clip):
+        return est
+    rig = load_calibration(clip, units)
+    out: dict[str, dict[str, np.ndarray]] = {}
+    for meth, per in est.items():
+        out[meth] = {}
+        for mk, P in per.items():
+            P = P.copy()
+            with np.errstate(invalid="ignore"):
+                P[np.any(rig.depths(P) <= 0, axis=1)] = np.nan
+            out[meth][mk] = P
+    return out
+
+
+def checks_section(metrics: dict) -> list[str]:
+    """The report's "Checks" section: every input check, failed ones first."""
+    checks = metrics.get("checks") or []
+    if not checks:
+        return []
+    lines = ["## Checks", ""]
+    failed = [c for c in checks if not c.get("ok")]
+    lines.append(f"**{len(failed)} check(s) failed: look before trusting the numbers below.**" if failed
+                 else "All input checks passed.")
+    lines.append("")
+    for c in sorted(checks, key=lambda c: bool(c.get("ok"))):
+        lines.append(f"- {'✅' if c.get('ok') else '⚠️'} `{c.get('name')}`: {c.get('message')}")
+    behind = {m: e.get("behind_camera") for m, e in metrics.get("methods", {}).items() if e.get("behind_camera")}
+    if behind:
+        lines.append("- estimates behind a camera (counted, not drawn): "
+                     + ", ".join(f"{m} {n}" for m, n in behind.items()))
+    return [*lines, ""]
+
+
 def _save(fig, path: Path) -> None:
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110, bbox_inches="tight")
@@ -60,6 +99,7 @@ def write_report(clip: str | Path, out_dir: str | Path | None = None) -> Path:
     metrics = json.loads(mpath.read_text())
     est = load_estimates(out_dir)
     truth = load_truth(clip)
+    est = _hide_behind_camera(clip, est, metrics.get("calibration_units"))
     obs = load_detections(out_dir / "detections.csv") if (out_dir / "detections.csv").is_file() else {}
     figdir = out_dir / "figures"
     markers = sorted({m for per in est.values() for m in per})
@@ -146,7 +186,7 @@ def write_report(clip: str | Path, out_dir: str | Path | None = None) -> Path:
     lines = [f"# stereotrack report: {clip.name}", "",
              f"{metrics.get('frames', '?')} frames, dt = {metrics.get('dt', float('nan')):.4g} s; "
              + ("errors against the rendered ground truth." if metrics.get("has_truth") else "no ground truth (real footage)."),
-             "", "## Metrics", "", metrics_table(metrics), ""]
+             "", *checks_section(metrics), "## Metrics", "", metrics_table(metrics), ""]
     for title, rel in figs:
         lines += [f"## {title}", "", f"![{title}]({rel})", ""]
     path = out_dir / "report.md"

@@ -37,16 +37,21 @@ def process_clip(
     images_in_recording: bool = True,
     stage: Callable[[str], None] | None = None,
     progress: Callable[[int, int], None] | None = None,
+    calib_units: str | None = None,
 ) -> RunResult:
-    """Detect, estimate, report and record one clip folder into ``out_dir`` (default CLIP/out)."""
+    """Detect, estimate, report and record one clip folder into ``out_dir`` (default CLIP/out).
+
+    ``marker_specs`` (``--markers`` syntax) name the markers of real footage; without them the
+    clip's ``markers.yaml``, else its ``scenario.yaml``, gives the colours."""
     t0 = time.perf_counter()
     clip = Path(clip)
     out_dir = Path(out_dir) if out_dir else clip / "out"
     say = stage or (lambda s: None)
     say("detect")
-    det = detect_clip(clip, detector, marker_specs, out_dir=out_dir, progress=progress)  # type: ignore[arg-type]
+    det = detect_clip(clip, detector, marker_specs, out_dir=out_dir, progress=progress,  # type: ignore[arg-type]
+                      calib_units=calib_units)
     say("estimate")
-    est = estimate_clip(clip, methods, out_dir=out_dir, progress=progress)
+    est = estimate_clip(clip, methods, out_dir=out_dir, progress=progress, calib_units=calib_units)
     say("report")
     report = write_report(clip, out_dir)
     rrd = None

@@ -6,6 +6,11 @@ For observations ``(u1, v1)``, ``(u2, v2)`` and cameras ``P1``, ``P2`` with rows
 
 and the point is the right singular vector of ``A`` for its smallest singular value. Rows are scaled
 to unit norm (conditioning only; the solution of a consistent system is unchanged).
+
+Unit covariance: that row scaling weights the equations differently when ``T`` is in millimetres
+rather than metres (the last column of ``P2`` grows 1000×), so a noisy solution would depend on the
+calibration's unit. The DLT is therefore solved for ``X / b`` with ``b`` the baseline (``T/b`` is
+unit-free) and scaled back: scaling ``T`` by ``s`` scales every point by exactly ``s``.
 """
 
 from __future__ import annotations
@@ -19,7 +24,9 @@ from pipeline.estimators.base import NAN3, Estimator, Step, register
 def triangulate(rig: StereoRig, Y: np.ndarray) -> np.ndarray:
     """DLT triangulation of N stereo observations (N×4 pixels) → N×3; NaN where a camera is missing."""
     Y = np.asarray(Y, dtype=float).reshape(-1, 4)
-    P1, P2 = rig.left.P, rig.right.P
+    b = rig.baseline
+    P1 = rig.left.K @ np.hstack([rig.left.R, rig.left.t.reshape(3, 1) / b])
+    P2 = rig.right.K @ np.hstack([rig.right.R, rig.right.t.reshape(3, 1) / b])
     A = np.empty((len(Y), 4, 4))
     A[:, 0] = Y[:, 0, None] * P1[2] - P1[0]
     A[:, 1] = Y[:, 1, None] * P1[2] - P1[1]
@@ -35,7 +42,7 @@ def triangulate(rig: StereoRig, Y: np.ndarray) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore"):
         X = Xh[:, :3] / Xh[:, 3:4]
     X[~np.isfinite(X).all(axis=1)] = np.nan
-    out[ok] = X
+    out[ok] = X * b
     return out
 
 
