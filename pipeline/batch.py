@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import multiprocessing as mp
+import os
 import shutil
 import traceback
 from collections.abc import Callable
@@ -150,7 +151,9 @@ def run_batch(
                                dashboard_address=None, silence_logs=logging.WARNING) if scheduler == "local" else None
         try:
             try:
-                client = Client(cluster if cluster is not None else scheduler, timeout="10s")
+                # Dask's own setting (DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT) wins; 10 s otherwise
+                timeout = os.environ.get("DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT", "10s")
+                client = Client(cluster if cluster is not None else scheduler, timeout=timeout)
             except (OSError, TimeoutError, ValueError) as exc:
                 raise StereotrackError(f"cannot reach the Dask scheduler at {scheduler} ({_first_line(exc)})") from None
             with client:

@@ -276,8 +276,18 @@ def _open_storage(path: Path) -> cv2.FileStorage:
 
 
 def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip().splitlines()
-    return text[-1].strip() if text else type(exc).__name__
+    """OpenCV's own words for a parse failure (``line 2: Missing , between the elements``), found
+    in the exception chain: the binding wraps cv2.error in a SystemError that says nothing."""
+    import re
+
+    while isinstance(exc, SystemError) and (exc.__cause__ or exc.__context__) is not None:
+        exc = exc.__cause__ or exc.__context__  # type: ignore[assignment]
+    text = str(exc).strip()
+    m = re.search(r"\((-?\d+):([^)]*)\).*?'[^']*\((\d+)\): ([^']*)'", text)
+    if m:
+        return f"{m.group(2).strip().lower()} at line {m.group(3)}: {m.group(4).strip()}"
+    lines = text.splitlines()
+    return lines[-1].strip() if lines else type(exc).__name__
 
 
 def _read_mat(fs: cv2.FileStorage, key: str, path: Path, shape: tuple[int, ...] | None) -> np.ndarray:
