@@ -91,7 +91,7 @@ def test_real_clips_through_batch_with_root_markers(tmp_path, monkeypatch, capsy
     real_copy(root / "b")
     (root / "markers.yaml").write_text(f"- {RED}\n")
     (root / "b" / "markers.yaml").write_text("- blue=#2840e6\n")  # a clip's own list wins
-    rc, out, err = cli(monkeypatch, capsys, "batch", root, "-o", tmp_path / "out", "--workers", "1",
+    rc, _out, err = cli(monkeypatch, capsys, "batch", root, "-o", tmp_path / "out", "--workers", "1",
                        "--methods", "triangulation")
     assert rc == 0, err
     for name, marker in (("a", "red"), ("b", "blue")):
@@ -218,7 +218,7 @@ def test_checks_fire_on_bad_clips_and_stay_silent_on_clean(tmp_path, png_clip):
     detect_clip(epi, "blob", [RED])
     path = epi / "out" / "detections.csv"
     lines = path.read_text().splitlines()
-    fixed = [lines[0]] + [",".join(f[:4] + [str(float(f[4]) + 25)] + f[5:]) if f[1] == "right" else line
+    fixed = [lines[0]] + [",".join([*f[:4], str(float(f[4]) + 25), *f[5:]]) if f[1] == "right" else line
                           for line in lines[1:] for f in [line.split(",")]]
     path.write_text("\n".join(fixed) + "\n")
     with pytest.warns(UserWarning, match="median epipolar distance"):
@@ -237,7 +237,7 @@ def test_png_gap_is_a_missing_frame_not_a_shift(tmp_path, png_clip):
     assert res.summaries[0].err_max is not None and res.summaries[0].err_max < 2.0  # later frames not shifted
     # a duplicate frame number and a frame of another size are errors naming the file
     shutil.copy(clip / "left" / "000011.png", clip / "left" / "frame_11.png")
-    with pytest.raises(ClipError, match="000011.png and frame_11.png both claim frame 11"):
+    with pytest.raises(ClipError, match=r"000011\.png and frame_11\.png both claim frame 11"):
         detect_clip(clip, out_dir=tmp_path / "o2")
     (clip / "left" / "frame_11.png").unlink()
     cv2.imwrite(str(clip / "left" / "000005.png"), np.zeros((120, 160, 3), np.uint8))
