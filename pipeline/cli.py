@@ -262,7 +262,10 @@ def batch_cmd(
     input_dir: Annotated[Path, typer.Argument(help="Folder whose sub-folders are clips.")],
     output: Annotated[Path, typer.Option("-o", "--output", help="Output folder (one sub-folder per clip).")],
     workers: Annotated[int, typer.Option(help="Worker processes.")] = 2,
-    scheduler: Annotated[str | None, typer.Option(help="Dask scheduler address tcp://host:port.")] = None,
+    scheduler: Annotated[str | None, typer.Option(help="Dask scheduler address tcp://host:port (workers must see "
+                                                  "INPUT_DIR and the output at the same paths).")] = None,
+    scheduler_file: Annotated[Path | None, typer.Option("--scheduler-file",
+                                                        help="Dask scheduler file (dask scheduler --scheduler-file).")] = None,
     dask: Annotated[str | None, typer.Option("--dask", help="'local' runs a Dask LocalCluster here.")] = None,
     force: Annotated[bool, typer.Option("--force", help="Redo clips whose outputs are complete.")] = False,
     detector: Annotated[str, typer.Option(help="blob, meanshift or camshift.")] = "blob",
@@ -288,10 +291,12 @@ def batch_cmd(
         task = bar.add_task("clips", total=None)
         outcomes = run_batch(input_dir, output, workers, sched, force, detector, _methods(methods),
                              progress=lambda d, t: bar.update(task, completed=d, total=t),
-                             marker_specs=_specs(markers), calib_units=calib_units)
-    table = Table("clip", "status", "error", title=str(output / "summary.csv"))
+                             marker_specs=_specs(markers), calib_units=calib_units, scheduler_file=scheduler_file)
+    from pipeline.batch import clip_warnings
+
+    table = Table("clip", "status", "warnings", "error", title=str(output / "summary.csv"))
     for o in outcomes:
-        table.add_row(o.clip, o.status, o.error)
+        table.add_row(o.clip, o.status, str(len(clip_warnings(o))) or "", o.error)
     out.print(table)
     if any(o.status == "failed" for o in outcomes):
         raise typer.Exit(1)

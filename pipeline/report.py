@@ -19,7 +19,7 @@ from pipeline.recording import PALETTE
 
 def load_estimates(out_dir: Path) -> dict[str, dict[str, np.ndarray]]:
     """``estimates/<method>.csv`` → method → marker → positions (frames × 3)."""
-    return {f.stem: read_positions(f)[0] for f in sorted((out_dir / "estimates").glob("*.csv"))}
+    return {f.stem: read_positions(f)[0] for f in sorted((out_dir / "estimates").glob("[!.]*.csv"))}
 
 
 def _hide_behind_camera(clip: Path, est: dict[str, dict[str, np.ndarray]], units: str | None
@@ -161,7 +161,7 @@ def write_report(clip: str | Path, out_dir: str | Path | None = None) -> Path:
         plt.close(fig)
         figs.append(("Image-plane tracks", "figures/image_tracks.png"))
 
-    target_csvs = [f for f in sorted((out_dir / "estimates").glob("*.csv"))
+    target_csvs = [f for f in sorted((out_dir / "estimates").glob("[!.]*.csv"))
                    if "alpha" in (f.read_text().split("\n", 1)[0].split(","))]
     if target_csvs:
         fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))

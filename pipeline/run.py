@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -10,6 +11,7 @@ from pathlib import Path
 from detectors.frames import StereoFrameSource
 from detectors.stage import DetectResult, detect_clip
 from pipeline.estimate import EstimateResult, estimate_clip
+from pipeline.lifeline import OutputLock
 from pipeline.recording import write_recording
 from pipeline.report import write_report
 
@@ -38,14 +40,30 @@ def process_clip(
     stage: Callable[[str], None] | None = None,
     progress: Callable[[int, int], None] | None = None,
     calib_units: str | None = None,
+    lock: bool = True,
 ) -> RunResult:
     """Detect, estimate, report and record one clip folder into ``out_dir`` (default CLIP/out).
 
     ``marker_specs`` (``--markers`` syntax) name the markers of real footage; without them the
-    clip's ``markers.yaml``, else its ``scenario.yaml``, gives the colours."""
+    clip's ``markers.yaml``, else its ``scenario.yaml``, gives the colours.
+
+    With ``lock`` the output folder is locked for the run (a second run on it fails at once,
+    naming the holder) and temporary files left there by a killed run are removed first."""
+    out_dir = Path(out_dir) if out_dir else Path(clip) / "out"
+    if not lock:
+        return _process_clip(Path(clip), out_dir, detector, methods, marker_specs, recording, images_in_recording,
+                             stage, progress, calib_units)
+    with OutputLock(out_dir, f"stereotrack run {clip}"):
+        for stale in list(out_dir.rglob(".*.partial-*")):
+            stale.unlink(missing_ok=True) if stale.is_file() else shutil.rmtree(stale, ignore_errors=True)
+        return _process_clip(Path(clip), out_dir, detector, methods, marker_specs, recording, images_in_recording,
+                             stage, progress, calib_units)
+
+
+def _process_clip(clip: Path, out_dir: Path, detector: str, methods: list[str] | None, marker_specs: list[str] | None,
+                  recording: bool, images_in_recording: bool, stage: Callable[[str], None] | None,
+                  progress: Callable[[int, int], None] | None, calib_units: str | None) -> RunResult:
     t0 = time.perf_counter()
-    clip = Path(clip)
-    out_dir = Path(out_dir) if out_dir else clip / "out"
     say = stage or (lambda s: None)
     say("detect")
     det = detect_clip(clip, detector, marker_specs, out_dir=out_dir, progress=progress,  # type: ignore[arg-type]

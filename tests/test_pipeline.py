@@ -5,10 +5,8 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -148,29 +146,3 @@ def test_batch_local_then_rerun_then_dask(tmp_path):
     ours, theirs = read_csv(out / "summary.csv"), read_csv(out2 / "summary.csv")
     np.testing.assert_allclose(np.sort(ours["rmse_m"][np.isfinite(ours["rmse_m"])]),
                                np.sort(theirs["rmse_m"][np.isfinite(theirs["rmse_m"])]), rtol=1e-9)
-
-
-@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL])
-def test_batch_killed_and_restarted(tmp_path, sig):
-    inp = tmp_path / "in"
-    for i in range(4):
-        shutil.copytree(REPO / "data" / "clips" / "sample_small", inp / f"clip{i}")
-    out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "pipeline.cli", "batch", str(inp), "-o", str(out), "--workers", "1"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-    deadline = time.time() + 120
-    while time.time() < deadline and not list(out.glob(".*.partial")) and not list(out.glob("clip*")):
-        time.sleep(0.05)
-    time.sleep(0.3)
-    os.killpg(proc.pid, sig)
-    proc.wait(timeout=60)
-    # nothing half-written is presented as a clip's output
-    for d in out.glob("clip*"):
-        assert (d / "metrics.json").is_file() and (d / "report.md").is_file() and (d / "run.rrd").is_file()
-    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
-    assert done.returncode == 0, done.stderr
-    assert not list(out.glob(".*partial*"))
-    for i in range(4):
-        m = json.loads((out / f"clip{i}" / "metrics.json").read_text())
-        assert m["methods"]["ekf"]["rmse"] < 0.05
-    assert {c for c in read_csv(out / "summary.csv")["clip"]} == {f"clip{i}" for i in range(4)}

@@ -1,0 +1,110 @@
+"""Processes that die with their parent, and one writer per output folder.
+
+* :func:`die_with_parent` — called first thing in every child process stereotrack starts (batch
+  pool workers, render workers): a daemon thread polls the parent's PID and ends the child with
+  ``os._exit`` once the parent is gone, however it ended (SIGKILL included: the child is then
+  re-parented and ``getppid`` changes). (``PR_SET_PDEATHSIG`` is not used: it fires when the
+  spawning *thread* ends, which for a pool's management thread is not the parent's death.)
+* :class:`OutputLock` — an exclusive ``flock`` on ``OUT/.stereotrack.lock`` holding the holder's
+  PID, host and command. The kernel drops a ``flock`` when its holder dies, so a lock left by a
+  killed run is taken over (with a warning naming the dead holder), while a live holder makes a
+  second writer fail at once with a message naming it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import socket
+import threading
+import time
+import warnings
+from pathlib import Path
+
+from pipeline.errors import StereotrackError
+
+LOCK_NAME = ".stereotrack.lock"
+#: How often a child checks that its parent is alive (s): the bound on how long it can outlive it.
+POLL_S = 0.2
+
+
+def die_with_parent(parent_pid: int) -> None:
+    """End this process as soon as ``parent_pid`` is no longer its parent (see module docstring)."""
+    if os.getppid() != parent_pid:
+        os._exit(1)  # the parent died before we got here
+
+    def watch() -> None:
+        while True:
+            time.sleep(POLL_S)
+            if os.getppid() != parent_pid:
+                os._exit(1)
+
+    threading.Thread(target=watch, name="stereotrack-lifeline", daemon=True).start()
+
+
+def still_parented(parent_pid: int) -> bool:
+    """Whether the process that started this one is still alive (checked before committing work)."""
+    return os.getppid() == parent_pid
+
+
+class OutputLock:
+    """Exclusive lock on an output folder for the lifetime of one command (a context manager)."""
+
+    def __init__(self, folder: str | Path, what: str = "stereotrack") -> None:
+        self.folder = Path(folder)
+        self.path = self.folder / LOCK_NAME
+        self.what = what
+        self.fd: int | None = None
+
+    def __enter__(self) -> OutputLock:
+        import fcntl
+
+        from pipeline.io import ensure_dir
+
+        ensure_dir(self.folder)
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise StereotrackError(f"cannot create the lock file ({exc.strerror})", self.path) from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            holder = _read_holder(fd)
+            os.close(fd)
+            raise StereotrackError(
+                f"output folder is in use by {holder.get('command', 'another stereotrack')} "
+                f"(PID {holder.get('pid', '?')} on {holder.get('host', '?')}, since {holder.get('since', '?')}); "
+                "wait for it or choose another output folder", self.folder) from None
+        old = _read_holder(fd)
+        if old.get("pid"):
+            warnings.warn(f"{self.folder}: taking over the lock of PID {old['pid']} on {old.get('host', '?')} "
+                          f"({old.get('command', 'stereotrack')} since {old.get('since', '?')}), which ended without "
+                          "releasing it", stacklevel=2)
+        me = {"pid": os.getpid(), "host": socket.gethostname(), "command": self.what,
+              "since": time.strftime("%Y-%m-%d %H:%M:%S")}
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, json.dumps(me).encode(), 0)
+        os.fsync(fd)
+        self.fd = fd
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+    def release(self) -> None:
+        """Empty the lock file (a clean release) and drop the lock."""
+        if self.fd is None:
+            return
+        with contextlib.suppress(OSError):
+            os.ftruncate(self.fd, 0)
+        os.close(self.fd)
+        self.fd = None
+
+
+def _read_holder(fd: int) -> dict:
+    try:
+        raw = os.pread(fd, 4096, 0)
+        return json.loads(raw) if raw.strip() else {}
+    except (OSError, ValueError):
+        return {}

@@ -1,0 +1,218 @@
+"""A batch that never lies: SIGKILL at several points and an immediate restart give the outputs of an
+uninterrupted batch; no worker outlives the batch; one writer per output folder; a real Dask
+scheduler and worker in other processes."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import psutil
+import pytest
+
+from pipeline.batch import run_batch
+from pipeline.io import read_csv
+from pipeline.manifest import MANIFEST, verify_manifest
+from tests.conftest import REPO
+
+SAMPLE = REPO / "data" / "clips" / "sample_small"
+METHODS = "triangulation,ekf"
+TIMING_KEYS = {"seconds_per_step", "steps_per_second"}
+
+
+def make_input(root: Path, n: int = 3, corrupt: bool = False) -> Path:
+    for i in range(n):
+        shutil.copytree(SAMPLE, root / f"clip{i}")
+    if corrupt:
+        shutil.copytree(SAMPLE, root / "corrupt")
+        (root / "corrupt" / "right.mp4").write_bytes(b"\x00" * 5000)
+    return root
+
+
+def batch_cmd(inp: Path, out: Path, *extra: str) -> list[str]:
+    return [sys.executable, "-m", "pipeline.cli", "batch", str(inp), "-o", str(out), "--workers", "2",
+            "--methods", METHODS, *extra]
+
+
+def _strip_timing(obj):
+    if isinstance(obj, dict):
+        return {k: _strip_timing(v) for k, v in obj.items() if k not in TIMING_KEYS}
+    if isinstance(obj, list):
+        return [_strip_timing(v) for v in obj]
+    return obj
+
+
+def clip_outputs(folder: Path) -> dict[str, object]:
+    """A clip's outputs, comparable across runs: CSVs byte for byte, metrics without timings,
+    and the set of files (the recording and the report carry timings and run ids)."""
+    out: dict[str, object] = {"files": sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file()
+                                              and not p.name.startswith("."))}
+    for p in sorted(folder.rglob("*.csv")):
+        out[str(p.relative_to(folder))] = p.read_bytes()
+    metrics = json.loads((folder / "metrics.json").read_text())
+    metrics["checks"] = [{k: v for k, v in c.items() if k != "message"} for c in metrics.get("checks", [])]
+    out["metrics"] = _strip_timing(metrics)
+    return out
+
+
+def descendants(pid: int) -> list[psutil.Process]:
+    try:
+        return psutil.Process(pid).children(recursive=True)
+    except psutil.NoSuchProcess:
+        return []
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory) -> tuple[Path, Path]:
+    """An uninterrupted batch, during which a second batch on the same output is refused."""
+    root = tmp_path_factory.mktemp("ref")
+    inp, out = make_input(root / "in"), root / "out"
+    first = subprocess.Popen(batch_cmd(inp, out), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    lock = out / ".stereotrack.lock"
+    deadline = time.time() + 60
+    while time.time() < deadline and not (lock.is_file() and lock.stat().st_size > 0):
+        time.sleep(0.05)
+    second = subprocess.run(batch_cmd(inp, out), capture_output=True, text=True, timeout=120)
+    first_err = first.communicate(timeout=300)[1]
+    assert first.returncode == 0, first_err
+    assert second.returncode == 2, second.stderr
+    assert f"PID {first.pid}" in second.stderr and "in use" in second.stderr
+    assert "Traceback" not in second.stderr
+    return inp, out
+
+
+def test_second_batch_is_refused_and_first_completes(reference):
+    _inp, out = reference
+    for i in range(3):
+        assert verify_manifest(out / f"clip{i}") is None
+        m = json.loads((out / f"clip{i}" / "metrics.json").read_text())
+        assert m["methods"]["ekf"]["rmse"] < 0.05
+    assert {c for c in read_csv(out / "summary.csv")["clip"]} == {"clip0", "clip1", "clip2"}
+    assert (out / ".stereotrack.lock").read_text() == ""  # released cleanly
+
+
+def _kill_point(out: Path, point: str) -> bool:
+    """Whether the batch writing ``out`` has reached ``point``."""
+    names = [p.name for p in out.iterdir()] if out.is_dir() else []
+    committed = len([n for n in names if n.startswith("clip")])
+    return {"start-up": True,
+            "lock taken": (out / ".stereotrack.lock").is_file() and (out / ".stereotrack.lock").stat().st_size > 0,
+            "clips in progress": any(".partial-" in n for n in names),
+            "first commit": committed >= 1,
+            "second commit": committed >= 2}[point]
+
+
+def test_killed_at_five_points_then_restarted(reference, tmp_path):
+    """SIGKILL to the batch's main process only, at five points (start-up, lock taken, clips in
+    progress, after the first and after the second commit), each followed at once by a restart:
+    no process of a killed batch is alive 2 s later, nothing unverified is ever presented as a
+    clip, and the last restart exits 0 with the outputs of the uninterrupted batch."""
+    _, ref_out = reference
+    inp = make_input(tmp_path / "in")
+    out = tmp_path / "out"
+    for point in ("start-up", "lock taken", "clips in progress", "first commit", "second commit"):
+        proc = subprocess.Popen(batch_cmd(inp, out), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        deadline = time.time() + 60
+        while time.time() < deadline and proc.poll() is None and not _kill_point(out, point):
+            time.sleep(0.02)
+        assert proc.poll() is None, f"the batch ended before '{point}'"
+        family = descendants(proc.pid)
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=10)
+        _gone, alive = psutil.wait_procs(family, timeout=2.0)
+        assert not alive, f"after a kill at '{point}': {[p.pid for p in alive]} still alive"
+        for d in out.glob("clip*"):  # whatever is presented as a clip verifies
+            assert (d / MANIFEST).is_file() and verify_manifest(d) is None, d
+    done = subprocess.run(batch_cmd(inp, out), capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert not [p for p in out.iterdir() if p.name.startswith(".") and p.name != ".stereotrack.lock"]
+    for i in range(3):
+        assert clip_outputs(out / f"clip{i}") == clip_outputs(ref_out / f"clip{i}"), i
+
+
+def test_corrupted_output_is_redone(reference, tmp_path):
+    """A clip folder whose files no longer match their manifest (or that has none) is redone."""
+    _, ref_out = reference
+    inp = tmp_path / "in"
+    shutil.copytree(reference[0], inp)
+    out = tmp_path / "out"
+    shutil.copytree(ref_out, out)
+    (out / "clip0" / "estimates" / "ekf.csv").write_text("frame\n")
+    (out / "clip1" / MANIFEST).unlink()
+    outcomes = {o.clip: o.status for o in run_batch(inp, out, workers=1, methods=METHODS.split(","))}
+    assert outcomes == {"clip0": "ok", "clip1": "ok", "clip2": "skipped"}
+    for i in range(3):
+        assert clip_outputs(out / f"clip{i}") == clip_outputs(ref_out / f"clip{i}")
+    # other settings than the ones the outputs were made with: redone too
+    outcomes = {o.clip: o.status for o in run_batch(inp, out, workers=1, methods=["triangulation"])}
+    assert set(outcomes.values()) == {"ok"}
+
+
+def test_run_is_locked_and_cleans_leftovers(tmp_path, monkeypatch, capsys):
+    from pipeline.lifeline import OutputLock
+    from tests.test_inputs import cli
+
+    clip = tmp_path / "clip"
+    shutil.copytree(SAMPLE, clip)
+    (clip / "out" / "estimates").mkdir(parents=True)
+    leftover = clip / "out" / "estimates" / ".ekf.partial-abc123.csv"
+    leftover.write_text("half")
+    with OutputLock(clip / "out", "test holder"):
+        rc, _, err = cli(monkeypatch, capsys, "run", clip, "--methods", "triangulation")
+    assert rc == 2 and "in use by test holder" in err and f"PID {os.getpid()}" in err
+    assert leftover.exists()
+    rc, _, err = cli(monkeypatch, capsys, "run", clip, "--methods", "triangulation")
+    assert rc == 0, err
+    assert not leftover.exists() and (clip / "out" / "report.md").is_file()
+
+
+def test_stale_lock_is_taken_over_with_a_warning(tmp_path):
+    from pipeline.lifeline import LOCK_NAME, OutputLock
+
+    tmp_path.joinpath(LOCK_NAME).write_text(json.dumps({"pid": 999999, "host": "elsewhere", "command": "old batch"}))
+    with pytest.warns(UserWarning, match="taking over the lock of PID 999999"), OutputLock(tmp_path, "new"):
+        assert json.loads((tmp_path / LOCK_NAME).read_text())["pid"] == os.getpid()
+
+
+def test_batch_on_a_real_dask_scheduler_and_worker(reference, tmp_path):
+    """`dask scheduler` and `dask worker` in processes of their own on 127.0.0.1; one corrupt clip
+    among good ones. The good clips' outputs equal the local pool's; the corrupt one fails alone."""
+    _, ref_out = reference
+    inp = make_input(tmp_path / "in", corrupt=True)
+    sched_file = tmp_path / "scheduler.json"
+    common = ["--no-dashboard"]
+    procs = [subprocess.Popen([sys.executable, "-m", "dask", "scheduler", "--host", "127.0.0.1", "--port", "0",
+                               "--scheduler-file", str(sched_file), *common],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=REPO)]
+    try:
+        deadline = time.time() + 60
+        while time.time() < deadline and not sched_file.is_file():
+            time.sleep(0.1)
+        procs.append(subprocess.Popen([sys.executable, "-m", "dask", "worker", "--scheduler-file", str(sched_file),
+                                       "--nthreads", "1", "--nworkers", "1", *common],
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=REPO))
+        out = tmp_path / "out"
+        res = subprocess.run(batch_cmd(inp, out, "--scheduler-file", str(sched_file)), capture_output=True, text=True,
+                             timeout=300, cwd=REPO)
+        assert res.returncode == 1, res.stderr  # the corrupt clip failed, the batch went on
+        summary = read_csv(out / "summary.csv")
+        status = dict(zip(summary["clip"], summary["status"], strict=True))
+        assert status == {"clip0": "ok", "clip1": "ok", "clip2": "ok", "corrupt": "failed"}
+        err = next(e for c, e in zip(summary["clip"], summary["error"], strict=True) if c == "corrupt")
+        assert "right.mp4" in err
+        for i in range(3):
+            assert clip_outputs(out / f"clip{i}") == clip_outputs(ref_out / f"clip{i}"), i
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+        for p in procs:
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                p.kill()
