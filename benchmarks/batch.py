@@ -1,5 +1,7 @@
-"""Batch throughput: clips per minute for 1 and 2 local workers and for a 2-worker Dask
-LocalCluster over the same folder of clips, in one run.
+"""Batch throughput: clips per minute for 1 and 2 local workers, a 2-worker Dask LocalCluster, and
+a Dask scheduler with two worker processes of their own on 127.0.0.1 (``--scheduler-file``, the
+path users take to a real cluster), over the same folder of clips, in one run. Each row is printed
+as it is measured.
 
     python benchmarks/batch.py [--clips 12] [--frames 60]
 """
@@ -7,8 +9,11 @@ LocalCluster over the same folder of clips, in one run.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import shutil
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -16,10 +21,29 @@ from pathlib import Path
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 from pipeline.batch import run_batch
-from renderers.render import render_clip
+from renderers.render import render_clips
 from renderers.scenario import load_scenario
 
 METHODS = ["triangulation", "kf3d", "ekf", "spsa", "alphabeta"]
+
+
+@contextlib.contextmanager
+def dask_processes(folder: Path, workers: int):
+    """A ``dask scheduler`` and ``dask worker`` processes on 127.0.0.1; yields the scheduler file."""
+    sched_file = folder / "scheduler.json"
+    quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL}
+    procs = [subprocess.Popen([sys.executable, "-m", "dask", "scheduler", "--host", "127.0.0.1", "--port", "0",
+                               "--no-dashboard", "--scheduler-file", str(sched_file)], **quiet)]
+    try:
+        while not sched_file.is_file():
+            time.sleep(0.1)
+        procs.append(subprocess.Popen([sys.executable, "-m", "dask", "worker", "--scheduler-file", str(sched_file),
+                                       "--nworkers", str(workers), "--nthreads", "1", "--no-dashboard"], **quiet))
+        yield sched_file
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+            p.wait(timeout=30)
 
 
 def main() -> None:
@@ -27,27 +51,31 @@ def main() -> None:
     ap.add_argument("--clips", type=int, default=12)
     ap.add_argument("--frames", type=int, default=60)
     args = ap.parse_args()
-    with tempfile.TemporaryDirectory() as tmp:
-        inp = Path(tmp) / "in"
-        base = load_scenario("multi_marker").with_overrides(frames=args.frames)
-        for s in range(args.clips):
-            render_clip(base.with_overrides(seed=s), inp / f"clip{s}", fmt="mp4")
-        rows = []
-        for label, workers, sched in (("local, 1 worker", 1, None), ("local, 2 workers", 2, None),
-                                      ("Dask LocalCluster, 2 workers", 2, "local")):
-            out = Path(tmp) / "out"
-            shutil.rmtree(out, ignore_errors=True)
-            t0 = time.perf_counter()
-            res = run_batch(inp, out, workers=workers, scheduler=sched, methods=METHODS)
-            dt = time.perf_counter() - t0
-            assert all(o.status == "ok" for o in res), [o.error for o in res if o.status != "ok"]
-            rows.append((label, args.clips / dt * 60))
     print(f"# batch throughput ({args.clips} clips of {args.frames} frames, 640×480 MP4, 3 markers, methods "
           f"{', '.join(METHODS)}; {os.cpu_count()} cores)\n")
     print("| setup | clips/min | vs 1 worker |")
-    print("|---|---|---|")
-    for label, cpm in rows:
-        print(f"| {label} | {cpm:.1f} | {cpm / rows[0][1]:.2f}× |")
+    print("|---|---|---|", flush=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        inp = Path(tmp) / "in"
+        base = load_scenario("multi_marker").with_overrides(frames=args.frames)
+        render_clips([(base.with_overrides(seed=s), inp / f"clip{s}") for s in range(args.clips)], "mp4", 2)
+        first = None
+        setups = (("local, 1 worker", 1, None), ("local, 2 workers", 2, None),
+                  ("Dask LocalCluster, 2 workers (start-up included)", 2, "local"),
+                  ("Dask scheduler + 2 worker processes, --scheduler-file", 2, "file"))
+        for label, workers, sched in setups:
+            out = Path(tmp) / "out"
+            shutil.rmtree(out, ignore_errors=True)
+            with contextlib.ExitStack() as stack:
+                sched_file = stack.enter_context(dask_processes(Path(tmp), workers)) if sched == "file" else None
+                t0 = time.perf_counter()
+                res = run_batch(inp, out, workers=workers, scheduler=None if sched == "file" else sched,
+                                scheduler_file=sched_file, methods=METHODS)
+                dt = time.perf_counter() - t0
+            assert all(o.status == "ok" for o in res), [o.error for o in res if o.status != "ok"]
+            cpm = args.clips / dt * 60
+            first = first or cpm
+            print(f"| {label} | {cpm:.1f} | {cpm / first:.2f}× |", flush=True)
 
 
 if __name__ == "__main__":

@@ -309,9 +309,10 @@ def render_batch_cmd(
     seeds: Annotated[str, typer.Option(help="Seeds as A..B (inclusive) or a comma list.")] = "0..3",
     frames: Annotated[int | None, typer.Option(help="Override the scenario's frame count.")] = None,
     fmt: Annotated[str, typer.Option("--format", help="mp4 or png.")] = "mp4",
+    workers: Annotated[int, typer.Option(help="Render processes, each keeping its GL context across clips.")] = 2,
 ) -> None:
-    """Render a folder of clips of one scenario, one per seed."""
-    from renderers.render import render_clip
+    """Render a folder of clips of one scenario, one per seed, with persistent render workers."""
+    from renderers.render import render_clips
     from renderers.scenario import load_scenario
 
     try:
@@ -322,13 +323,16 @@ def render_batch_cmd(
             seed_list = [int(s) for s in seeds.split(",")]
     except ValueError:
         raise StereotrackError(f"--seeds must be A..B or a comma list, not {seeds!r}") from None
+    if fmt not in ("mp4", "png"):
+        raise StereotrackError(f"--format must be mp4 or png, not {fmt!r}")
     base = load_scenario(scenario)
+    jobs = []
+    for s in seed_list:
+        scen = base.with_overrides(frames=frames, seed=s)
+        jobs.append((scen, output / f"{scen.name}_seed{s}"))
     with progress_bar() as bar:
-        task = bar.add_task("clips", total=len(seed_list))
-        for s in seed_list:
-            scen = base.with_overrides(frames=frames, seed=s)
-            render_clip(scen, output / f"{scen.name}_seed{s}", fmt=fmt)  # type: ignore[arg-type]
-            bar.advance(task)
+        task = bar.add_task(f"render {len(jobs)} clips", total=sum(j[0].frames for j in jobs))
+        render_clips(jobs, fmt, max(1, workers), lambda d, t: bar.update(task, completed=d))  # type: ignore[arg-type]
     out.print(f"wrote {len(seed_list)} clips to {output}")
 
 

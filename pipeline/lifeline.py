@@ -6,9 +6,9 @@
   re-parented and ``getppid`` changes). (``PR_SET_PDEATHSIG`` is not used: it fires when the
   spawning *thread* ends, which for a pool's management thread is not the parent's death.)
 * :class:`OutputLock` — an exclusive ``flock`` on ``OUT/.stereotrack.lock`` holding the holder's
-  PID, host and command. The kernel drops a ``flock`` when its holder dies, so a lock left by a
-  killed run is taken over (with a warning naming the dead holder), while a live holder makes a
-  second writer fail at once with a message naming it.
+  PID, host and command, removed on a clean release. The kernel drops a ``flock`` when its holder
+  dies, so a lock file left by a killed run is taken over (with a warning naming the dead
+  holder), while a live holder makes a second writer fail at once with a message naming it.
 """
 
 from __future__ import annotations
@@ -63,19 +63,29 @@ class OutputLock:
         from pipeline.io import ensure_dir
 
         ensure_dir(self.folder)
-        try:
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-        except OSError as exc:
-            raise StereotrackError(f"cannot create the lock file ({exc.strerror})", self.path) from None
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            holder = _read_holder(fd)
+        while True:
+            try:
+                fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            except OSError as exc:
+                raise StereotrackError(f"cannot create the lock file ({exc.strerror})", self.path) from None
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                holder = _read_holder(fd)
+                os.close(fd)
+                raise StereotrackError(
+                    f"output folder is in use by {holder.get('command', 'another stereotrack')} "
+                    f"(PID {holder.get('pid', '?')} on {holder.get('host', '?')}, since {holder.get('since', '?')}); "
+                    "wait for it or choose another output folder", self.folder) from None
+            # the holder we waited on may have released (and unlinked) the file meanwhile: the lock
+            # counts only if the path still names the inode we locked
+            try:
+                same = os.stat(self.path).st_ino == os.fstat(fd).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                break
             os.close(fd)
-            raise StereotrackError(
-                f"output folder is in use by {holder.get('command', 'another stereotrack')} "
-                f"(PID {holder.get('pid', '?')} on {holder.get('host', '?')}, since {holder.get('since', '?')}); "
-                "wait for it or choose another output folder", self.folder) from None
         old = _read_holder(fd)
         if old.get("pid"):
             warnings.warn(f"{self.folder}: taking over the lock of PID {old['pid']} on {old.get('host', '?')} "
@@ -93,11 +103,11 @@ class OutputLock:
         self.release()
 
     def release(self) -> None:
-        """Empty the lock file (a clean release) and drop the lock."""
+        """Remove the lock file (while still holding it) and drop the lock."""
         if self.fd is None:
             return
         with contextlib.suppress(OSError):
-            os.ftruncate(self.fd, 0)
+            os.unlink(self.path)
         os.close(self.fd)
         self.fd = None
 

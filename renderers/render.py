@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from pipeline.camera import save_calibration
-from pipeline.errors import ClipError, RenderBackendError, StereotrackError
+from pipeline.errors import ClipError, StereotrackError
 from pipeline.io import write_text
 from renderers.motion import Truth, simulate_truth
 from renderers.scenario import Scenario
@@ -123,14 +123,17 @@ class FrameWriter:
 
 
 def render_camera(
-    scenario: Scenario, cam_index: int, clip_dir: Path, fmt: Format, tick: Callable[[int], None] | None = None
+    scenario: Scenario, cam_index: int, clip_dir: Path, fmt: Format, tick: Callable[[int], None] | None = None,
+    renderer=None,  # a pyrender.OffscreenRenderer of the rig's size to reuse (a persistent worker's)
 ) -> int:
     """Render every frame of one camera into ``clip_dir``; returns the number of frames."""
     from renderers.scene import StereoScene, create_offscreen_renderer
 
     rig = scenario.rig.build()
     truth = simulate_truth(scenario)
-    renderer = create_offscreen_renderer(*rig.image_size)
+    own = renderer is None
+    if own:
+        renderer = create_offscreen_renderer(*rig.image_size)
     try:
         scene = StereoScene(scenario, rig, truth)
         writer = FrameWriter(clip_dir, CAMERA_NAMES[cam_index], fmt, scenario.fps, rig.image_size)
@@ -149,25 +152,189 @@ def render_camera(
             writer.abort()
             raise
     finally:
-        renderer.delete()
+        if own:
+            renderer.delete()
     return scenario.frames
 
 
-def _worker(scenario_json: str, cam_index: int, clip_dir: str, fmt: Format, q: mp.Queue) -> None:
-    """Process entry point: renders one camera, reports progress and errors through ``q``."""
+# -- persistent render workers ------------------------------------------------------------------
+# Each worker process keeps its EGL context(s) — one OffscreenRenderer per image size — across
+# every camera of every clip it renders, so a batch of clips pays the start-up (imports, context)
+# once per worker instead of once per camera per clip.
+
+_RENDERERS: dict[tuple[int, int], object] = {}
+_PROGRESS: mp.Queue | None = None
+
+
+def _worker_init(parent_pid: int, progress: mp.Queue | None) -> None:
+    from pipeline.lifeline import die_with_parent
+
+    die_with_parent(parent_pid)
+    global _PROGRESS
+    _PROGRESS = progress
+
+
+def _render_job(scenario_json: str, cam_index: int, staging: str, fmt: Format, job: int) -> int:
+    """Worker entry point: one camera of one clip into ``staging``, reusing this process's renderer."""
+    from renderers.scene import create_offscreen_renderer
+
+    scenario = Scenario.model_validate_json(scenario_json)
+    size = (scenario.rig.width, scenario.rig.height)
+    if size not in _RENDERERS:
+        _RENDERERS[size] = create_offscreen_renderer(*size)
+
+    def tick(k: int) -> None:
+        if _PROGRESS is not None and (k % 5 == 4 or k == scenario.frames - 1):
+            _PROGRESS.put((job, cam_index, k + 1))
+
+    return render_camera(scenario, cam_index, Path(staging), fmt, tick, _RENDERERS[size])
+
+
+def _staging_dir(clip_dir: Path) -> Path:
+    """A fresh hidden folder beside ``clip_dir`` for one attempt at rendering it (stale ones of
+    killed attempts are removed)."""
+    import uuid
+
+    for stale in clip_dir.parent.glob(f".{clip_dir.name}.partial-*"):
+        shutil.rmtree(stale, ignore_errors=True)
+    staging = clip_dir.parent / f".{clip_dir.name}.partial-{uuid.uuid4().hex[:12]}"
+    staging.mkdir(parents=True)
+    return staging
+
+
+#: What a render puts in a clip folder; a re-render replaces exactly these (and the stale ``out/``).
+RENDERED = ("calib.yaml", "scenario.yaml", "truth.csv", "target_truth.csv", "left", "right", "left.mp4", "right.mp4", "out")
+
+
+def _commit(staging: Path, clip_dir: Path) -> None:
+    """Move a complete render into ``clip_dir``. A new folder is one rename; over an existing clip
+    the old rendered files go first, calib.yaml first of all, and the new calib.yaml comes last,
+    so an interrupted commit leaves a folder that is recognisably no clip (no calibration)."""
+    if not clip_dir.exists():
+        staging.rename(clip_dir)
+        return
+    for name in RENDERED:
+        p = clip_dir / name
+        if p.is_dir():
+            shutil.rmtree(p)
+        elif p.exists():
+            p.unlink()
+    for p in sorted(staging.iterdir(), key=lambda p: p.name == "calib.yaml"):
+        p.rename(clip_dir / p.name)
+    staging.rmdir()
+
+
+def _finish_clip(scenario: Scenario, staging: Path, clip_dir: Path) -> RenderResult:
+    """Write calibration and truth beside the rendered frames and commit the clip."""
+    rig = scenario.rig.build()
+    truth = simulate_truth(scenario)
+    proj = project_truth(rig, scenario, truth)
+    notes = []
+    for i, name in enumerate(truth.names):
+        if not proj.visible[:, i, :].any():
+            msg = f"{clip_dir}: marker '{name}' is never visible in either camera"
+            notes.append(msg)
+            warnings.warn(msg, stacklevel=3)
+    write_text(staging / "scenario.yaml", scenario.to_yaml())
+    write_truth(staging / "truth.csv", truth, proj)
+    if truth.targets:
+        write_target_truth(staging / "target_truth.csv", truth, proj)
+    save_calibration(rig, staging / "calib.yaml")
+    _commit(staging, clip_dir)
+    return RenderResult(clip_dir, scenario.frames, truth, proj, notes)
+
+
+def render_clips(
+    jobs: list[tuple[Scenario, str | Path]],
+    fmt: Format = "mp4",
+    workers: int = 2,
+    progress: Callable[[int, int], None] | None = None,
+) -> list[RenderResult]:
+    """Render several clips (scenario, folder) with ``workers`` persistent processes.
+
+    Every camera of every clip is one job; a worker keeps its EGL context across jobs. Each clip
+    is rendered into a hidden staging folder and committed only when both cameras and its truth
+    are written; workers die with this process. ``progress(done, total)`` counts stereo pairs.
+    ``workers=1`` renders here, in this process, one camera after the other.
+    """
+    import concurrent.futures as cf
+
+    from pipeline.io import ensure_dir
+
+    total = sum(s.frames for s, _ in jobs)
+    dirs = [Path(d) for _, d in jobs]
+    for d in dirs:
+        ensure_dir(d.parent)
+    stagings = [_staging_dir(d) for d in dirs]
+    results: list[RenderResult | None] = [None] * len(jobs)
     try:
-        scenario = Scenario.model_validate_json(scenario_json)
+        if workers <= 1:
+            from renderers.scene import create_offscreen_renderer
 
-        def tick(k: int) -> None:
-            if k % 5 == 4 or k == scenario.frames - 1:
-                q.put(("progress", cam_index, k + 1))
+            renderers: dict[tuple[int, int], object] = {}
+            done = 0
+            try:
+                for j, (scen, _) in enumerate(jobs):
+                    size = (scen.rig.width, scen.rig.height)
+                    if size not in renderers:
+                        renderers[size] = create_offscreen_renderer(*size)
+                    for c in range(2):
 
-        render_camera(scenario, cam_index, Path(clip_dir), fmt, tick)
-        q.put(("done", cam_index, None))
-    except StereotrackError as exc:
-        q.put(("error", cam_index, (type(exc).__name__, str(exc))))
-    except BaseException as exc:
-        q.put(("error", cam_index, ("StereotrackError", f"{type(exc).__name__}: {exc}")))
+                        def tick(k: int, c: int = c, base: int = done, n: int = scen.frames) -> None:
+                            if progress is not None:
+                                progress(base + (k + 1 + c * n) // 2, total)
+
+                        render_camera(scen, c, stagings[j], fmt, tick, renderers[size])
+                    done += scen.frames
+                    results[j] = _finish_clip(scen, stagings[j], dirs[j])
+            finally:
+                for r in renderers.values():
+                    r.delete()  # type: ignore[attr-defined]
+            return results  # type: ignore[return-value]
+        ctx = mp.get_context("spawn")
+        q: mp.Queue = ctx.Queue()
+        # one llvmpipe thread per worker: each worker is one core's worth of rendering (a user's
+        # own LP_NUM_THREADS wins)
+        saved = os.environ.get("LP_NUM_THREADS")
+        os.environ["LP_NUM_THREADS"] = saved or "1"
+        try:
+            pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
+                                          initargs=(os.getpid(), q))
+        finally:
+            if saved is None:
+                del os.environ["LP_NUM_THREADS"]
+        frames_done: dict[tuple[int, int], int] = {}
+        cams_done = [0] * len(jobs)
+        with pool:
+            futs = {pool.submit(_render_job, scen.model_dump_json(), c, str(stagings[j]), fmt, j): (j, c)
+                    for j, (scen, _) in enumerate(jobs) for c in range(2)}
+            pending = set(futs)
+            while pending:
+                finished, pending = cf.wait(pending, timeout=0.2, return_when=cf.FIRST_COMPLETED)
+                while True:
+                    try:
+                        j, c, k = q.get_nowait()
+                    except queue.Empty:
+                        break
+                    frames_done[(j, c)] = k
+                for f in finished:
+                    j, c = futs[f]
+                    try:
+                        f.result()
+                    except cf.process.BrokenProcessPool:
+                        raise StereotrackError(f"the render worker for the {CAMERA_NAMES[c]} camera of {dirs[j]} died "
+                                               "(killed, or out of memory)") from None
+                    frames_done[(j, c)] = jobs[j][0].frames
+                    cams_done[j] += 1
+                    if cams_done[j] == 2:
+                        results[j] = _finish_clip(jobs[j][0], stagings[j], dirs[j])
+                if progress is not None:
+                    progress(sum(frames_done.values()) // 2, total)
+        return results  # type: ignore[return-value]
+    except BaseException:
+        for st in stagings:
+            shutil.rmtree(st, ignore_errors=True)
+        raise
 
 
 def render_clip(
@@ -177,88 +344,6 @@ def render_clip(
     workers: int = 2,
     progress: Callable[[int, int], None] | None = None,
 ) -> RenderResult:
-    """Render ``scenario`` into ``clip_dir``.
-
-    ``progress(done, total)`` is called with stereo frame pairs completed. ``workers=2`` renders
-    the two cameras in two processes; ``workers=1`` renders them one after the other here.
-    """
-    clip_dir = Path(clip_dir)
-    clip_dir.mkdir(parents=True, exist_ok=True)
-    rig = scenario.rig.build()
-    truth = simulate_truth(scenario)
-    proj = project_truth(rig, scenario, truth)
-    notes = []
-    for i, name in enumerate(truth.names):
-        if not proj.visible[:, i, :].any():
-            msg = f"marker '{name}' is never visible in either camera"
-            notes.append(msg)
-            warnings.warn(msg, stacklevel=2)
-
-    total = scenario.frames
-    if workers <= 1:
-        done = [0, 0]
-        for c in range(2):
-
-            def tick(k: int, c: int = c) -> None:
-                done[c] = k + 1
-                if progress is not None:
-                    progress((done[0] + done[1]) // 2, total)
-
-            render_camera(scenario, c, clip_dir, fmt, tick)
-    else:
-        _render_parallel(scenario, clip_dir, fmt, progress)
-
-    save_calibration(rig, clip_dir / "calib.yaml")
-    write_text(clip_dir / "scenario.yaml", scenario.to_yaml())
-    write_truth(clip_dir / "truth.csv", truth, proj)
-    if truth.targets:
-        write_target_truth(clip_dir / "target_truth.csv", truth, proj)
-    return RenderResult(clip_dir, total, truth, proj, notes)
-
-
-def _render_parallel(scenario: Scenario, clip_dir: Path, fmt: Format, progress: Callable[[int, int], None] | None) -> None:
-    ctx = mp.get_context("spawn")
-    # one camera per process and core: Mesa's llvmpipe would otherwise start a thread per core in
-    # each process and the two would fight over the same cores (a user's own setting wins)
-    saved = os.environ.get("LP_NUM_THREADS")
-    os.environ["LP_NUM_THREADS"] = saved or "1"
-    q: mp.Queue = ctx.Queue()
-    payload = scenario.model_dump_json()
-    procs = [ctx.Process(target=_worker, args=(payload, c, str(clip_dir), fmt, q), daemon=True) for c in range(2)]
-    try:
-        for p in procs:
-            p.start()
-    finally:
-        if saved is None:
-            del os.environ["LP_NUM_THREADS"]
-    done, finished, error = [0, 0], set(), None
-    try:
-        while len(finished) < 2 and error is None:
-            try:
-                kind, cam, payload_ = q.get(timeout=0.5)
-            except queue.Empty:
-                dead = [c for c, p in enumerate(procs) if not p.is_alive() and c not in finished]
-                if dead and q.empty():
-                    error = ("StereotrackError", f"render worker for the {CAMERA_NAMES[dead[0]]} camera died "
-                             f"(exit code {procs[dead[0]].exitcode})")
-                continue
-            if kind == "progress":
-                done[cam] = payload_
-                if progress is not None:
-                    progress(min(done), scenario.frames)
-            elif kind == "done":
-                finished.add(cam)
-                done[cam] = scenario.frames
-                if progress is not None:
-                    progress(min(done), scenario.frames)
-            else:
-                error = payload_
-    finally:
-        for p in procs:
-            if error is not None and p.is_alive():
-                p.terminate()
-            p.join(timeout=10)
-    if error is not None:
-        cls = RenderBackendError if error[0] == "RenderBackendError" else StereotrackError
-        raise cls(error[1])
-
+    """Render ``scenario`` into ``clip_dir`` (see :func:`render_clips`): ``workers=2`` renders the
+    two cameras in two processes, ``workers=1`` one after the other in this one."""
+    return render_clips([(scenario, clip_dir)], fmt, min(workers, 2), progress)[0]

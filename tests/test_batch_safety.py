@@ -61,6 +61,13 @@ def clip_outputs(folder: Path) -> dict[str, object]:
     return out
 
 
+def _running(p: psutil.Process) -> bool:
+    try:
+        return p.status() != psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return False
+
+
 def descendants(pid: int) -> list[psutil.Process]:
     try:
         return psutil.Process(pid).children(recursive=True)
@@ -94,7 +101,7 @@ def test_second_batch_is_refused_and_first_completes(reference):
         m = json.loads((out / f"clip{i}" / "metrics.json").read_text())
         assert m["methods"]["ekf"]["rmse"] < 0.05
     assert {c for c in read_csv(out / "summary.csv")["clip"]} == {"clip0", "clip1", "clip2"}
-    assert (out / ".stereotrack.lock").read_text() == ""  # released cleanly
+    assert not (out / ".stereotrack.lock").exists()  # released cleanly
 
 
 def _kill_point(out: Path, point: str) -> bool:
@@ -126,12 +133,13 @@ def test_killed_at_five_points_then_restarted(reference, tmp_path):
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(timeout=10)
         _gone, alive = psutil.wait_procs(family, timeout=2.0)
+        alive = [p for p in alive if _running(p)]  # a zombie has ended; only its reaping is pending
         assert not alive, f"after a kill at '{point}': {[p.pid for p in alive]} still alive"
         for d in out.glob("clip*"):  # whatever is presented as a clip verifies
             assert (d / MANIFEST).is_file() and verify_manifest(d) is None, d
     done = subprocess.run(batch_cmd(inp, out), capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
-    assert not [p for p in out.iterdir() if p.name.startswith(".") and p.name != ".stereotrack.lock"]
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]
     for i in range(3):
         assert clip_outputs(out / f"clip{i}") == clip_outputs(ref_out / f"clip{i}"), i
 
@@ -149,9 +157,10 @@ def test_corrupted_output_is_redone(reference, tmp_path):
     assert outcomes == {"clip0": "ok", "clip1": "ok", "clip2": "skipped"}
     for i in range(3):
         assert clip_outputs(out / f"clip{i}") == clip_outputs(ref_out / f"clip{i}")
-    # other settings than the ones the outputs were made with: redone too
-    outcomes = {o.clip: o.status for o in run_batch(inp, out, workers=1, methods=["triangulation"])}
-    assert set(outcomes.values()) == {"ok"}
+    # outputs made with other settings than the ones asked for now do not count as done
+    asked = {"detector": "blob", "methods": ["triangulation"], "markers": None, "calib_units": None}
+    assert verify_manifest(out / "clip2", asked) == "made with other settings"
+    assert verify_manifest(out / "clip2", {**asked, "methods": METHODS.split(",")}) is None
 
 
 def test_run_is_locked_and_cleans_leftovers(tmp_path, monkeypatch, capsys):
