@@ -26,7 +26,7 @@ from pipeline.errors import ClipError, StereotrackError
 from pipeline.io import write_text
 from renderers.motion import Truth, simulate_truth
 from renderers.scenario import Scenario
-from renderers.truth import ProjectedTruth, project_truth, write_target_truth, write_truth
+from renderers.truth import project_truth, write_target_truth, write_truth
 
 CAMERA_NAMES = ("left", "right")
 Format = Literal["mp4", "png"]
@@ -38,8 +38,6 @@ class RenderResult:
 
     clip_dir: Path
     frames: int
-    truth: Truth
-    projected: ProjectedTruth
     warnings: list[str]
 
 
@@ -125,12 +123,13 @@ class FrameWriter:
 def render_camera(
     scenario: Scenario, cam_index: int, clip_dir: Path, fmt: Format, tick: Callable[[int], None] | None = None,
     renderer=None,  # a pyrender.OffscreenRenderer of the rig's size to reuse (a persistent worker's)
+    truth: Truth | None = None,
 ) -> int:
     """Render every frame of one camera into ``clip_dir``; returns the number of frames."""
     from renderers.scene import StereoScene, create_offscreen_renderer
 
     rig = scenario.rig.build()
-    truth = simulate_truth(scenario)
+    truth = truth if truth is not None else simulate_truth(scenario)
     own = renderer is None
     if own:
         renderer = create_offscreen_renderer(*rig.image_size)
@@ -167,15 +166,18 @@ _PROGRESS: mp.Queue | None = None
 
 
 def _worker_init(parent_pid: int, progress: mp.Queue | None) -> None:
+    """Die with the parent; one OpenCV thread (blur, encoding) per worker, as llvmpipe has one."""
     from pipeline.lifeline import die_with_parent
 
     die_with_parent(parent_pid)
+    cv2.setNumThreads(1)
     global _PROGRESS
     _PROGRESS = progress
 
 
-def _render_job(scenario_json: str, cam_index: int, staging: str, fmt: Format, job: int) -> int:
-    """Worker entry point: one camera of one clip into ``staging``, reusing this process's renderer."""
+def _render_job(scenario_json: str, cam_index: int, staging: str, fmt: Format, job: int) -> list[str]:
+    """Worker entry point: one camera of one clip into ``staging``, reusing this process's renderer;
+    the left camera's job also writes the clip's truth and calibration (the parent only commits)."""
     from renderers.scene import create_offscreen_renderer
 
     scenario = Scenario.model_validate_json(scenario_json)
@@ -187,7 +189,9 @@ def _render_job(scenario_json: str, cam_index: int, staging: str, fmt: Format, j
         if _PROGRESS is not None and (k % 5 == 4 or k == scenario.frames - 1):
             _PROGRESS.put((job, cam_index, k + 1))
 
-    return render_camera(scenario, cam_index, Path(staging), fmt, tick, _RENDERERS[size])
+    truth = simulate_truth(scenario)
+    render_camera(scenario, cam_index, Path(staging), fmt, tick, _RENDERERS[size], truth)
+    return _write_clip_files(scenario, Path(staging), truth) if cam_index == 0 else []
 
 
 def _staging_dir(clip_dir: Path) -> Path:
@@ -224,24 +228,26 @@ def _commit(staging: Path, clip_dir: Path) -> None:
     staging.rmdir()
 
 
-def _finish_clip(scenario: Scenario, staging: Path, clip_dir: Path) -> RenderResult:
-    """Write calibration and truth beside the rendered frames and commit the clip."""
+def _write_clip_files(scenario: Scenario, staging: Path, truth: Truth) -> list[str]:
+    """Truth, scenario and calibration beside the frames; returns notes (markers never in view)."""
     rig = scenario.rig.build()
-    truth = simulate_truth(scenario)
     proj = project_truth(rig, scenario, truth)
-    notes = []
-    for i, name in enumerate(truth.names):
-        if not proj.visible[:, i, :].any():
-            msg = f"{clip_dir}: marker '{name}' is never visible in either camera"
-            notes.append(msg)
-            warnings.warn(msg, stacklevel=3)
+    notes = [f"marker '{name}' is never visible in either camera" for i, name in enumerate(truth.names)
+             if not proj.visible[:, i, :].any()]
     write_text(staging / "scenario.yaml", scenario.to_yaml())
     write_truth(staging / "truth.csv", truth, proj)
     if truth.targets:
         write_target_truth(staging / "target_truth.csv", truth, proj)
     save_calibration(rig, staging / "calib.yaml")
+    return notes
+
+
+def _finish_clip(scenario: Scenario, staging: Path, clip_dir: Path, notes: list[str]) -> RenderResult:
+    """Commit a clip whose frames and truth are all in ``staging``; warn about its notes."""
     _commit(staging, clip_dir)
-    return RenderResult(clip_dir, scenario.frames, truth, proj, notes)
+    for msg in notes:
+        warnings.warn(f"{clip_dir}: {msg}", stacklevel=3)
+    return RenderResult(clip_dir, scenario.frames, notes)
 
 
 def render_clips(
@@ -278,15 +284,16 @@ def render_clips(
                     size = (scen.rig.width, scen.rig.height)
                     if size not in renderers:
                         renderers[size] = create_offscreen_renderer(*size)
+                    truth = simulate_truth(scen)
                     for c in range(2):
 
                         def tick(k: int, c: int = c, base: int = done, n: int = scen.frames) -> None:
                             if progress is not None:
                                 progress(base + (k + 1 + c * n) // 2, total)
 
-                        render_camera(scen, c, stagings[j], fmt, tick, renderers[size])
+                        render_camera(scen, c, stagings[j], fmt, tick, renderers[size], truth)
                     done += scen.frames
-                    results[j] = _finish_clip(scen, stagings[j], dirs[j])
+                    results[j] = _finish_clip(scen, stagings[j], dirs[j], _write_clip_files(scen, stagings[j], truth))
             finally:
                 for r in renderers.values():
                     r.delete()  # type: ignore[attr-defined]
@@ -305,6 +312,7 @@ def render_clips(
                 del os.environ["LP_NUM_THREADS"]
         frames_done: dict[tuple[int, int], int] = {}
         cams_done = [0] * len(jobs)
+        notes: list[list[str]] = [[] for _ in jobs]
         with pool:
             futs = {pool.submit(_render_job, scen.model_dump_json(), c, str(stagings[j]), fmt, j): (j, c)
                     for j, (scen, _) in enumerate(jobs) for c in range(2)}
@@ -320,14 +328,14 @@ def render_clips(
                 for f in finished:
                     j, c = futs[f]
                     try:
-                        f.result()
+                        notes[j] += f.result()
                     except cf.process.BrokenProcessPool:
                         raise StereotrackError(f"the render worker for the {CAMERA_NAMES[c]} camera of {dirs[j]} died "
                                                "(killed, or out of memory)") from None
                     frames_done[(j, c)] = jobs[j][0].frames
                     cams_done[j] += 1
                     if cams_done[j] == 2:
-                        results[j] = _finish_clip(jobs[j][0], stagings[j], dirs[j])
+                        results[j] = _finish_clip(jobs[j][0], stagings[j], dirs[j], notes[j])
                 if progress is not None:
                     progress(sum(frames_done.values()) // 2, total)
         return results  # type: ignore[return-value]
