@@ -20,7 +20,7 @@ from detectors.meanshift import MeanShiftTracker
 from pipeline.camera import StereoRig, has_calibration, load_calibration
 from pipeline.checks import Check, colour_checks, rig_for_frames, warn_failed
 from pipeline.errors import StereotrackError
-from pipeline.io import read_csv, write_csv, write_json
+from pipeline.io import check_frame_column, read_csv, write_csv, write_json
 
 DETECTION_COLUMNS = ["frame", "camera", "marker", "u", "v", "area", "score"]
 #: The detect stage's record beside detections.csv: frames, frame size, markers used, checks.
@@ -337,11 +337,7 @@ def load_detections(path: str | Path, n_frames: int | None = None) -> dict[str, 
     if len(cols["frame"]) == 0:
         return {}
     frames = cols["frame"]
-    bad = (frames != np.round(frames)) | (frames < 0) | (frames >= (n_frames if n_frames is not None else np.inf))
-    if bad.any():
-        i = int(np.flatnonzero(bad)[0])
-        where = f"outside the clip's frames 0..{n_frames - 1}" if n_frames is not None else "not a frame index"
-        raise StereotrackError(f"line {i + 2}: frame {frames[i]:g} is {where}", path)
+    check_frame_column(frames, n_frames, path)
     n = max(int(frames.max()) + 1, n_frames or 0)
     out: dict[str, np.ndarray] = {}
     best: dict[tuple[str, int, int], float] = {}

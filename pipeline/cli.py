@@ -92,6 +92,15 @@ def _parse_roi(roi: str | None) -> tuple[int, int, int, int] | None:
     return x, y, w, h
 
 
+MarkersOption = Annotated[list[str] | None, typer.Option(
+    "--markers", help="Marker colour, NAME:HLO-HHI[:SMIN[:VMIN]] (OpenCV HSV), NAME=#RRGGBB, or NAME@x,y,w,h to learn "
+    "the range from that window of the first left frame; repeatable or comma-separated. Default: the clip's "
+    "markers.yaml, else the colours in its scenario.yaml.")]
+CalibUnitsOption = Annotated[str | None, typer.Option(
+    "--calib-units", help="Length unit of the calibration's T (m, cm or mm) when calib.yaml does not declare "
+    "'units'; outputs are in metres.")]
+
+
 def _fmt(v: float | None, spec: str = ".3f") -> str:
     return "—" if v is None else format(v, spec)
 
@@ -100,16 +109,11 @@ def _fmt(v: float | None, spec: str = ".3f") -> str:
 def detect_cmd(
     clip: Annotated[Path, typer.Argument(help="Clip folder (left/right videos or PNG folders) or a single video.")],
     detector: Annotated[str, typer.Option(help="blob, meanshift or camshift.")] = "blob",
-    markers: Annotated[list[str] | None, typer.Option(
-        "--markers", help="Marker colour, NAME:HLO-HHI[:SMIN[:VMIN]] (OpenCV HSV), NAME=#RRGGBB, or NAME@x,y,w,h to learn "
-        "the range from that window of the first left frame; repeatable or comma-separated. Default: the clip's "
-        "markers.yaml, else the colours in its scenario.yaml.")] = None,
+    markers: MarkersOption = None,
     roi: Annotated[str | None, typer.Option(help="Initial tracking window x,y,w,h (meanshift/camshift).")] = None,
     allow_unequal: Annotated[bool, typer.Option("--allow-unequal", help="Truncate unequal left/right lengths.")] = False,
     output: Annotated[Path | None, typer.Option("-o", "--output", help="Output folder (default CLIP/out).")] = None,
-    calib_units: Annotated[str | None, typer.Option(
-        "--calib-units", help="Length unit of the calibration's T (m, cm or mm) when calib.yaml does not declare "
-        "'units'; outputs are in metres.")] = None,
+    calib_units: CalibUnitsOption = None,
 ) -> None:
     """Find the markers in every frame; write detections.csv and print a per-camera summary."""
     from detectors.stage import detect_clip
@@ -163,9 +167,7 @@ def estimate_cmd(
     clip: Annotated[Path, typer.Argument(help="Clip folder with calib.yaml and out/detections.csv.")],
     methods: Annotated[str | None, typer.Option(help="Comma-separated methods (default: all point methods).")] = None,
     output: Annotated[Path | None, typer.Option("-o", "--output", help="Output folder (default CLIP/out).")] = None,
-    calib_units: Annotated[str | None, typer.Option(
-        "--calib-units", help="Length unit of the calibration's T (m, cm or mm) when calib.yaml does not declare "
-        "'units'; outputs are in metres.")] = None,
+    calib_units: CalibUnitsOption = None,
 ) -> None:
     """Estimate 3-D tracks with each method; write estimates/<method>.csv and metrics.json."""
     from pipeline.estimate import estimate_clip
@@ -199,13 +201,8 @@ def run_cmd(
     detector: Annotated[str, typer.Option(help="blob, meanshift or camshift.")] = "blob",
     methods: Annotated[str | None, typer.Option(help="Comma-separated methods (default: all).")] = None,
     fmt: Annotated[str, typer.Option("--format", help="Rendered clip format: mp4 or png.")] = "mp4",
-    markers: Annotated[list[str] | None, typer.Option(
-        "--markers", help="Marker colour, NAME:HLO-HHI[:SMIN[:VMIN]] (OpenCV HSV), NAME=#RRGGBB, or NAME@x,y,w,h to learn "
-        "the range from that window of the first left frame; repeatable or comma-separated. Default: the clip's "
-        "markers.yaml, else the colours in its scenario.yaml.")] = None,
-    calib_units: Annotated[str | None, typer.Option(
-        "--calib-units", help="Length unit of the calibration's T (m, cm or mm) when calib.yaml does not declare "
-        "'units'; outputs are in metres.")] = None,
+    markers: MarkersOption = None,
+    calib_units: CalibUnitsOption = None,
 ) -> None:
     """Run every stage on one clip: (render), detect, estimate, metrics, report, recording.
 
@@ -270,13 +267,8 @@ def batch_cmd(
     force: Annotated[bool, typer.Option("--force", help="Redo clips whose outputs are complete.")] = False,
     detector: Annotated[str, typer.Option(help="blob, meanshift or camshift.")] = "blob",
     methods: Annotated[str | None, typer.Option(help="Comma-separated methods (default: all).")] = None,
-    markers: Annotated[list[str] | None, typer.Option(
-        "--markers", help="Marker colour, NAME:HLO-HHI[:SMIN[:VMIN]] (OpenCV HSV), NAME=#RRGGBB, or NAME@x,y,w,h to learn "
-        "the range from that window of the first left frame; repeatable or comma-separated. Default: the clip's "
-        "markers.yaml, else the colours in its scenario.yaml.")] = None,
-    calib_units: Annotated[str | None, typer.Option(
-        "--calib-units", help="Length unit of the calibration's T (m, cm or mm) when calib.yaml does not declare "
-        "'units'; outputs are in metres.")] = None,
+    markers: MarkersOption = None,
+    calib_units: CalibUnitsOption = None,
 ) -> None:
     """Process every clip folder under INPUT_DIR; exit code 1 if any clip failed.
 

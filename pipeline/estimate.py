@@ -17,7 +17,7 @@ from pipeline.camera import StereoRig, load_calibration
 from pipeline.checks import Check, jump_checks, rig_for_frames, stereo_checks, warn_failed
 from pipeline.errors import StereotrackError
 from pipeline.estimators import POINT_METHODS, TARGET_METHODS, Track, create
-from pipeline.io import read_csv, write_csv, write_json
+from pipeline.io import check_frame_column, read_csv, write_csv, write_json
 
 ESTIMATE_COLUMNS = ["frame", "t", "marker", "x", "y", "z", "vx", "vy", "vz"]
 TARGET_COLUMNS = [*ESTIMATE_COLUMNS, "alpha", "distance"]
@@ -105,11 +105,7 @@ def read_positions(path: Path, n_frames: int | None = None) -> tuple[dict[str, n
     outside ``0 .. n_frames − 1`` is an error naming the line."""
     cols = read_csv(path, ["frame", "marker", "x", "y", "z"], numeric=["x", "y", "z"], finite=["frame"])
     frames = cols["frame"]
-    bad = (frames != np.round(frames)) | (frames < 0) | (frames >= (n_frames if n_frames is not None else np.inf))
-    if bad.any():
-        i = int(np.flatnonzero(bad)[0])
-        where = f"outside the clip's frames 0..{n_frames - 1}" if n_frames is not None else "not a frame index"
-        raise StereotrackError(f"line {i + 2}: frame {frames[i]:g} is {where}", path)
+    check_frame_column(frames, n_frames, path)
     n = int(np.nanmax(frames)) + 1 if len(frames) else 0
     pos: dict[str, np.ndarray] = {}
     for k, name, x, y, z in zip(cols["frame"].astype(int), cols["marker"], cols["x"], cols["y"], cols["z"], strict=True):

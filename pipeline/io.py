@@ -168,3 +168,12 @@ def _is_number(v: str) -> bool:
     except ValueError:
         return False
     return True
+
+
+def check_frame_column(frames: np.ndarray, n_frames: int | None, path: str | Path) -> None:
+    """Every ``frame`` value a whole number in ``0 .. n_frames − 1``; else an error naming the CSV line."""
+    bad = (frames != np.round(frames)) | (frames < 0) | (frames >= (n_frames if n_frames is not None else np.inf))
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        where = f"outside the clip's frames 0..{n_frames - 1}" if n_frames is not None else "not a frame index"
+        raise StereotrackError(f"line {i + 2}: frame {frames[i]:g} is {where}", path)

@@ -15,6 +15,8 @@ from renderers.scenario import load_scenario, parse_scenario
 REPO = Path(__file__).resolve().parent.parent
 SHARED = REPO.parent / "shared"
 REALDATA = SHARED / "realdata"
+BALL = REALDATA / "ball2.mp4"
+needs_ball = pytest.mark.skipif(not BALL.is_file(), reason=f"real footage {BALL} not present (shared/realdata)")
 
 
 def small_multi_marker(frames: int = 24, width: int = 320, height: int = 240, **render) -> dict:
@@ -64,3 +66,19 @@ def target_clip(tmp_path_factory) -> Path:
     scen = load_scenario("four_point").with_overrides(frames=40)
     render_clip(scen, out, fmt="png")
     return out
+
+
+@pytest.fixture(scope="session")
+def ball_reference() -> dict[int, tuple[float, float]]:
+    """ball2.mp4's ball centre per left frame from a strict HSV range (confident frames only): the
+    reference that the detectors and learned marker ranges are measured against."""
+    from detectors.blob import BlobDetector, MarkerColor
+    from detectors.frames import StereoFrameSource
+
+    strict = BlobDetector([MarkerColor.parse("ball:35-55:70:60")], min_area=800)
+    ref = {}
+    for fr in StereoFrameSource(BALL):
+        d = strict.detect(fr.left)
+        if d and d[0].score > 0.55:
+            ref[fr.index] = (d[0].u, d[0].v)
+    return ref

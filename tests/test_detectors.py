@@ -16,10 +16,7 @@ from pipeline.errors import ClipError, StereotrackError
 from pipeline.io import read_csv
 from renderers.render import render_clip
 from renderers.scenario import parse_scenario
-from tests.conftest import REALDATA, small_multi_marker
-
-BALL = REALDATA / "ball2.mp4"
-needs_ball = pytest.mark.skipif(not BALL.is_file(), reason=f"real footage {BALL} not present (shared/realdata)")
+from tests.conftest import BALL, needs_ball, small_multi_marker
 
 
 def _errors(result, clip):
@@ -168,13 +165,8 @@ def test_label_four_points_geometry():
 
 
 @needs_ball
-def test_real_footage_blob_meanshift_camshift(tmp_path):
-    strict = BlobDetector([MarkerColor.parse("ball:35-55:70:60")], min_area=800)
-    ref = {}
-    for fr in StereoFrameSource(BALL):
-        d = strict.detect(fr.left)
-        if d and d[0].score > 0.55:
-            ref[fr.index] = (d[0].u, d[0].v)
+def test_real_footage_blob_meanshift_camshift(tmp_path, ball_reference):
+    ref = ball_reference
     assert len(ref) > 200
     for mode in ("blob", "meanshift", "camshift"):
         out = tmp_path / mode

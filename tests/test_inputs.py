@@ -23,11 +23,10 @@ from pipeline.estimate import estimate_clip
 from pipeline.estimators.triangulation import triangulate
 from pipeline.io import read_csv
 from pipeline.report import write_report
-from tests.conftest import REALDATA, REPO
+from tests.conftest import BALL, REPO
 
 SAMPLE = REPO / "data" / "clips" / "sample_small"
 RED = "red:170-10:99:80"  # the sample clip's red marker, as the scenario's colour gives it
-BALL = REALDATA / "ball2.mp4"
 
 
 def real_copy(dest: Path, with_truth: bool = False) -> Path:
@@ -101,15 +100,10 @@ def test_real_clips_through_batch_with_root_markers(tmp_path, monkeypatch, capsy
 
 
 @pytest.mark.skipif(not BALL.is_file(), reason=f"real footage not present at {BALL}")
-def test_window_learned_marker_on_real_footage(tmp_path):
+def test_window_learned_marker_on_real_footage(tmp_path, ball_reference):
     """ball2.mp4: the range learned from a window on the ball (frame 100) tracks it within 3 px
     (median) of a strict-HSV reference."""
-    strict = BlobDetector([MarkerColor.parse("ball:35-55:70:60")], min_area=800)
-    ref = {}
-    for fr in StereoFrameSource(BALL):
-        d = strict.detect(fr.left)
-        if d and d[0].score > 0.55:
-            ref[fr.index] = (d[0].u, d[0].v)
+    ref = ball_reference
     res = detect_clip(BALL, "blob", ["ball@465,95,36,36@100"], out_dir=tmp_path)
     assert res.learned["ball"].startswith("ball:")
     det = load_detections(tmp_path / "detections.csv", 1004)["ball"]
