@@ -11,7 +11,9 @@ import time
 
 import numpy as np
 
-from pipeline.estimators import POINT_METHODS, create
+from pipeline.estimators import create, methods
+
+POINT_METHODS = methods("point")
 from renderers.motion import simulate_truth
 from renderers.scenario import load_scenario
 

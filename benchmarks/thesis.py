@@ -22,9 +22,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from pipeline.camera import triangulate
 from pipeline.estimators import create
 from pipeline.estimators.alphabeta import ABFilter
-from pipeline.estimators.triangulation import triangulate
 from pipeline.io import atomic_path, write_text
 from renderers.motion import simulate_truth
 from renderers.scenario import load_scenario

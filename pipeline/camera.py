@@ -224,6 +224,12 @@ class StereoRig:
         with np.errstate(divide="ignore", invalid="ignore"):
             return 0.5 * (alg / np.hypot(l2[:, 0], l2[:, 1]) + alg / np.hypot(l1[:, 0], l1[:, 1]))
 
+    def triangulate(self, Y: np.ndarray) -> np.ndarray:
+        """The inverse of :meth:`project`: DLT triangulation of stereo observations (…×4 pixels →
+        …×3; NaN where a camera is missing). See :func:`triangulate`."""
+        Y = np.asarray(Y, dtype=float)
+        return triangulate(self, Y.reshape(-1, 4)).reshape(*Y.shape[:-1], 3)
+
     def depths(self, X: np.ndarray) -> np.ndarray:
         """Depth of world points in the left and the right camera (N×2); ≤ 0 means behind it."""
         return np.stack([self.left.depth(X), self.right.depth(X)], axis=-1)
@@ -254,6 +260,84 @@ EXTRINSICS_NAMES = ("extrinsics.yml", "extrinsics.yaml", "extrinsics.xml")
 LENGTH_UNITS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3}
 #: A baseline longer than this with no declared unit is almost surely not in metres.
 SUSPICIOUS_BASELINE = 5.0
+
+
+def triangulate(rig: StereoRig, Y: np.ndarray) -> np.ndarray:
+    """Stereo triangulation by the homogeneous DLT (thesis ch. I; Hartley & Zisserman §12.2), the
+    inverse of :meth:`StereoRig.project`: N×4 pixels → N×3 points, NaN where a camera is missing.
+
+    For observations ``(u1, v1)``, ``(u2, v2)`` and cameras ``P1``, ``P2`` with rows ``pᵢʲᵀ``::
+
+        A = [u1 p1³ᵀ − p1¹ᵀ;  v1 p1³ᵀ − p1²ᵀ;  u2 p2³ᵀ − p2¹ᵀ;  v2 p2³ᵀ − p2²ᵀ]
+
+    and the point is the right singular vector of ``A`` for its smallest singular value; rows are
+    scaled to unit norm (conditioning). Unit covariance: that row scaling would weight the equations
+    differently for ``T`` in millimetres and in metres, so the DLT is solved for ``X / b`` (``b``
+    the baseline; ``T/b`` is unit-free) and scaled back: scaling ``T`` by ``s`` scales every point
+    by exactly ``s``.
+    """
+    Y = np.asarray(Y, dtype=float).reshape(-1, 4)
+    b = rig.baseline
+    P1 = rig.left.K @ np.hstack([rig.left.R, rig.left.t.reshape(3, 1) / b])
+    P2 = rig.right.K @ np.hstack([rig.right.R, rig.right.t.reshape(3, 1) / b])
+    A = np.empty((len(Y), 4, 4))
+    A[:, 0] = Y[:, 0, None] * P1[2] - P1[0]
+    A[:, 1] = Y[:, 1, None] * P1[2] - P1[1]
+    A[:, 2] = Y[:, 2, None] * P2[2] - P2[0]
+    A[:, 3] = Y[:, 3, None] * P2[2] - P2[1]
+    ok = np.all(np.isfinite(Y), axis=1)
+    out = np.full((len(Y), 3), np.nan)
+    if not ok.any():
+        return out
+    A = A[ok] / np.linalg.norm(A[ok], axis=2, keepdims=True)
+    _, _, Vt = np.linalg.svd(A)
+    Xh = Vt[:, -1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        X = Xh[:, :3] / Xh[:, 3:4]
+    X[~np.isfinite(X).all(axis=1)] = np.nan
+    out[ok] = X * b
+    return out
+
+
+@dataclass(frozen=True)
+class StereoMeasurementModel:
+    """The measurement model every estimator uses (Stone Soup's ``function / jacobian /
+    inverse_function``): for a state whose first three components are the position ``p``,
+
+        y = h(x) + v,   h(x) = [proj(P1, p); proj(P2, p)] (pixels),   v ~ N(0, σ² I₄)
+
+    ``jacobian`` is ``[∂h/∂p, 0]`` (zeros for the other state components) and ``inverse_function``
+    is the DLT triangulation; ``inverse_covariance`` propagates the pixel noise to the triangulated
+    point to first order, ``σ² (JᵀJ)⁻¹``.
+    """
+
+    rig: StereoRig
+    pixel_sigma: float = 1.0
+    ndim_state: int = 6
+
+    def function(self, x: np.ndarray) -> np.ndarray:
+        """``h(x)``: …×ndim_state (or …×3) → …×4 pixels."""
+        return self.rig.project(np.asarray(x, dtype=float)[..., :3])
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        """``∂h/∂x``: …×ndim_state → …×4×ndim_state."""
+        x = np.asarray(x, dtype=float)
+        J = self.rig.jacobian(x[..., :3])
+        pad = np.zeros((*J.shape[:-1], self.ndim_state - 3))
+        return np.concatenate([J, pad], axis=-1)
+
+    def inverse_function(self, y: np.ndarray) -> np.ndarray:
+        """``h⁻¹(y)``: …×4 pixels → …×3 positions (NaN where a camera is missing)."""
+        return self.rig.triangulate(y)
+
+    def covar(self) -> np.ndarray:
+        """Measurement noise covariance ``R = σ² I₄``."""
+        return np.eye(4) * self.pixel_sigma**2
+
+    def inverse_covariance(self, X: np.ndarray) -> np.ndarray:
+        """Covariance of the triangulated point ``X`` (…×3 → …×3×3), ``σ² (JᵀJ)⁻¹``."""
+        J = self.rig.jacobian(np.asarray(X, dtype=float))
+        return self.pixel_sigma**2 * np.linalg.inv(np.swapaxes(J, -1, -2) @ J)
 
 
 def has_calibration(folder: str | Path) -> bool:

@@ -71,7 +71,7 @@ def rig_for_frames(rig: StereoRig, frame_size: tuple[int, int], calib: str | Pat
 def stereo_checks(rig: StereoRig, observations: dict[str, np.ndarray], calib: str = "calib.yaml") -> list[Check]:
     """Left/right swapped (most triangulations behind a camera), non-corresponding detections
     (median epipolar distance) and points behind a camera, over all markers' two-camera frames."""
-    from pipeline.estimators.triangulation import triangulate
+    from pipeline.camera import triangulate
 
     Y = np.vstack([v for v in observations.values()]) if observations else np.empty((0, 4))
     Y = Y[np.all(np.isfinite(Y), axis=1)]

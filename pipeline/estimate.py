@@ -13,11 +13,14 @@ from typing import Any
 import numpy as np
 
 from detectors.stage import DETECT_INFO, load_detections
+from pipeline import consistency
 from pipeline.camera import StereoRig, load_calibration
 from pipeline.checks import Check, jump_checks, rig_for_frames, stereo_checks, warn_failed
 from pipeline.errors import StereotrackError
-from pipeline.estimators import POINT_METHODS, TARGET_METHODS, Track, create
+from pipeline.estimators import Track, create, registry
+from pipeline.estimators import methods as registered_methods
 from pipeline.io import check_frame_column, read_csv, write_csv, write_json
+from pipeline.manifest import stereotrack_version
 
 ESTIMATE_COLUMNS = ["frame", "t", "marker", "x", "y", "z", "vx", "vy", "vz"]
 TARGET_COLUMNS = [*ESTIMATE_COLUMNS, "alpha", "distance"]
@@ -169,14 +172,11 @@ def error_stats(est: np.ndarray, truth: np.ndarray) -> dict[str, float]:
             "final": float(e[-1]), "frames": int(ok.sum())}
 
 
-KALMAN_FAMILY = ("kf3d", "ekf", "ukf", "kalman_bucy", "pnp_kf")
-
-
 def estimate_pixel_sigma(rig: StereoRig, observations: dict[str, np.ndarray]) -> float | None:
     """Detection noise (px) from the data: the DLT leaves one degree of freedom of the four
     stereo coordinates, so the squared reprojection residual of a triangulated point is
     ``σ² χ²(1)``; σ̂² is its mean over all frames and markers. None without stereo frames."""
-    from pipeline.estimators.triangulation import triangulate
+    from pipeline.camera import triangulate
 
     sq = []
     for Y in observations.values():
@@ -213,10 +213,10 @@ def estimate_clip(
     """
     clip = Path(clip)
     out_dir = Path(out_dir) if out_dir else clip / "out"
+    reg = registry()
     for m in methods or []:
-        if m not in POINT_METHODS and m not in TARGET_METHODS:
-            known = ", ".join([*POINT_METHODS, *TARGET_METHODS])
-            raise StereotrackError(f"unknown method {m!r} (known: {known})")
+        if m not in reg:
+            raise StereotrackError(f"unknown method {m!r} (known: {', '.join(reg)})")
     det_path = out_dir / "detections.csv"
     if not det_path.is_file():
         raise StereotrackError("no detections.csv: run `stereotrack detect` first", det_path)
@@ -242,16 +242,18 @@ def estimate_clip(
     warn_failed(new_checks)
     checks += new_checks
     target = find_target(clip, target_radius, obs)
-    methods = methods or list(POINT_METHODS) + (list(TARGET_METHODS) if target else [])
+    methods = methods or registered_methods("point") + (registered_methods("target") if target else [])
     configs = {k: dict(v) for k, v in (configs or {}).items()}
     sigma = estimate_pixel_sigma(rig, obs)
-    if sigma is not None:  # the Kalman family's measurement noise, unless configured
-        for m in KALMAN_FAMILY:
-            configs.setdefault(m, {}).setdefault("pixel_sigma", sigma)
+    if sigma is not None:  # the measurement noise of methods that model it, unless configured
+        for m in methods:
+            if reg[m].knows_pixel_noise():
+                configs.setdefault(m, {}).setdefault("pixel_sigma", sigma)
     tracks: dict[str, dict[str, Track]] = {}
     target_tracks: dict[str, Track] = {}
-    point_methods = [m for m in methods if m in POINT_METHODS]
-    target_methods = [m for m in methods if m in TARGET_METHODS]
+    resolved: dict[str, dict[str, Any]] = {}
+    point_methods = [m for m in methods if reg[m].kind == "point"]
+    target_methods = [m for m in methods if reg[m].kind == "target"]
     if target_methods and target is None:
         raise StereotrackError(f"method(s) {', '.join(target_methods)} require a four-point target; this clip has none", clip)
     done, total = 0, len(point_methods) * len(obs) + len(target_methods)
@@ -259,15 +261,19 @@ def estimate_clip(
         assert target is not None
         Yt = np.stack([obs.get(f"{target.name}_{j}", np.full((n, 4), np.nan)) for j in range(1, 5)], axis=1)
         cfg = {"radius": target.radius, **(target.config if m != "four_point" else {}), **configs.get(m, {})}
-        target_tracks[m] = create(m, rig, dt, cfg).run(Yt)
+        est = create(m, rig, dt, cfg)
+        resolved[m] = est.config.model_dump(mode="json")
+        target_tracks[m] = est.run(Yt)
         _write_target_estimates(out_dir / "estimates" / f"{m}.csv", target.name, target_tracks[m], dt)
         done += 1
         if progress is not None:
             progress(done, total)
     for m in point_methods:
         tracks[m] = {}
+        est = create(m, rig, dt, configs.get(m))
+        resolved[m] = est.config.model_dump(mode="json")
         for marker, Y in obs.items():
-            tracks[m][marker] = create(m, rig, dt, configs.get(m)).run(Y)
+            tracks[m][marker] = est.run(Y)
             done += 1
             if progress is not None:
                 progress(done, total)
@@ -277,6 +283,9 @@ def estimate_clip(
     result.metrics["pixel_sigma_estimate"] = sigma
     result.metrics["calibration_units"] = calib_units
     result.metrics["checks"] = [c.as_dict() for c in checks]
+    result.metrics["stereotrack_version"] = stereotrack_version()
+    for m, cfg in resolved.items():
+        result.metrics["methods"][m]["config"] = cfg
     write_json(out_dir / "metrics.json", result.metrics)
     return result
 
@@ -307,7 +316,8 @@ def rmse(a: np.ndarray, b: np.ndarray) -> float | None:
 
 def compute_metrics(res: EstimateResult) -> dict[str, Any]:
     """Per method: error statistics against truth (all markers pooled, and per marker),
-    reprojection RMSE (px) and time per step."""
+    reprojection RMSE (px), time per step, and for filters the consistency of their covariance
+    (NEES on position against truth, NIS of their innovations; :mod:`pipeline.consistency`)."""
     out: dict[str, Any] = {"frames": res.n_frames, "dt": res.dt, "has_truth": res.truth is not None, "methods": {}}
     for m, per_marker in res.tracks.items():
         entry: dict[str, Any] = {}
@@ -316,11 +326,14 @@ def compute_metrics(res: EstimateResult) -> dict[str, Any]:
         fin = np.all(np.isfinite(positions), axis=1)
         entry["behind_camera"] = int(np.any(res.rig.depths(positions[fin]) <= 0, axis=1).sum())
         entry["reprojection_rmse_px"] = float(np.sqrt(np.nanmean(reps**2))) if np.isfinite(reps).any() else None
+        nis = [(t.nis, t.nis_dof) for t in per_marker.values() if t.nis is not None]
+        if nis:
+            entry["nis"] = consistency.summary(np.concatenate([a for a, _ in nis]), np.concatenate([d for _, d in nis]))
         sps = [t.seconds_per_step for t in per_marker.values()]
         entry["seconds_per_step"] = float(np.mean(sps))
         entry["steps_per_second"] = float(1.0 / np.mean(sps)) if np.mean(sps) > 0 else None
         if res.truth is not None:
-            est, tru, markers = [], [], {}
+            est, tru, markers, nees = [], [], {}, []
             for marker, t in per_marker.items():
                 if marker not in res.truth.positions:
                     continue
@@ -329,10 +342,14 @@ def compute_metrics(res: EstimateResult) -> dict[str, Any]:
                 markers[marker] = error_stats(P, T)
                 est.append(P)
                 tru.append(T)
+                if t.covariance is not None:
+                    nees.append(consistency.nees(t, T))
             if est:
                 entry.update(error_stats(np.vstack(est), np.vstack(tru)))
                 entry["final"] = float(np.nanmean([v["final"] for v in markers.values()]))
                 entry["markers"] = markers
+            if nees:
+                entry["nees_position"] = consistency.summary(np.concatenate(nees), 3)
         out["methods"][m] = entry
     for m, t in res.target_tracks.items():
         entry = {"target": True, "seconds_per_step": t.seconds_per_step,

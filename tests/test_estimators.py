@@ -10,12 +10,13 @@ import numpy as np
 import pytest
 from filterpy.kalman import ExtendedKalmanFilter
 
-from pipeline.camera import Camera, StereoRig
+from pipeline.camera import Camera, StereoRig, triangulate
 from pipeline.errors import CalibrationError, StereotrackError
-from pipeline.estimators import POINT_METHODS, create
+from pipeline.estimators import create, methods
+
+POINT_METHODS = methods("point")
 from pipeline.estimators.alphabeta import ABFilter
 from pipeline.estimators.base import transition, white_noise_acceleration
-from pipeline.estimators.triangulation import triangulate
 from renderers.motion import simulate_truth
 from renderers.scenario import load_scenario
 
@@ -128,7 +129,6 @@ def test_ekf_agrees_with_plain_filterpy(receding):
     f.F, f.Q = transition(dt), white_noise_acceleration(dt, 0.5)
     X0 = triangulate(rig, Y[:1])[0]
     f.x = np.r_[X0, 0, 0, 0].reshape(6, 1)
-    f.P = np.diag([0.25] * 3 + [1.0] * 3)
     P1, P2 = rig.left.P, rig.right.P
 
     def hx(x):
@@ -148,9 +148,14 @@ def test_ekf_agrees_with_plain_filterpy(receding):
             J[:, j] = ((hx(x + d) - hx(x - d)) / (2 * eps)).ravel()
         return J
 
-    for k in range(len(Y)):
-        if k:
-            f.predict()
+    # the start: the first triangulation with its own covariance σ²(JᵀJ)⁻¹, velocity 0 ± 1 m/s, and
+    # no update on frame 0 (its measurement made the start)
+    J = H(f.x)[:, :3]
+    f.P = np.diag([0.0] * 3 + [1.0] * 3)
+    f.P[:3, :3] = np.linalg.inv(J.T @ J)
+    np.testing.assert_allclose(ours.position[0], X0, atol=1e-12)
+    for k in range(1, len(Y)):
+        f.predict()
         rows = [0, 1, 2, 3] if np.all(np.isfinite(Y[k])) else [0, 1]
         f.update(Y[k, rows].reshape(-1, 1), lambda x, r=rows: H(x)[r], lambda x, r=rows: hx(x)[r],
                  R=np.eye(len(rows)))
@@ -174,10 +179,8 @@ def test_vectorised_batch_equals_single_track(receding, method):
 def test_batch_spsa_tracks(receding):
     rig, dt, X, V = receding
     Y = np.stack([observe(rig, X, 1.0, s)[0] for s in range(20)])
-    init = np.tile(np.r_[X[0], V[0]], (20, 1))
-    from pipeline.estimators.spsa import batch_spsa
-
-    P = batch_spsa(create("spsa", rig, dt, {}), Y, init)
+    init = {"mode": "given", "state": np.r_[X[0], V[0]].tolist()}  # oracle start: the true state
+    P = create("spsa", rig, dt, {"init": init}).run_batch(Y)
     tri = triangulate(rig, Y.reshape(-1, 4)).reshape(P.shape)
     assert np.median(np.linalg.norm(P - X, axis=2)) < np.median(np.linalg.norm(tri - X, axis=2))
 

@@ -17,10 +17,9 @@ import pytest
 from detectors.blob import BlobDetector, MarkerColor
 from detectors.frames import StereoFrameSource
 from detectors.stage import detect_clip, load_detections
-from pipeline.camera import Camera, StereoRig, load_calibration, save_calibration
+from pipeline.camera import Camera, StereoRig, load_calibration, save_calibration, triangulate
 from pipeline.errors import ClipError
 from pipeline.estimate import estimate_clip
-from pipeline.estimators.triangulation import triangulate
 from pipeline.io import read_csv
 from pipeline.report import write_report
 from tests.conftest import BALL, REPO

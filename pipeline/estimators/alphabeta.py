@@ -1,5 +1,7 @@
 """Alpha-beta and alpha-beta-gamma filters (lecture 002; SPEC §4.6), on triangulated 3-D positions
-or on each camera's image coordinates (then triangulated).
+or on each camera's image coordinates (then triangulated). Tracks start through the shared
+:class:`~pipeline.estimators.base.Initiator` (position and velocity; in image space their
+projection ``h(p₀)`` and rate ``J(p₀) v₀``).
 
 With time step ``dt`` (filterpy's ``GHFilter``/``GHKFilter`` convention; the lecture has dt = 1)::
 
@@ -19,8 +21,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from pipeline.estimators.base import NAN3, Estimator, EstimatorConfig, Step, register
-from pipeline.estimators.triangulation import triangulate
+from pipeline.estimators.base import NAN3, Estimator, EstimatorConfig, Step, not_started, register
 
 
 class ABFilter:
@@ -64,7 +65,7 @@ class AlphaBetaGammaConfig(AlphaBetaConfig):
 
 @register
 class AlphaBetaEstimator(Estimator):
-    """Alpha-beta filter on 3-D positions or image coordinates."""
+    """Alpha-beta filter on triangulated 3-D positions or on image coordinates."""
 
     name = "alphabeta"
     Config = AlphaBetaConfig
@@ -78,25 +79,33 @@ class AlphaBetaEstimator(Estimator):
 
     def _step(self, y: np.ndarray) -> Step:
         cfg: AlphaBetaConfig = self.config  # type: ignore[assignment]
-        z = y if cfg.space == "image" else triangulate(self.rig, y[None])[0]
+        image = cfg.space == "image"
         if self.f is None:
-            if not np.all(np.isfinite(z)):
-                return Step(NAN3.copy(), NAN3.copy(), predicted=True)
-            self.f = ABFilter(z, self.dt, cfg.alpha, cfg.beta, self._gamma())
+            s = self.start(y)
+            if s is None:
+                return not_started()
+            p0, v0 = s.state[:3], s.state[3:]
+            if image:  # the start in pixels: h(p0), and its rate J(p0) v0
+                self.f = ABFilter(self.model.function(p0), self.dt, cfg.alpha, cfg.beta, self._gamma())
+                self.f.v = self.rig.jacobian(p0) @ v0
+            else:
+                self.f = ABFilter(p0, self.dt, cfg.alpha, cfg.beta, self._gamma())
+                self.f.v = v0.copy()
             self.initialized = True
+            have = True
         else:
+            z = y if image else self.model.inverse_function(y[None])[0]
             self.f.predict()
             self.f.correct(z)
-        have = bool(np.isfinite(z).any())
-        if cfg.space == "image":
-            p = triangulate(self.rig, self.f.x[None])[0]
-            return Step(p, NAN3.copy(), predicted=not have)
+            have = bool(np.isfinite(z).any())
+        if image:
+            return Step(self.model.inverse_function(self.f.x[None])[0], NAN3.copy(), predicted=not have)
         return Step(self.f.x.copy(), self.f.v.copy(), predicted=not have)
 
 
 @register
 class AlphaBetaGammaEstimator(AlphaBetaEstimator):
-    """Alpha-beta-gamma filter (adds an acceleration channel)."""
+    """Alpha-beta-gamma filter (alpha-beta plus an acceleration channel)."""
 
     name = "alphabetagamma"
     Config = AlphaBetaGammaConfig

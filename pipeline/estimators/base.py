@@ -1,28 +1,42 @@
-"""The estimator protocol shared by every method, and the state-space model they assume.
+"""The one estimator protocol, the one track initiator and the one registry.
 
 State model for a moving point (SPEC §4.2, thesis ch. II)::
 
     x = [p; v] ∈ R⁶,   x_k = A x_{k−1} + w_k,   A = [[I, dt·I], [0, I]]
     y_k = h(x_k) + v_k,   h(x) = [proj(P1, p); proj(P2, p)] ∈ R⁴  (pixels)
 
-Every estimator is built from a pydantic config + the stereo rig + ``dt``; ``step(y)`` consumes one
-frame's observation ``[u1, v1, u2, v2]`` (NaN where a camera has no detection) and returns a
-:class:`Step`; ``run(Y)`` consumes a whole clip (frames × 4) and returns a :class:`Track`.
-Observations are undistorted pixels; estimators never see images or files.
+with ``h`` the :class:`pipeline.camera.StereoMeasurementModel` of the rig. Every method — point
+and four-point target alike — is built from a pydantic config + the stereo rig + ``dt`` and has
+three equivalent paths that give the same numbers (tested):
+
+- ``step(obs)``: one frame (streaming), then ``finish(steps, Y)`` for the whole track (a smoother
+  runs its backward pass there);
+- ``run(Y)``: a clip — ``reset``, ``step`` every frame, ``finish``;
+- ``run_batch(Ys)``: many tracks at once (vectorised where a method can be).
+
+Observations are undistorted pixels, NaN where a camera has no detection: ``[u1, v1, u2, v2]`` for
+point methods, 4 points × 4 for four-point target methods. Estimators never see images or files.
+Methods register with :func:`register`; third-party packages add theirs through the entry-point
+group ``stereotrack.estimators`` (see :func:`registry`).
 """
 
 from __future__ import annotations
 
 import time
+import warnings
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from filterpy.common import Q_continuous_white_noise
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from pipeline.camera import StereoRig
+from pipeline.camera import StereoMeasurementModel, StereoRig
 from pipeline.errors import StereotrackError
+
+Kind = Literal["point", "target"]
+ENTRY_POINT_GROUP = "stereotrack.estimators"
 
 
 def transition(dt: float, dim: int = 3) -> np.ndarray:
@@ -33,25 +47,32 @@ def transition(dt: float, dim: int = 3) -> np.ndarray:
 
 
 def white_noise_acceleration(dt: float, q: float, dim: int = 3) -> np.ndarray:
-    """Process noise of a continuous white-noise acceleration of spectral density ``q`` (m²/s³):
-    ``Q = q [[dt³/3 I, dt²/2 I], [dt²/2 I, dt I]]`` (Bar-Shalom, Li & Kirubarajan, §6.2.2)."""
-    I = np.eye(dim)
-    return q * np.block([[dt**3 / 3 * I, dt**2 / 2 * I], [dt**2 / 2 * I, dt * I]])
+    """Process noise of a continuous white-noise acceleration of spectral density ``q`` (m²/s³),
+    ``Q = q [[dt³/3 I, dt²/2 I], [dt²/2 I, dt I]]`` (Bar-Shalom, Li & Kirubarajan §6.2.2), through
+    filterpy's ``Q_continuous_white_noise`` in our ``[p; v]`` state order."""
+    return Q_continuous_white_noise(2, dt, q, block_size=dim, order_by_dim=False)
 
 
 class InitConfig(BaseModel):
-    """How a track starts: from the first triangulation (default) or from a given state."""
+    """How a track starts (:class:`Initiator`): from triangulations or from a given state."""
 
     model_config = ConfigDict(extra="forbid")
     mode: Literal["triangulation", "given"] = "triangulation"
-    #: the given state [x, y, z, vx, vy, vz] (mode "given")
+    #: the given state [x, y, z, vx, vy, vz] at frame 0 (mode "given")
     state: tuple[float, float, float, float, float, float] | None = None
-    #: triangulated frames used to start: 1 = position only (velocity 0); n ≥ 2 fits a straight line
-    #: through the first n triangulations (position at the n-th frame, velocity from the fit)
+    #: frames with both cameras used to start: 1 = position only (velocity 0); n ≥ 2 fits a straight
+    #: line through the first n such frames (they need not be consecutive)
     frames: int = Field(1, ge=1, le=100)
-    #: prior std of position (m) and velocity (m/s), used by the Kalman family's P0
+    #: prior std of position (m) and velocity (m/s); the position prior of methods that know their
+    #: pixel noise is the triangulation's own covariance instead
     sigma_position: float = Field(0.5, gt=0)
     sigma_velocity: float = Field(1.0, gt=0)
+
+    @model_validator(mode="after")
+    def _given_needs_state(self) -> InitConfig:
+        if self.mode == "given" and self.state is None:
+            raise ValueError("init.mode 'given' needs init.state [x, y, z, vx, vy, vz]")
+        return self
 
 
 class EstimatorConfig(BaseModel):
@@ -64,19 +85,35 @@ class EstimatorConfig(BaseModel):
 
 @dataclass
 class Step:
-    """One frame's output: position, velocity (NaN when the method has none) and diagnostics."""
+    """One frame's output: position, velocity (NaN when the method has none), the state covariance,
+    the innovation ``y`` and its covariance ``S`` (filterpy's names) when a filter updated, and
+    method-specific values in ``extra``."""
 
     position: np.ndarray
     velocity: np.ndarray
-    reprojection_error: float = float("nan")
+    predicted: bool = False  # no measurement was used this frame (gap, or not started)
     covariance: np.ndarray | None = None
-    predicted: bool = False  # no measurement was used this frame (gap)
+    innovation: np.ndarray | None = None
+    innovation_covariance: np.ndarray | None = None
     extra: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def nis(self) -> float:
+        """Normalized innovation squared ``yᵀ S⁻¹ y`` (NaN without an update)."""
+        if self.innovation is None or self.innovation_covariance is None:
+            return float("nan")
+        y = np.ravel(self.innovation)
+        return float(y @ np.linalg.solve(self.innovation_covariance, y))
 
 
 @dataclass
 class Track:
-    """A whole clip's estimates for one marker (frames × 3) plus per-frame diagnostics."""
+    """A whole clip's estimates for one marker (frames × 3) plus per-frame diagnostics.
+
+    ``covariance``: frames × d × d state covariances (NaN before the start; None for methods
+    without one); ``nis``/``nis_dof``: the normalized innovation squared and its degrees of freedom
+    (NaN/0 on frames without an update).
+    """
 
     method: str
     position: np.ndarray
@@ -86,18 +123,112 @@ class Track:
     predicted: np.ndarray
     seconds_per_step: float
     extra: dict[str, np.ndarray] = field(default_factory=dict)
+    covariance: np.ndarray | None = None
+    nis: np.ndarray | None = None
+    nis_dof: np.ndarray | None = None
 
 
 NAN3 = np.full(3, np.nan)
 
 
+# -- the initiator ------------------------------------------------------------------------------
+@dataclass
+class Start:
+    """Where a track starts: the frame, the state ``[p; v]`` at that frame and its covariance."""
+
+    frame: int
+    state: np.ndarray
+    covariance: np.ndarray
+
+
+class Initiator:
+    """The one way every point method starts a track (streaming :meth:`offer`, or :meth:`first`
+    over a whole clip — the same arithmetic).
+
+    - ``given``: the configured state at frame 0, covariance ``diag(σp², σv²)``;
+    - ``triangulation`` with ``frames = 1``: the first frame whose triangulation (the model's
+      ``inverse_function``) is finite and in front of both cameras; velocity 0;
+    - ``frames = n ≥ 2``: a least-squares line ``p(t) = p + v t`` through the first n such frames
+      (t relative to the n-th), starting at the n-th with ``[p; v]``. With ``C`` the covariance of
+      one triangulation and ``t̄, Sₜₜ`` the mean and spread of the times, the line's covariance is
+      ``Var p = C (1/n + t̄²/Sₜₜ)``, ``Var v = C / Sₜₜ``, ``Cov(p, v) = −C t̄ / Sₜₜ``.
+
+    ``C`` is ``σ² (JᵀJ)⁻¹`` (the model's ``inverse_covariance``) when ``propagate`` is set — for
+    methods that know their pixel noise — else ``σp² I``.
+    """
+
+    def __init__(self, config: InitConfig, model: StereoMeasurementModel, dt: float, propagate: bool = False) -> None:
+        self.config, self.model, self.dt, self.propagate = config, model, float(dt), propagate
+        self.reset()
+
+    def reset(self) -> None:
+        self._frames: list[int] = []
+        self._points: list[np.ndarray] = []
+
+    def _valid(self, X: np.ndarray) -> np.ndarray:
+        ok = np.all(np.isfinite(X), axis=-1)
+        depth = np.where(ok[..., None], self.model.rig.depths(np.where(ok[..., None], X, 1.0)), -1.0)
+        return ok & np.all(depth > 0, axis=-1)
+
+    def _given(self, frame: int) -> Start:
+        c = self.config
+        P0 = np.diag(np.r_[np.full(3, c.sigma_position**2), np.full(3, c.sigma_velocity**2)])
+        return Start(frame, np.array(c.state, dtype=float), P0)
+
+    def _fit(self, frames: np.ndarray, points: np.ndarray) -> Start:
+        c = self.config
+        n = len(frames)
+        C = self.model.inverse_covariance(points[-1]) if self.propagate else np.eye(3) * c.sigma_position**2
+        P0 = np.zeros((6, 6))
+        if n == 1:
+            P0[:3, :3], P0[3:, 3:] = C, np.eye(3) * c.sigma_velocity**2
+            return Start(int(frames[-1]), np.r_[points[-1], np.zeros(3)], P0)
+        t = (frames - frames[-1]) * self.dt
+        tm = t.mean()
+        stt = float(np.sum((t - tm) ** 2))
+        v = (t - tm) @ (points - points.mean(axis=0)) / stt
+        p = points.mean(axis=0) - v * tm
+        P0[:3, :3] = C * (1.0 / n + tm**2 / stt)
+        P0[3:, 3:] = C / stt
+        P0[:3, 3:] = P0[3:, :3] = -C * tm / stt
+        return Start(int(frames[-1]), np.r_[p, v], P0)
+
+    def offer(self, frame: int, y: np.ndarray) -> Start | None:
+        """Consume frame ``frame``'s observation; the start once enough frames were seen."""
+        if self.config.mode == "given":
+            return self._given(frame)
+        X = self.model.inverse_function(np.asarray(y, dtype=float)[None])[0]
+        if not self._valid(X):
+            return None
+        self._frames.append(frame)
+        self._points.append(X)
+        if len(self._frames) < self.config.frames:
+            return None
+        return self._fit(np.array(self._frames), np.array(self._points))
+
+    def first(self, Y: np.ndarray) -> Start | None:
+        """The start over a whole clip's observations (frames × 4); None if it never starts."""
+        if self.config.mode == "given":
+            return self._given(0) if len(Y) else None
+        X = self.model.inverse_function(Y)
+        idx = np.flatnonzero(self._valid(X))[: self.config.frames]
+        if len(idx) < self.config.frames:
+            return None
+        return self._fit(idx, X[idx])
+
+
+# -- the protocol -------------------------------------------------------------------------------
 class Estimator(ABC):
-    """Base class: subclasses implement :meth:`step` (and may vectorise :meth:`run_batch`)."""
+    """Base of every method: subclasses implement :meth:`_step`; smoothers override :meth:`finish`;
+    methods with a vectorised core override :meth:`run_batch` (tested equal to :meth:`run`)."""
 
     name: ClassVar[str]
+    #: "point": observations [u1, v1, u2, v2]; "target": 4 points × [u1, v1, u2, v2]
+    kind: ClassVar[Kind] = "point"
     Config: ClassVar[type[EstimatorConfig]] = EstimatorConfig
-    #: True for methods that take stereo point observations (False: four-point target methods)
-    point_method: ClassVar[bool] = True
+    #: frames stepped (then forgotten) before the timed loop of :meth:`run`, so that one-off
+    #: start-up (imports, first allocations) is not counted as time per step
+    warmup_frames: ClassVar[int] = 3
 
     def __init__(self, rig: StereoRig, dt: float, config: EstimatorConfig | dict[str, Any] | None = None) -> None:
         rig.check()
@@ -105,89 +236,102 @@ class Estimator(ABC):
             raise StereotrackError(f"time step must be positive, got {dt}")
         self.rig = rig
         self.dt = float(dt)
-        self.config = self.Config.model_validate(config or {}) if not isinstance(config, self.Config) else config
+        self.config = config if isinstance(config, self.Config) else self.Config.model_validate(config or {})
+        sigma = float(getattr(self.config, "pixel_sigma", 1.0))
+        self.model = StereoMeasurementModel(rig, sigma)
         self.reset()
+
+    @classmethod
+    def description(cls) -> str:
+        """One line: the first line of the class docstring."""
+        return (cls.__doc__ or "").strip().splitlines()[0] if cls.__doc__ else ""
+
+    @classmethod
+    def knows_pixel_noise(cls) -> bool:
+        """Whether the config has a ``pixel_sigma`` (the pipeline fills it from the data)."""
+        return "pixel_sigma" in cls.Config.model_fields
 
     def reset(self) -> None:
         """Forget the track; the next observation starts a new one."""
         self.initialized = False
+        self.frame = 0
         self.rng = np.random.default_rng(self.config.seed)
-        self._init_buffer: list[np.ndarray] = []
+        self.initiator = Initiator(self.config.init, self.model, self.dt, propagate=self.knows_pixel_noise())
 
-    # -- helpers shared by the point estimators ------------------------------------------------
-    def initial_state(self, y: np.ndarray) -> np.ndarray | None:
-        """Start state from the config: given, or the triangulation of ``y`` (None if impossible)."""
-        init = self.config.init
-        if init.mode == "given":
-            if init.state is None:
-                raise StereotrackError("init.mode 'given' needs init.state")
-            return np.array(init.state, dtype=float)
-        from pipeline.estimators.triangulation import triangulate
-
-        X = triangulate(self.rig, y[None])[0] if np.all(np.isfinite(y)) else np.full(3, np.nan)
-        buf = self._init_buffer
-        buf.append(X)
-        if not np.all(np.isfinite(X)) or np.any(self.rig.left.depth(X[None]) <= 0):
-            if len(buf) > 4 * init.frames:
-                buf.pop(0)
-            return None
-        pts = np.array(buf[-init.frames :])
-        if init.frames == 1:
-            buf.clear()
-            return np.concatenate([X, np.zeros(3)])
-        if len(pts) < init.frames or not np.all(np.isfinite(pts)):
-            return None
-        t = np.arange(init.frames) * self.dt
-        slope, _ = np.polyfit(t, pts, 1)
-        buf.clear()
-        return np.concatenate([X, slope])
+    def start(self, y: np.ndarray) -> Start | None:
+        """Offer this frame to the initiator (point methods)."""
+        return self.initiator.offer(self.frame, y)
 
     def reprojection_error(self, p: np.ndarray, y: np.ndarray) -> float:
         """RMS pixel distance between ``h(p)`` and the available observations."""
-        ok = np.isfinite(y)
-        if not ok.any() or not np.all(np.isfinite(p)):
-            return float("nan")
-        r = self.rig.project(p[None])[0] - y
-        return float(np.sqrt(np.mean(r[ok] ** 2)))
+        return float(reprojection_errors(self.rig, np.asarray(p, float)[None], np.asarray(y, float)[None])[0])
 
-    # -- the protocol ---------------------------------------------------------------------------
     @abstractmethod
-    def _step(self, y: np.ndarray) -> Step:
-        """The numerical core of :meth:`step`, without diagnostics that :meth:`run` vectorises."""
+    def _step(self, obs: np.ndarray) -> Step:
+        """The numerical core of :meth:`step`."""
 
-    def step(self, y: np.ndarray) -> Step:
-        """Consume one frame's observation ``[u1, v1, u2, v2]`` (NaN = missing)."""
-        s = self._step(np.asarray(y, dtype=float))
-        s.reprojection_error = self.reprojection_error(s.position, y)
+    def step(self, obs: np.ndarray) -> Step:
+        """Consume one frame's observation (NaN = missing) and return this frame's estimate."""
+        s = self._step(np.asarray(obs, dtype=float))
+        self.frame += 1
         return s
 
-    def run(self, Y: np.ndarray) -> Track:
-        """Run over a clip's observations (frames × 4) from a fresh state."""
-        Y = check_observations(Y)
-        self.reset()
-        n = len(Y)
-        pos, vel = np.full((n, 3), np.nan), np.full((n, 3), np.nan)
-        ctr = np.full(n, np.nan)
-        pred = np.zeros(n, dtype=bool)
+    def check(self, Y: np.ndarray, source: str = "observations") -> np.ndarray:
+        """Validate a clip's observations for this method's kind (NaN = missing, inf = error)."""
+        Y = np.asarray(Y, dtype=float)
+        want = (4,) if self.kind == "point" else (4, 4)
+        if Y.ndim != 1 + len(want) or Y.shape[1:] != want:
+            what = "frames × 4 observations [u1, v1, u2, v2]" if self.kind == "point" else "frames × 4 points × 4"
+            raise StereotrackError(f"{source}: expected {what}, got shape {Y.shape}")
+        if np.isinf(Y).any():
+            raise StereotrackError(f"{source}: infinite pixel coordinates")
+        return Y
+
+    def finish(self, steps: list[Step], Y: np.ndarray, seconds_per_step: float = float("nan")) -> Track:
+        """The track of a clip from its steps (a smoother's backward pass goes here)."""
+        n = len(steps)
+        pos = np.array([s.position for s in steps], dtype=float).reshape(n, 3)
+        vel = np.array([s.velocity for s in steps], dtype=float).reshape(n, 3)
+        pred = np.array([s.predicted for s in steps], dtype=bool)
+        covs = [s.covariance for s in steps]
+        cov = ctr = None
+        d = next((c.shape[0] for c in covs if c is not None), None)
+        if d is not None:
+            cov = np.full((n, d, d), np.nan)
+            for k, c in enumerate(covs):
+                if c is not None:
+                    cov[k] = c
+            ctr = np.trace(cov, axis1=1, axis2=2)
+        nis = np.array([s.nis for s in steps], dtype=float)
+        dof = np.array([0 if s.innovation is None else np.size(s.innovation) for s in steps], dtype=int)
         extra: dict[str, np.ndarray] = {}
-        t0 = time.perf_counter()
-        for k in range(n):
-            s = self._step(Y[k])
-            pos[k], vel[k], pred[k] = s.position, s.velocity, s.predicted
-            if s.covariance is not None:
-                ctr[k] = float(np.trace(s.covariance))
+        for k, s in enumerate(steps):
             for key, val in s.extra.items():
                 extra.setdefault(key, np.full(n, np.nan))[k] = val
-        elapsed = time.perf_counter() - t0
-        rep = reprojection_errors(self.rig, pos, Y)
-        return Track(self.name, pos, vel, rep, ctr, pred, elapsed / max(n, 1), extra)
+        rep = reprojection_errors(self.rig, pos, Y) if self.kind == "point" else np.full(n, np.nan)
+        return Track(self.name, pos, vel, rep, ctr if ctr is not None else np.full(n, np.nan), pred,
+                     seconds_per_step, extra, cov, nis if dof.any() else None, dof if dof.any() else None)
+
+    def _timed_steps(self, Y: np.ndarray) -> tuple[list[Step], float]:
+        """Warm up on the first frames, then reset and step every frame; (steps, seconds/step)."""
+        self.reset()
+        for y in Y[: self.warmup_frames]:
+            self.step(y)
+        self.reset()
+        t0 = time.perf_counter()
+        steps = [self.step(y) for y in Y]
+        return steps, (time.perf_counter() - t0) / max(len(Y), 1)
+
+    def run(self, Y: np.ndarray) -> Track:
+        """A clip's observations from a fresh state: ``reset``, ``step`` every frame, ``finish``."""
+        Y = self.check(Y)
+        steps, sec = self._timed_steps(Y)
+        return self.finish(steps, Y, sec)
 
     def run_batch(self, Y: np.ndarray) -> np.ndarray:
-        """Positions for many tracks at once (tracks × frames × 4 → tracks × frames × 3).
-
-        The base version loops over tracks; methods with a vectorised core override it.
-        """
-        return np.stack([self.run(y).position for y in Y])
+        """Positions of many tracks (tracks × frames × obs → tracks × frames × 3), each from a fresh
+        state. This version loops over :meth:`run`; vectorised cores override it."""
+        return np.stack([self.run(y).position for y in np.asarray(Y, dtype=float)])
 
 
 def reprojection_errors(rig: StereoRig, positions: np.ndarray, Y: np.ndarray) -> np.ndarray:
@@ -202,20 +346,54 @@ def reprojection_errors(rig: StereoRig, positions: np.ndarray, Y: np.ndarray) ->
     return out
 
 
-def check_observations(Y: np.ndarray, source: str = "observations") -> np.ndarray:
-    """Validate an observation array (frames × 4): NaN marks a missing camera, inf is an error."""
-    Y = np.asarray(Y, dtype=float)
-    if Y.ndim != 2 or Y.shape[1] != 4:
-        raise StereotrackError(f"{source}: expected frames × 4 observations [u1, v1, u2, v2], got shape {Y.shape}")
-    if np.isinf(Y).any():
-        raise StereotrackError(f"{source}: infinite pixel coordinates")
-    return Y
+def not_started() -> Step:
+    """The output of a frame before the track has started."""
+    return Step(NAN3.copy(), NAN3.copy(), predicted=True)
 
 
+# -- the registry -------------------------------------------------------------------------------
 REGISTRY: dict[str, type[Estimator]] = {}
+_plugins_loaded = False
 
 
 def register(cls: type[Estimator]) -> type[Estimator]:
-    """Class decorator: make an estimator available by name to the pipeline, CLI and benchmarks."""
+    """Class decorator: make an estimator available by name to the pipeline, CLI, reports,
+    recordings and benchmarks. Third-party packages call it from a module named by an entry point
+    of the group ``stereotrack.estimators`` (or point the entry point at the class itself)."""
+    if not (isinstance(cls, type) and issubclass(cls, Estimator)):
+        raise StereotrackError(f"{cls!r} is not an Estimator subclass")
+    if not getattr(cls, "name", None):
+        raise StereotrackError(f"estimator class {cls.__name__} has no name")
     REGISTRY[cls.name] = cls
     return cls
+
+
+def registry() -> dict[str, type[Estimator]]:
+    """Every registered method (built-ins, then plugins from the ``stereotrack.estimators``
+    entry points, loaded once; a plugin that fails to load is skipped with a warning)."""
+    global _plugins_loaded
+    if not _plugins_loaded:
+        _plugins_loaded = True
+        from importlib.metadata import entry_points
+
+        for ep in entry_points(group=ENTRY_POINT_GROUP):
+            try:
+                obj = ep.load()
+                if isinstance(obj, type):
+                    register(obj)
+            except Exception as exc:
+                warnings.warn(f"estimator plugin {ep.name!r} ({ep.value}) failed to load: {exc}", stacklevel=2)
+    return REGISTRY
+
+
+def methods(kind: Kind | None = None) -> list[str]:
+    """Registered method names (of one kind), in registration order."""
+    return [n for n, c in registry().items() if kind is None or c.kind == kind]
+
+
+def create(name: str, rig: StereoRig, dt: float, config: EstimatorConfig | dict | None = None) -> Estimator:
+    """Build a registered estimator by name."""
+    reg = registry()
+    if name not in reg:
+        raise StereotrackError(f"unknown method {name!r} (known: {', '.join(reg)})")
+    return reg[name](rig, dt, config)

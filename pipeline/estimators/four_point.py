@@ -27,16 +27,14 @@ in the rotated image. α and the centre are then mapped back to the reference (l
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass
-from typing import Literal
+from typing import ClassVar, Literal
 
 import numpy as np
 from pydantic import Field
 
 from pipeline.camera import Camera, StereoRig
-from pipeline.errors import StereotrackError
-from pipeline.estimators.base import EstimatorConfig, Track
+from pipeline.estimators.base import Estimator, EstimatorConfig, Step, register
 
 Formula = Literal["exact", "paper"]
 
@@ -193,55 +191,24 @@ class TargetConfig(EstimatorConfig):
     cameras: Literal["left", "right", "both"] = "both"
 
 
-class TargetEstimator:
-    """Base of the four-point methods: observations are frames × 4 points × [u1, v1, u2, v2]."""
+@register
+class TargetEstimator(Estimator):
+    """Four-point angle α and distance z measured frame by frame (Soifer et al.), no filter."""
 
     name = "four_point"
-    Config: type[TargetConfig] = TargetConfig
-    point_method = False
-
-    def __init__(self, rig: StereoRig, dt: float, config: TargetConfig | dict | None = None) -> None:
-        if not dt > 0:
-            raise StereotrackError(f"time step must be positive, got {dt}")
-        self.rig, self.dt = rig, float(dt)
-        self.config = config if isinstance(config, self.Config) else self.Config.model_validate(config or {})
-        self.reset()
-
-    def reset(self) -> None:
-        self.initialized = False
+    kind = "target"
+    Config: ClassVar[type[EstimatorConfig]] = TargetConfig
 
     def measure(self, obs: np.ndarray) -> TargetMeasurement:
-        c = self.config
+        c: TargetConfig = self.config  # type: ignore[assignment]
         return measure_stereo(self.rig, np.asarray(obs, dtype=float), c.radius, c.formula, c.cameras)
 
-    def step(self, obs: np.ndarray) -> tuple[float, float, np.ndarray, bool]:
-        """(α, z, centre, predicted) for one frame."""
+    @staticmethod
+    def target_step(alpha: float, distance: float, center: np.ndarray, predicted: bool, **kw) -> Step:
+        """A four-point step: the plate centre as position, α and z in ``extra``."""
+        return Step(np.asarray(center, dtype=float), np.full(3, np.nan), predicted,
+                    extra={"alpha": alpha, "distance": distance}, **kw)
+
+    def _step(self, obs: np.ndarray) -> Step:
         m = self.measure(obs)
-        return m.alpha, m.distance, m.center, not m.ok
-
-    def run(self, Y: np.ndarray) -> Track:
-        Y = np.asarray(Y, dtype=float)
-        if Y.ndim != 3 or Y.shape[1:] != (4, 4):
-            raise StereotrackError(f"four-point observations must be frames × 4 points × 4, got shape {Y.shape}")
-        self.reset()
-        n = len(Y)
-        alpha, dist = np.full(n, np.nan), np.full(n, np.nan)
-        center, pred = np.full((n, 3), np.nan), np.zeros(n, dtype=bool)
-        t0 = time.perf_counter()
-        for k in range(n):
-            alpha[k], dist[k], center[k], pred[k] = self.step(Y[k])
-        sec = (time.perf_counter() - t0) / max(n, 1)
-        nan = np.full(n, np.nan)
-        return Track(self.name, center, np.full((n, 3), np.nan), nan, nan.copy(), pred, sec,
-                     {"alpha": alpha, "distance": dist})
-
-
-TARGET_REGISTRY: dict[str, type[TargetEstimator]] = {}
-
-
-def register_target(cls: type[TargetEstimator]) -> type[TargetEstimator]:
-    TARGET_REGISTRY[cls.name] = cls
-    return cls
-
-
-register_target(TargetEstimator)
+        return self.target_step(m.alpha, m.distance, m.center, not m.ok)

@@ -26,7 +26,8 @@ from pydantic import Field
 from scipy.linalg import expm, solve_continuous_are
 
 from pipeline.errors import StereotrackError
-from pipeline.estimators.four_point import TargetConfig, TargetEstimator, register_target
+from pipeline.estimators.base import Step, register
+from pipeline.estimators.four_point import TargetConfig, TargetEstimator
 
 C4 = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
 G4 = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 0.0], [0.0, 1.0]])
@@ -157,7 +158,7 @@ class KalmanBucyConfig(TargetConfig):
     sigma_rate0: float = Field(0.5, gt=0)
 
 
-@register_target
+@register
 class KalmanBucyEstimator(TargetEstimator):
     """Four-point measurement → Kalman–Bucy filter on [α, α̇, z, ż]."""
 
@@ -189,12 +190,12 @@ class KalmanBucyEstimator(TargetEstimator):
             va, vz = propagated_variance(self.measure, obs, m, c.pixel_sigma)
             self._set_noise(c.sigma_alpha**2 if c.sigma_alpha else va, c.sigma_z**2 if c.sigma_z else vz)
 
-    def step(self, obs: np.ndarray) -> tuple[float, float, np.ndarray, bool]:
+    def _step(self, obs: np.ndarray) -> Step:
         c: KalmanBucyConfig = self.config  # type: ignore[assignment]
         m = self.measure(obs)
         if not self.initialized:
             if not m.ok:
-                return math.nan, math.nan, np.full(3, math.nan), True
+                return self.target_step(math.nan, math.nan, np.full(3, math.nan), True)
             self._start(np.asarray(obs, dtype=float), m)
             self.x = np.array([m.alpha, 0.0, m.distance, 0.0])
             self._u_prev = np.array([m.alpha, m.distance])
@@ -203,7 +204,7 @@ class KalmanBucyEstimator(TargetEstimator):
                 self.K = self.P @ C4.T @ self.Rinv
             self.initialized = True
             self._center_dir = m.center / m.center[2]
-            return m.alpha, m.distance, m.center, False
+            return self.target_step(m.alpha, m.distance, m.center, False)
         u = np.array([m.alpha, m.distance]) if m.ok else None
         if c.gain == "riccati":
             if u is not None:
@@ -215,4 +216,4 @@ class KalmanBucyEstimator(TargetEstimator):
         self._u_prev = u
         if m.ok:
             self._center_dir = m.center / m.center[2]
-        return float(self.x[0]), float(self.x[2]), self._center_dir * self.x[2], u is None
+        return self.target_step(float(self.x[0]), float(self.x[2]), self._center_dir * self.x[2], u is None)

@@ -16,12 +16,12 @@ import numpy as np
 from filterpy.kalman import KalmanFilter
 from scipy.linalg import expm
 
+from pipeline.estimators.base import Step, register
 from pipeline.estimators.four_point import (
     TargetEstimator,
     TargetMeasurement,
     alpha_from_normal,
     camera_to_left,
-    register_target,
 )
 from pipeline.estimators.kalman_bucy import C4, G4, KalmanBucyConfig, block_diag2, channel_matrix, propagated_variance
 
@@ -48,7 +48,7 @@ def van_loan(A: np.ndarray, GQG: np.ndarray, dt: float) -> tuple[np.ndarray, np.
     return F, F @ E[:n, n:]
 
 
-@register_target
+@register
 class PnPKFEstimator(TargetEstimator):
     """IPPE-square planar PnP per camera (averaged over cameras) → discrete KF on [α, α̇, z, ż]."""
 
@@ -105,12 +105,12 @@ class PnPKFEstimator(TargetEstimator):
             return TargetMeasurement(math.nan, math.nan, np.full(3, math.nan), math.nan, "no PnP solution")
         return TargetMeasurement(float(np.mean(alphas)), float(np.mean(dists)), np.mean(centers, axis=0), math.nan)
 
-    def step(self, obs: np.ndarray) -> tuple[float, float, np.ndarray, bool]:
+    def _step(self, obs: np.ndarray) -> Step:
         c: KalmanBucyConfig = self.config  # type: ignore[assignment]
         m = self.pnp(np.asarray(obs, dtype=float))
         if not self.initialized:
             if not m.ok:
-                return math.nan, math.nan, np.full(3, math.nan), True
+                return self.target_step(math.nan, math.nan, np.full(3, math.nan), True)
             var = [c.sigma_alpha**2 if c.sigma_alpha else None, c.sigma_z**2 if c.sigma_z else None]
             if None in var:
                 saved = {k: v.copy() for k, v in self.prev_normals.items()}
@@ -122,10 +122,12 @@ class PnPKFEstimator(TargetEstimator):
             self.kf.P = np.diag([var[0], c.sigma_rate0**2, var[1], c.sigma_rate0**2])
             self.initialized = True
             self._center_dir = m.center / m.center[2]
-            return m.alpha, m.distance, m.center, False
+            return self.target_step(m.alpha, m.distance, m.center, False)
         self.kf.predict()
         if m.ok:
             self.kf.update(np.array([[m.alpha], [m.distance]]))
             self._center_dir = m.center / m.center[2]
         x = self.kf.x.ravel()
-        return float(x[0]), float(x[2]), self._center_dir * x[2], not m.ok
+        nis = {"innovation": self.kf.y.ravel().copy(), "innovation_covariance": self.kf.S.copy()} if m.ok else {}
+        return self.target_step(float(x[0]), float(x[2]), self._center_dir * x[2], not m.ok, covariance=self.kf.P.copy(),
+                                **nis)

@@ -29,13 +29,12 @@ import numpy as np
 from pydantic import Field
 
 from pipeline.estimators.base import (
-    NAN3,
     Estimator,
     EstimatorConfig,
     InitConfig,
     Step,
     Track,
-    check_observations,
+    not_started,
     register,
     reprojection_errors,
 )
@@ -56,23 +55,40 @@ class SPSAConfig(EstimatorConfig):
     th: float = Field(0.003, gt=0)
 
 
-def _cost(p0: float, p1: float, p2: float, yn: tuple, use_l: bool, use_r: bool, RT: tuple) -> float:
-    """``‖h(p) − y‖²`` in normalized coordinates over the cameras in use (plain Python)."""
+def _sq(p0: float, p1: float, p2: float, cam: tuple, yu: float, yv: float) -> float:
+    """Squared distance of one camera's normalized projection of ``p`` from ``(yu, yv)``;
+    ``BIG_COST`` behind the camera. ``cam`` = (R row-major, t) of that camera (plain Python)."""
+    r00, r01, r02, r10, r11, r12, r20, r21, r22, t0, t1, t2 = cam
+    z = r20 * p0 + r21 * p1 + r22 * p2 + t2
+    if z <= 1e-9:
+        return BIG_COST
+    du = (r00 * p0 + r01 * p1 + r02 * p2 + t0) / z - yu
+    dv = (r10 * p0 + r11 * p1 + r12 * p2 + t1) / z - yv
+    return du * du + dv * dv
+
+
+def _cost(p0: float, p1: float, p2: float, yn: tuple, use_l: bool, use_r: bool, cams: tuple) -> float:
+    """``‖h(p) − y‖²`` in normalized coordinates over the cameras in use: the measurement model of
+    :meth:`StereoRig.normalized` written in plain floats (tested equal to it to 1e-12)."""
     c = 0.0
     if use_l:
-        if p2 <= 1e-9:
-            return BIG_COST
-        du, dv = p0 / p2 - yn[0], p1 / p2 - yn[1]
-        c += du * du + dv * dv
+        c += _sq(p0, p1, p2, cams[0], yn[0], yn[1])
     if use_r:
-        r00, r01, r02, r10, r11, r12, r20, r21, r22, t0, t1, t2 = RT
-        z = r20 * p0 + r21 * p1 + r22 * p2 + t2
-        if z <= 1e-9:
-            return BIG_COST
-        du = (r00 * p0 + r01 * p1 + r02 * p2 + t0) / z - yn[2]
-        dv = (r10 * p0 + r11 * p1 + r12 * p2 + t1) / z - yn[3]
-        c += du * du + dv * dv
+        c += _sq(p0, p1, p2, cams[1], yn[2], yn[3])
     return c
+
+
+def camera_tuples(rig) -> tuple[tuple, tuple]:
+    """Both cameras' ``(R, t)`` as plain-float tuples for :func:`_cost`."""
+    return tuple((*c.R.ravel().tolist(), *np.ravel(c.t).tolist()) for c in rig.cameras)  # type: ignore[return-value]
+
+
+def delta_sequence(seed: int, count: int, dim: int) -> np.ndarray:
+    """The first ``count`` perturbations Δ (components ±1/√dim) a track with this seed draws: the
+    same blocks of 256 from the same generator as :meth:`SPSAEstimator._draw_delta`."""
+    rng, a = np.random.default_rng(seed), 1.0 / math.sqrt(dim)
+    blocks = [np.where(rng.integers(0, 2, size=(256, dim)) == 1, a, -a) for _ in range(max(1, -(-count // 256)))]
+    return np.vstack(blocks)[:count]
 
 
 @register
@@ -85,8 +101,7 @@ class SPSAEstimator(Estimator):
 
     def reset(self) -> None:
         super().reset()
-        R, T = self.rig.R, self.rig.T
-        self._RT = (*R.ravel().tolist(), *T.ravel().tolist())
+        self._cams = camera_tuples(self.rig)
         cfg: SPSAConfig = self.config  # type: ignore[assignment]
         self._alpha, self._beta, self._th = cfg.alpha, cfg.beta, cfg.th
         self.theta = [0.0] * 6  # frame units: [p, v·dt]
@@ -122,10 +137,11 @@ class SPSAEstimator(Estimator):
         return Step(np.array(th[:3]), np.array([th[3] * inv, th[4] * inv, th[5] * inv]), predicted=predicted)
 
     def _start(self, y: np.ndarray) -> bool:
-        """Initialise θ from the configured start; False while no start is possible."""
-        x0 = self.initial_state(y)
-        if x0 is None:
+        """Initialise θ from the shared initiator; False while no start is possible."""
+        s = self.start(y)
+        if s is None:
             return False
+        x0 = s.state
         self.theta = [*x0[:3].tolist(), *(x0[3:] * self.dt).tolist()]
         self.initialized = True
         self._phase = 0
@@ -134,7 +150,7 @@ class SPSAEstimator(Estimator):
     def _step(self, y: np.ndarray) -> Step:
         if not self.initialized:
             if not self._start(y):
-                return Step(NAN3.copy(), NAN3.copy(), predicted=True)
+                return not_started()
             return self._out(self.theta, False)
         th, predicted = self._iterate(*self._normalize(y))
         return self._out(th, predicted)
@@ -166,8 +182,8 @@ class SPSAEstimator(Estimator):
                 t[2] + b * D[2] + 2 * (t[5] + b * D[5]),
             )
             xo = self._trial_odd
-            z_odd = _cost(xo[0], xo[1], xo[2], yo, use_l, use_r, self._RT)
-            z_even = _cost(xe[0], xe[1], xe[2], yn, use_l, use_r, self._RT)
+            z_odd = _cost(xo[0], xo[1], xo[2], yo, use_l, use_r, self._cams)
+            z_even = _cost(xe[0], xe[1], xe[2], yn, use_l, use_r, self._cams)
             d = (z_even - z_odd) / (2 * b)
             th = self._th
             if d > th:
@@ -181,13 +197,11 @@ class SPSAEstimator(Estimator):
         self.theta = new
         return new, not (use_l or use_r)
 
-    def run(self, Y: np.ndarray) -> Track:
-        """The whole clip in one tight loop: observations normalized at once, no per-frame objects
-        (identical results to repeated :meth:`step`)."""
-        Y = check_observations(Y)
+    def _fast(self, Y: np.ndarray) -> tuple[list, list]:
+        """Every frame from a fresh state in one tight loop (observations normalized at once, no
+        per-frame objects); the same arithmetic as repeated :meth:`step`."""
         self.reset()
         n = len(Y)
-        t0 = time.perf_counter()
         Yn = self.rig.normalize(Y)
         ok = np.isfinite(Yn)
         okl = (ok[:, 0] & ok[:, 1]).tolist()
@@ -197,21 +211,31 @@ class SPSAEstimator(Estimator):
         pred = [True] * n
         k = 0
         while k < n and not self.initialized:
+            self.frame = k
             if self._start(Y[k]):
                 states[k], pred[k] = list(self.theta), False
             k += 1
         iterate = self._iterate
         for j in range(k, n):
             states[j], pred[j] = iterate(tuple(rows[j]), okl[j], okr[j])
+        self.frame = n
+        return states, pred
+
+    def run(self, Y: np.ndarray) -> Track:
+        """The clip through :meth:`_fast` (warm-up on the first frames outside the timing)."""
+        Y = self.check(Y)
+        self._fast(Y[: self.warmup_frames])
+        t0 = time.perf_counter()
+        states, pred = self._fast(Y)
         elapsed = time.perf_counter() - t0
-        d = self.state_dim
+        n, d = len(Y), self.state_dim
         S = np.array([s if s is not None else [np.nan] * d for s in states], dtype=float).reshape(n, d)
         if self.state_dim == 3:
             pos, vel = S[:, :3], np.full((n, 3), np.nan)
         else:
             pos, vel = S[:, :3], S[:, 3:] / self.dt
         return Track(self.name, pos, vel, reprojection_errors(self.rig, pos, Y), np.full(n, np.nan),
-                     np.array(pred), elapsed / max(n, 1))
+                     np.array(pred, dtype=bool), elapsed / max(n, 1))
 
     def run_batch(self, Y: np.ndarray) -> np.ndarray:
         return batch_spsa(self, np.asarray(Y, dtype=float))
@@ -229,46 +253,50 @@ def _cost_batch(nrig, P: np.ndarray, yn: np.ndarray, use: np.ndarray) -> np.ndar
     return out
 
 
-def batch_spsa(est: SPSAEstimator, Y: np.ndarray, init_states: np.ndarray | None = None) -> np.ndarray:
-    """Algorithm 1 over M tracks at once (M × frames × 4 → M × frames × 3), frame units inside.
-
-    ``init_states`` (M × 6, SI units) overrides the configured initialisation per track.
-    """
-    from pipeline.estimators.triangulation import triangulate
-
+def batch_spsa(est: SPSAEstimator, Y: np.ndarray) -> np.ndarray:
+    """Algorithm 1 over M tracks at once (M × frames × 4 → M × frames × 3), frame units inside:
+    each track starts where the initiator says (as :meth:`SPSAEstimator.run`), iterates over the
+    frame pairs that follow its own start, and draws the same Δ sequence a single track draws."""
     est.reset()
     cfg: SPSAConfig = est.config  # type: ignore[assignment]
     M, n, _ = Y.shape
+    starts = [est.initiator.first(Y[m]) for m in range(M)]
+    begin = np.array([s.frame if s is not None else n for s in starts])
+    th = np.zeros((M, 6))
+    for m, s in enumerate(starts):
+        if s is not None:
+            th[m] = np.r_[s.state[:3], s.state[3:] * est.dt]
     Yn = est.rig.normalize(Y)
     ok = np.stack([np.isfinite(Yn[..., :2]).all(-1), np.isfinite(Yn[..., 2:]).all(-1)], axis=-1)
-    th = np.zeros((M, 6))
+    D_all = delta_sequence(cfg.seed, n // 2 + 2, 6)
+    it, phase = np.zeros(M, dtype=int), np.zeros(M, dtype=int)
+    x_odd, y_odd, ok_odd = np.zeros((M, 3)), np.zeros((M, 4)), np.zeros((M, 2), dtype=bool)
     out = np.full((M, n, 3), np.nan)
-    if init_states is not None:
-        th[:] = init_states
-        th[:, 3:] *= est.dt
-    elif cfg.init.mode == "given":
-        th[:] = np.array(cfg.init.state)
-        th[:, 3:] *= est.dt
-    else:
-        th[:, :3] = triangulate(est.rig, Y[:, 0])
-    out[:, 0] = th[:, :3]
-    b, a = cfg.beta, 1.0 / math.sqrt(6)
+    b = cfg.beta
     nrig = est.rig.normalized()
-    rng = est.rng
-    k = 1
-    while k < n:
-        D = np.where(rng.integers(0, 2, size=(M, 6)) == 1, a, -a)
-        xo = th[:, :3] + th[:, 3:] - b * (D[:, :3] + D[:, 3:])
-        out[:, k] = th[:, :3] + th[:, 3:]
-        if k + 1 >= n:
-            break
-        use = ok[:, k] & ok[:, k + 1]
-        xe = th[:, :3] + b * D[:, :3] + 2 * (th[:, 3:] + b * D[:, 3:])
-        d = (_cost_batch(nrig, xe, Yn[:, k + 1], use) - _cost_batch(nrig, xo, Yn[:, k], use)) / (2 * b)
-        d = np.clip(d, -cfg.th, cfg.th)
-        d = np.where(np.isfinite(d) & use.any(axis=1), d, 0.0)
-        th[:, :3] += 2 * th[:, 3:]
-        th -= cfg.alpha * d[:, None] * D
-        out[:, k + 1] = th[:, :3]
-        k += 2
+    for k in range(n):
+        out[begin == k, k] = th[begin == k, :3]
+        act = begin < k
+        odd, even = np.flatnonzero(act & (phase == 0)), np.flatnonzero(act & (phase == 1))
+        if len(odd):  # x_{2k−1} = A(θ − βΔ); θ_{2k−1} = Aθ
+            D = D_all[it[odd]]
+            t = th[odd]
+            x_odd[odd] = t[:, :3] - b * D[:, :3] + t[:, 3:] - b * D[:, 3:]
+            y_odd[odd], ok_odd[odd] = Yn[odd, k], ok[odd, k]
+            out[odd, k] = t[:, :3] + t[:, 3:]
+            phase[odd] = 1
+        if len(even):  # x_{2k} = A²(θ + βΔ); θ_{2k} = A²θ − αΔd
+            D = D_all[it[even]]
+            t = th[even]
+            use = ok[even, k] & ok_odd[even]
+            xe = t[:, :3] + b * D[:, :3] + 2 * (t[:, 3:] + b * D[:, 3:])
+            d = (_cost_batch(nrig, xe, Yn[even, k], use) - _cost_batch(nrig, x_odd[even], y_odd[even], use)) / (2 * b)
+            d = np.clip(d, -cfg.th, cfg.th)
+            d = np.where(np.isfinite(d) & use.any(axis=1), d, 0.0)
+            new = t.copy()
+            new[:, :3] += 2 * t[:, 3:]
+            new -= cfg.alpha * d[:, None] * D
+            th[even] = new
+            out[even, k] = new[:, :3]
+            phase[even], it[even] = 0, it[even] + 1
     return out

@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from pipeline.estimators.base import NAN3, Step, register
+from pipeline.estimators.base import NAN3, Estimator, Step, register
 from pipeline.estimators.spsa import SPSAConfig, SPSAEstimator, _cost
 
 
@@ -28,10 +28,10 @@ class SPSAVGGEstimator(SPSAEstimator):
     state_dim = 3
 
     def _start(self, y: np.ndarray) -> bool:
-        x0 = self.initial_state(y)
-        if x0 is None:
+        s = self.start(y)
+        if s is None:
             return False
-        self.theta = x0[:3].tolist()
+        self.theta = s.state[:3].tolist()
         self.initialized = True
         self._phase = 0
         return True
@@ -53,12 +53,11 @@ class SPSAVGGEstimator(SPSAEstimator):
         yo, ol, orr = self._y_odd
         use_l, use_r = ok_l and ol, ok_r and orr
         if use_l or use_r:
-            z_odd = _cost(t[0] - b * D[0], t[1] - b * D[1], t[2] - b * D[2], yo, use_l, use_r, self._RT)
-            z_even = _cost(t[0] + b * D[0], t[1] + b * D[1], t[2] + b * D[2], yn, use_l, use_r, self._RT)
+            z_odd = _cost(t[0] - b * D[0], t[1] - b * D[1], t[2] - b * D[2], yo, use_l, use_r, self._cams)
+            z_even = _cost(t[0] + b * D[0], t[1] + b * D[1], t[2] + b * D[2], yn, use_l, use_r, self._cams)
             d = max(-cfg.th, min(cfg.th, (z_even - z_odd) / (2 * b)))
             if math.isfinite(d):
                 self.theta = [t[i] - cfg.alpha * d * D[i] for i in range(3)]
         return list(self.theta), not (use_l or use_r)
 
-    def run_batch(self, Y: np.ndarray) -> np.ndarray:
-        return np.stack([self.run(y).position for y in np.asarray(Y, dtype=float)])
+    run_batch = Estimator.run_batch
