@@ -12,10 +12,10 @@ import time
 import numpy as np
 
 from pipeline.estimators import create, methods
-
-POINT_METHODS = methods("point")
 from renderers.motion import simulate_truth
 from renderers.scenario import load_scenario
+
+POINT_METHODS = methods("point")
 
 
 def timed(fn, repeat: int = 3) -> float:

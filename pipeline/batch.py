@@ -85,7 +85,7 @@ def _process_one(clip: str, out_root: str, settings: dict[str, Any], parent_pid:
             warnings.simplefilter("always")
             process_clip(clip_p, partial, detector=settings["detector"], methods=settings.get("methods"),
                          images_in_recording=False, marker_specs=specs, calib_units=settings.get("calib_units"),
-                         lock=False)
+                         lock=False, configs=settings.get("configs"))
         write_manifest(partial, settings)
         if parent_pid is not None and not still_parented(parent_pid):
             shutil.rmtree(partial, ignore_errors=True)
@@ -128,6 +128,7 @@ def run_batch(
     marker_specs: list[str] | None = None,
     calib_units: str | None = None,
     scheduler_file: str | Path | None = None,
+    configs: dict[str, dict] | None = None,
 ) -> list[ClipOutcome]:
     """Process every clip under ``input_dir``; write ``summary.csv`` and ``summary.md``.
 
@@ -135,6 +136,7 @@ def run_batch(
     ``workers`` processes; a ``tcp://host:port`` address (or ``scheduler_file``) for an existing
     Dask scheduler, whose workers must see ``input_dir`` and ``output_dir`` at the same paths.
 
+    ``configs`` (``--config``) are the methods' settings, part of what a complete clip must match.
     ``marker_specs`` (``--markers``) apply to every clip; else a clip's own ``markers.yaml``, else
     ``INPUT/markers.yaml``, else the clip's scenario.yaml gives its markers.
 
@@ -150,7 +152,8 @@ def run_batch(
                                input_dir)
     if not marker_specs and (Path(input_dir) / MARKERS_FILE).is_file():
         marker_specs = read_markers_file(Path(input_dir) / MARKERS_FILE)
-    settings = {"detector": detector, "methods": methods, "markers": marker_specs, "calib_units": calib_units}
+    settings = {"detector": detector, "methods": methods, "markers": marker_specs, "calib_units": calib_units,
+                "configs": configs}
     out_root = ensure_dir(output_dir)
     with OutputLock(out_root, f"stereotrack batch {input_dir}"):
         for stale in [*out_root.glob(".*.partial*"), *out_root.glob(".*.old-*")]:

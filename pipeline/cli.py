@@ -51,6 +51,17 @@ def scenarios_cmd() -> None:
     out.print(table)
 
 
+@app.command("methods")
+def methods_cmd() -> None:
+    """List every estimator (built-in and plugins): name, kind and what it does."""
+    from pipeline.estimators import registry
+
+    table = Table("method", "kind", "description", title="estimators (--methods, --config)")
+    for name, cls in registry().items():
+        table.add_row(name, cls.kind, cls.description())
+    out.print(table)
+
+
 @app.command("render")
 def render_cmd(
     scenario: Annotated[str, typer.Argument(help="Scenario YAML file or built-in name (see `stereotrack scenarios`).")],
@@ -99,6 +110,15 @@ MarkersOption = Annotated[list[str] | None, typer.Option(
 CalibUnitsOption = Annotated[str | None, typer.Option(
     "--calib-units", help="Length unit of the calibration's T (m, cm or mm) when calib.yaml does not declare "
     "'units'; outputs are in metres.")]
+ConfigOption = Annotated[Path | None, typer.Option(
+    "--config", help="YAML file mapping a method name to its settings, e.g. 'ekf: {process_noise: 2.0}' "
+    "(see `stereotrack methods`); the resolved settings are recorded in metrics.json.")]
+
+
+def _configs(path: Path | None) -> dict | None:
+    from pipeline.settings import load_method_configs
+
+    return load_method_configs(path) if path is not None else None
 
 
 def _fmt(v: float | None, spec: str = ".3f") -> str:
@@ -168,13 +188,15 @@ def estimate_cmd(
     methods: Annotated[str | None, typer.Option(help="Comma-separated methods (default: all point methods).")] = None,
     output: Annotated[Path | None, typer.Option("-o", "--output", help="Output folder (default CLIP/out).")] = None,
     calib_units: CalibUnitsOption = None,
+    config: ConfigOption = None,
 ) -> None:
     """Estimate 3-D tracks with each method; write estimates/<method>.csv and metrics.json."""
     from pipeline.estimate import estimate_clip
 
+    configs = _configs(config)
     with progress_bar() as bar:
         task = bar.add_task("estimate", total=None)
-        res = estimate_clip(clip, _methods(methods), output,
+        res = estimate_clip(clip, _methods(methods), output, configs=configs,
                             progress=lambda d, t: bar.update(task, completed=d, total=t), calib_units=calib_units)
     out.print(_metrics_table(res.metrics, str(res.out_dir / "metrics.json")))
 
@@ -203,6 +225,7 @@ def run_cmd(
     fmt: Annotated[str, typer.Option("--format", help="Rendered clip format: mp4 or png.")] = "mp4",
     markers: MarkersOption = None,
     calib_units: CalibUnitsOption = None,
+    config: ConfigOption = None,
 ) -> None:
     """Run every stage on one clip: (render), detect, estimate, metrics, report, recording.
 
@@ -211,6 +234,7 @@ def run_cmd(
     from pipeline.run import DEFAULT_SCENARIO, process_clip
 
     t0 = __import__("time").perf_counter()
+    configs = _configs(config)
     target = target or DEFAULT_SCENARIO
     clip = Path(target)
     if not (clip.is_dir() and any(clip.iterdir())):
@@ -230,7 +254,7 @@ def run_cmd(
 
         res = process_clip(clip, detector=detector, methods=_methods(methods), stage=stage,
                            progress=lambda d, t: bar.update(task, completed=d, total=t),
-                           marker_specs=_specs(markers), calib_units=calib_units)
+                           marker_specs=_specs(markers), calib_units=calib_units, configs=configs)
     _print_learned(res.detect.learned)
     out.print(_metrics_table(res.estimate.metrics, f"{clip} — {res.estimate.n_frames} frames"))
     out.print(f"outputs in {res.out_dir}: detections.csv, estimates/, metrics.json, report.md, run.rrd")
@@ -269,6 +293,7 @@ def batch_cmd(
     methods: Annotated[str | None, typer.Option(help="Comma-separated methods (default: all).")] = None,
     markers: MarkersOption = None,
     calib_units: CalibUnitsOption = None,
+    config: ConfigOption = None,
 ) -> None:
     """Process every clip folder under INPUT_DIR; exit code 1 if any clip failed.
 
@@ -276,6 +301,7 @@ def batch_cmd(
     else each clip's scenario.yaml."""
     from pipeline.batch import run_batch
 
+    configs = _configs(config)
     sched = scheduler or (dask if dask else None)
     if dask is not None and dask != "local":
         raise StereotrackError("--dask takes 'local'; use --scheduler tcp://host:port for a running cluster")
@@ -283,7 +309,8 @@ def batch_cmd(
         task = bar.add_task("clips", total=None)
         outcomes = run_batch(input_dir, output, workers, sched, force, detector, _methods(methods),
                              progress=lambda d, t: bar.update(task, completed=d, total=t),
-                             marker_specs=_specs(markers), calib_units=calib_units, scheduler_file=scheduler_file)
+                             marker_specs=_specs(markers), calib_units=calib_units, scheduler_file=scheduler_file,
+                             configs=configs)
     from pipeline.batch import clip_warnings
 
     table = Table("clip", "status", "warnings", "error", title=str(output / "summary.csv"))

@@ -41,6 +41,7 @@ def process_clip(
     progress: Callable[[int, int], None] | None = None,
     calib_units: str | None = None,
     lock: bool = True,
+    configs: dict[str, dict] | None = None,
 ) -> RunResult:
     """Detect, estimate, report and record one clip folder into ``out_dir`` (default CLIP/out).
 
@@ -52,24 +53,25 @@ def process_clip(
     out_dir = Path(out_dir) if out_dir else Path(clip) / "out"
     if not lock:
         return _process_clip(Path(clip), out_dir, detector, methods, marker_specs, recording, images_in_recording,
-                             stage, progress, calib_units)
+                             stage, progress, calib_units, configs)
     with OutputLock(out_dir, f"stereotrack run {clip}"):
         for stale in list(out_dir.rglob(".*.partial-*")):
             stale.unlink(missing_ok=True) if stale.is_file() else shutil.rmtree(stale, ignore_errors=True)
         return _process_clip(Path(clip), out_dir, detector, methods, marker_specs, recording, images_in_recording,
-                             stage, progress, calib_units)
+                             stage, progress, calib_units, configs)
 
 
 def _process_clip(clip: Path, out_dir: Path, detector: str, methods: list[str] | None, marker_specs: list[str] | None,
                   recording: bool, images_in_recording: bool, stage: Callable[[str], None] | None,
-                  progress: Callable[[int, int], None] | None, calib_units: str | None) -> RunResult:
+                  progress: Callable[[int, int], None] | None, calib_units: str | None,
+                  configs: dict[str, dict] | None = None) -> RunResult:
     t0 = time.perf_counter()
     say = stage or (lambda s: None)
     say("detect")
     det = detect_clip(clip, detector, marker_specs, out_dir=out_dir, progress=progress,  # type: ignore[arg-type]
                       calib_units=calib_units)
     say("estimate")
-    est = estimate_clip(clip, methods, out_dir=out_dir, progress=progress, calib_units=calib_units)
+    est = estimate_clip(clip, methods, out_dir=out_dir, progress=progress, calib_units=calib_units, configs=configs)
     say("report")
     report = write_report(clip, out_dir)
     rrd = None

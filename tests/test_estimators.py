@@ -13,12 +13,12 @@ from filterpy.kalman import ExtendedKalmanFilter
 from pipeline.camera import Camera, StereoRig, triangulate
 from pipeline.errors import CalibrationError, StereotrackError
 from pipeline.estimators import create, methods
-
-POINT_METHODS = methods("point")
 from pipeline.estimators.alphabeta import ABFilter
 from pipeline.estimators.base import transition, white_noise_acceleration
 from renderers.motion import simulate_truth
 from renderers.scenario import load_scenario
+
+POINT_METHODS = methods("point")
 
 SEEDS = (0, 1, 2)
 
