@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import cv2
@@ -59,9 +60,9 @@ class Camera:
     t: np.ndarray = field(default_factory=lambda: np.zeros(3))
     D: np.ndarray = field(default_factory=lambda: np.zeros(5))
 
-    @property
+    @cached_property
     def P(self) -> np.ndarray:
-        """3×4 projection matrix ``K [R | t]``."""
+        """3×4 projection matrix ``K [R | t]`` (computed once: cameras are immutable)."""
         return self.K @ np.hstack([self.R, self.t.reshape(3, 1)])
 
     @property
@@ -144,9 +145,15 @@ class StereoRig:
     def cameras(self) -> tuple[Camera, Camera]:
         return (self.left, self.right)
 
-    @property
+    @cached_property
     def baseline(self) -> float:
         return float(np.linalg.norm(self.right.center - self.left.center))
+
+    @cached_property
+    def dlt_matrices(self) -> tuple[np.ndarray, np.ndarray]:
+        """Both cameras' ``K [R | t/b]`` (baseline units), the DLT's unit-free projections."""
+        b = self.baseline
+        return tuple(c.K @ np.hstack([c.R, c.t.reshape(3, 1) / b]) for c in self.cameras)  # type: ignore[return-value]
 
     @classmethod
     def from_parameters(
@@ -278,8 +285,7 @@ def triangulate(rig: StereoRig, Y: np.ndarray) -> np.ndarray:
     """
     Y = np.asarray(Y, dtype=float).reshape(-1, 4)
     b = rig.baseline
-    P1 = rig.left.K @ np.hstack([rig.left.R, rig.left.t.reshape(3, 1) / b])
-    P2 = rig.right.K @ np.hstack([rig.right.R, rig.right.t.reshape(3, 1) / b])
+    P1, P2 = rig.dlt_matrices
     A = np.empty((len(Y), 4, 4))
     A[:, 0] = Y[:, 0, None] * P1[2] - P1[0]
     A[:, 1] = Y[:, 1, None] * P1[2] - P1[1]

@@ -22,7 +22,9 @@ from pipeline.estimators import methods as registered_methods
 from pipeline.io import check_frame_column, read_csv, write_csv, write_json
 from pipeline.manifest import stereotrack_version
 
-ESTIMATE_COLUMNS = ["frame", "t", "marker", "x", "y", "z", "vx", "vy", "vz"]
+#: per frame: position, velocity, and for filters the NIS of the update (with its degrees of
+#: freedom) and the position NEES against the truth (empty where there is none)
+ESTIMATE_COLUMNS = ["frame", "t", "marker", "x", "y", "z", "vx", "vy", "vz", "nis", "nis_dof", "nees"]
 TARGET_COLUMNS = [*ESTIMATE_COLUMNS, "alpha", "distance"]
 
 
@@ -277,7 +279,7 @@ def estimate_clip(
             done += 1
             if progress is not None:
                 progress(done, total)
-        _write_estimates(out_dir / "estimates" / f"{m}.csv", tracks[m], dt)
+        _write_estimates(out_dir / "estimates" / f"{m}.csv", tracks[m], dt, truth)
     result = EstimateResult(out_dir, rig, dt, n, obs, tracks, truth, target, target_tracks)
     result.metrics = compute_metrics(result)
     result.metrics["pixel_sigma_estimate"] = sigma
@@ -290,19 +292,36 @@ def estimate_clip(
     return result
 
 
-def _write_estimates(path: Path, tracks: dict[str, Track], dt: float) -> None:
+def _consistency_columns(tr: Track, truth_position: np.ndarray | None) -> np.ndarray:
+    """frames × 3: NIS, its degrees of freedom, position NEES (NaN where not defined)."""
+    n = len(tr.position)
+    out = np.full((n, 3), np.nan)
+    if tr.nis is not None and tr.nis_dof is not None:
+        out[:, 0], out[:, 1] = tr.nis, np.where(tr.nis_dof > 0, tr.nis_dof, np.nan)
+    if truth_position is not None and tr.covariance is not None:
+        e = consistency.nees(tr, truth_position)
+        out[: len(e), 2] = e
+    return out
+
+
+def _write_estimates(path: Path, tracks: dict[str, Track], dt: float, truth: ClipTruth | None = None) -> None:
     def rows():
         for marker, tr in tracks.items():
+            T = truth.positions.get(marker) if truth is not None else None
+            cons = _consistency_columns(tr, T)
             for k in range(len(tr.position)):
-                yield (k, k * dt, marker, *tr.position[k], *tr.velocity[k])
+                yield (k, k * dt, marker, *tr.position[k], *tr.velocity[k], *cons[k])
 
     write_csv(path, ESTIMATE_COLUMNS, rows())
 
 
 def _write_target_estimates(path: Path, name: str, tr: Track, dt: float) -> None:
+    cons = _consistency_columns(tr, None)
+
     def rows():
         for k in range(len(tr.position)):
-            yield (k, k * dt, name, *tr.position[k], *tr.velocity[k], tr.extra["alpha"][k], tr.extra["distance"][k])
+            yield (k, k * dt, name, *tr.position[k], *tr.velocity[k], *cons[k], tr.extra["alpha"][k],
+                   tr.extra["distance"][k])
 
     write_csv(path, TARGET_COLUMNS, rows())
 

@@ -1,5 +1,5 @@
 """``out/report.md``: the metrics table and matplotlib figures (trajectories in top and side views,
-error vs frame per method, image-plane tracks per camera), built from the stage files alone so a
+error vs frame per method, image-plane tracks per camera, filter consistency), built from the stage files alone so a
 person who never opens rerun can read a run."""
 
 from __future__ import annotations
@@ -70,6 +70,71 @@ def _fmt(v) -> str:
     if v is None or (isinstance(v, float) and not np.isfinite(v)):
         return "—"
     return f"{v:.4g}" if isinstance(v, float) else str(v)
+
+
+def consistency_section(metrics: dict) -> list[str]:
+    """Markdown: each filter's NEES (position, against truth) and NIS, normalized by their degrees
+    of freedom (1 when the filter's covariance matches its errors) and the fraction of frames in
+    the 95 % χ² band (0.95 when it does)."""
+    rows = []
+    for m, e in metrics.get("methods", {}).items():
+        nees, nis = e.get("nees_position"), e.get("nis")
+        if nees or nis:
+            rows.append(f"| {m} | {_fmt(nees and nees['normalized_mean'])} | {_fmt(nees and nees['in_95'])} | "
+                        f"{_fmt(nis and nis['normalized_mean'])} | {_fmt(nis and nis['in_95'])} |")
+    if not rows:
+        return []
+    return ["## Filter consistency", "",
+            "NEES/3 and NIS/dof average 1, and 95 % of frames fall inside the χ² band, when a filter's covariance "
+            "matches its actual errors; far above 1 means over-confident, far below under-confident.", "",
+            "| method | NEES/3 (position) | NEES in 95 % band | NIS/dof | NIS in 95 % band |", "|---|---|---|---|---|",
+            *rows, ""]
+
+
+def _consistency_figure(out_dir: Path, colour, plt) -> bool:
+    """NEES and NIS per frame (moving mean over 15 frames, all markers) with the 95 % band of
+    that mean; False when no method has them."""
+    from pipeline.consistency import band
+
+    series: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for f in sorted((out_dir / "estimates").glob("[!.]*.csv")):
+        cols = read_csv(f)
+        if "nis" not in cols or not (np.isfinite(cols["nis"]).any() or np.isfinite(cols["nees"]).any()):
+            continue
+        frames = cols["frame"].astype(int)
+        n = int(frames.max()) + 1
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            per = [np.bincount(frames, np.nan_to_num(v), n) / np.bincount(frames, np.isfinite(v), n)
+                   for v in (cols["nees"], cols["nis"] / cols["nis_dof"])]
+        series[f.stem] = (per[0], per[1])
+    if not series:
+        return False
+    w = 15
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    # the band of a w-frame mean: χ²(3w)/w for NEES (3 dof), χ²(4w)/(4w) for NIS/dof (4 dof)
+    bands = [np.array(band(3 * w)) / w, np.array(band(4 * w)) / (4 * w)]
+    for ax, i, title in ((axes[0], 0, "NEES, position (3 dof), against truth"),
+                         (axes[1], 1, "NIS / dof of the filter's innovations")):
+        drawn = False
+        for meth, vals in series.items():
+            v = vals[i]
+            if not np.isfinite(v).any():
+                continue
+            ok = np.isfinite(v)
+            k = np.ones(w)
+            with np.errstate(all="ignore"):
+                mean = np.convolve(np.where(ok, v, 0), k, "same") / np.convolve(ok, k, "same")
+            ax.semilogy(mean, color=colour(meth), lw=1, label=meth)
+            drawn = True
+        if drawn:
+            ax.axhspan(*bands[i], color="0.85", zorder=0, label="95 % band")
+            ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+        ax.set(xlabel="frame", ylabel=f"moving mean over {w} frames", title=title)
+        ax.grid(alpha=0.3, which="both")
+    _save(fig, out_dir / "figures" / "consistency.png")
+    plt.close(fig)
+    return True
 
 
 def metrics_table(metrics: dict) -> str:
@@ -183,10 +248,14 @@ def write_report(clip: str | Path, out_dir: str | Path | None = None) -> Path:
         plt.close(fig)
         figs.append(("Four-point target: α and z", "figures/target.png"))
 
+    method_colour = {m: np.array(PALETTE[c % len(PALETTE)]) / 255 for c, m in enumerate(est)}
+    if _consistency_figure(out_dir, lambda m: method_colour.get(m, (0.3, 0.3, 0.3)), plt):
+        figs.append(("Filter consistency: NEES and NIS", "figures/consistency.png"))
+
     lines = [f"# stereotrack report: {clip.name}", "",
              f"{metrics.get('frames', '?')} frames, dt = {metrics.get('dt', float('nan')):.4g} s; "
              + ("errors against the rendered ground truth." if metrics.get("has_truth") else "no ground truth (real footage)."),
-             "", *checks_section(metrics), "## Metrics", "", metrics_table(metrics), ""]
+             "", *checks_section(metrics), "## Metrics", "", metrics_table(metrics), "", *consistency_section(metrics)]
     for title, rel in figs:
         lines += [f"## {title}", "", f"![{title}]({rel})", ""]
     path = out_dir / "report.md"

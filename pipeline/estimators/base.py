@@ -208,13 +208,34 @@ class Initiator:
 
     def first(self, Y: np.ndarray) -> Start | None:
         """The start over a whole clip's observations (frames × 4); None if it never starts."""
+        return self.first_batch(np.asarray(Y, dtype=float)[None])[0]
+
+    def first_batch(self, Y: np.ndarray) -> list[Start | None]:
+        """The start of each of M clips (M × frames × 4). Frames are triangulated in chunks from
+        the front, only for the tracks that have not started yet (a batch needs the first few
+        frames of each track, not all of them)."""
+        M, n = Y.shape[:2]
         if self.config.mode == "given":
-            return self._given(0) if len(Y) else None
-        X = self.model.inverse_function(Y)
-        idx = np.flatnonzero(self._valid(X))[: self.config.frames]
-        if len(idx) < self.config.frames:
-            return None
-        return self._fit(idx, X[idx])
+            return [self._given(0) if n else None for _ in range(M)]
+        need = self.config.frames
+        frames: list[list[int]] = [[] for _ in range(M)]
+        points: list[list[np.ndarray]] = [[] for _ in range(M)]
+        todo = np.arange(M)
+        lo, chunk = 0, max(16, 2 * need)
+        while len(todo) and lo < n:
+            hi = min(n, lo + chunk)
+            X = self.model.inverse_function(Y[todo, lo:hi])
+            valid = self._valid(X)
+            left = []
+            for i, m in enumerate(todo):
+                for k in np.flatnonzero(valid[i])[: need - len(frames[m])]:
+                    frames[m].append(lo + int(k))
+                    points[m].append(X[i, k])
+                if len(frames[m]) < need:
+                    left.append(m)
+            todo, lo, chunk = np.array(left, dtype=int), hi, 2 * chunk
+        return [self._fit(np.array(frames[m]), np.array(points[m])) if len(frames[m]) == need else None
+                for m in range(M)]
 
 
 # -- the protocol -------------------------------------------------------------------------------

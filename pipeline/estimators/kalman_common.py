@@ -62,7 +62,7 @@ def kalman_batch(est: Estimator, Y: np.ndarray, linearize: Linearize) -> np.ndar
     ``linearize`` on every later frame with a measurement."""
     M, n, _ = Y.shape
     est.reset()
-    starts = [est.initiator.first(Y[m]) for m in range(M)]
+    starts = est.initiator.first_batch(Y)
     begin = np.array([s.frame if s is not None else n for s in starts])
     x, P = np.zeros((M, 6)), np.tile(np.eye(6), (M, 1, 1))
     out = np.full((M, n, 3), np.nan)

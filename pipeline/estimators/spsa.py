@@ -260,7 +260,7 @@ def batch_spsa(est: SPSAEstimator, Y: np.ndarray) -> np.ndarray:
     est.reset()
     cfg: SPSAConfig = est.config  # type: ignore[assignment]
     M, n, _ = Y.shape
-    starts = [est.initiator.first(Y[m]) for m in range(M)]
+    starts = est.initiator.first_batch(Y)
     begin = np.array([s.frame if s is not None else n for s in starts])
     th = np.zeros((M, 6))
     for m, s in enumerate(starts):
