@@ -56,7 +56,7 @@ def main() -> None:
         print(f"| {m} | {single[m]:,.0f} | {reported:,.0f} | {reported / single[m]:.2f} | {vs} | {b} |", flush=True)
     one = create("ekf", rig, dt)
     ekf1 = args.frames / timed(lambda: one.run_batch(Yb[:1]))
-    print(f"| ekf, vectorised core on 1 track (no filterpy) | {ekf1:,.0f} | {ekf1 / single['ekf']:.1f}× | — |")
+    print(f"| ekf, vectorised core on 1 track (no filterpy) | {ekf1:,.0f} | — | — | {ekf1 / single['ekf']:.1f}× | — |")
     print()
     print("Single tracks: per-frame Python loops for every method, nothing vectorised over time or compiled;")
     print("SPSA keeps its 6-vector in Python floats, the Kalman family uses numpy matrices through filterpy.")

@@ -179,19 +179,20 @@ def check_frame_column(frames: np.ndarray, n_frames: int | None, path: str | Pat
         raise StereotrackError(f"line {i + 2}: frame {frames[i]:g} is {where}", path)
 
 
-def read_yaml_mapping(path: str | Path) -> dict:
-    """A YAML file whose top level is a mapping; one-line errors naming the file otherwise."""
+def read_yaml_mapping(path: str | Path, error: type[StereotrackError] = StereotrackError) -> dict:
+    """A YAML file whose top level is a mapping (empty file: ``{}``); otherwise a one-line
+    ``error`` naming the file and the problem."""
     import yaml
 
     path = Path(path)
     try:
         data = yaml.safe_load(path.read_text())
     except yaml.YAMLError as exc:
-        raise StereotrackError(f"not valid YAML ({str(exc).splitlines()[0]})", path) from None
+        raise error(f"not valid YAML ({str(exc).splitlines()[0]})", path) from None
     except OSError as exc:
-        raise StereotrackError(f"cannot read ({exc.strerror})", path) from None
+        raise error(f"cannot read ({exc.strerror})", path) from None
     if data is None:
         return {}
     if not isinstance(data, dict):
-        raise StereotrackError(f"expected a mapping at the top level, found {type(data).__name__}", path)
+        raise error(f"expected a mapping at the top level, found {type(data).__name__}", path)
     return data

@@ -16,6 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from pipeline.camera import StereoRig
 from pipeline.errors import ScenarioError
+from pipeline.io import read_yaml_mapping
 
 Vec3 = tuple[float, float, float]
 Color = tuple[int, int, int]
@@ -242,14 +243,7 @@ def resolve_scenario_path(name_or_path: str | Path) -> Path:
 def load_scenario(name_or_path: str | Path) -> Scenario:
     """Load and validate a scenario; errors name the file and the offending field."""
     path = resolve_scenario_path(name_or_path)
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise ScenarioError(f"not valid YAML ({str(exc).splitlines()[0]})", path) from None
-    except OSError as exc:
-        raise ScenarioError(f"cannot read ({exc.strerror})", path) from None
-    if not isinstance(data, dict):
-        raise ScenarioError("expected a mapping at the top level", path)
+    data = read_yaml_mapping(path, ScenarioError)
     data.setdefault("name", path.stem)
     return parse_scenario(data, path)
 

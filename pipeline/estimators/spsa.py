@@ -55,26 +55,27 @@ class SPSAConfig(EstimatorConfig):
     th: float = Field(0.003, gt=0)
 
 
-def _sq(p0: float, p1: float, p2: float, cam: tuple, yu: float, yv: float) -> float:
-    """Squared distance of one camera's normalized projection of ``p`` from ``(yu, yv)``;
-    ``BIG_COST`` behind the camera. ``cam`` = (R row-major, t) of that camera (plain Python)."""
-    r00, r01, r02, r10, r11, r12, r20, r21, r22, t0, t1, t2 = cam
-    z = r20 * p0 + r21 * p1 + r22 * p2 + t2
-    if z <= 1e-9:
-        return BIG_COST
-    du = (r00 * p0 + r01 * p1 + r02 * p2 + t0) / z - yu
-    dv = (r10 * p0 + r11 * p1 + r12 * p2 + t1) / z - yv
-    return du * du + dv * dv
-
-
 def _cost(p0: float, p1: float, p2: float, yn: tuple, use_l: bool, use_r: bool, cams: tuple) -> float:
     """``‖h(p) − y‖²`` in normalized coordinates over the cameras in use: the measurement model of
-    :meth:`StereoRig.normalized` written in plain floats (tested equal to it to 1e-12)."""
+    :meth:`StereoRig.normalized` written out in plain floats for speed (tested equal to it to
+    1e-12); a trial point behind a camera costs ``BIG_COST``. ``cams``: :func:`camera_tuples`."""
     c = 0.0
     if use_l:
-        c += _sq(p0, p1, p2, cams[0], yn[0], yn[1])
+        r00, r01, r02, r10, r11, r12, r20, r21, r22, t0, t1, t2 = cams[0]
+        z = r20 * p0 + r21 * p1 + r22 * p2 + t2
+        if z <= 1e-9:
+            return BIG_COST
+        du = (r00 * p0 + r01 * p1 + r02 * p2 + t0) / z - yn[0]
+        dv = (r10 * p0 + r11 * p1 + r12 * p2 + t1) / z - yn[1]
+        c += du * du + dv * dv
     if use_r:
-        c += _sq(p0, p1, p2, cams[1], yn[2], yn[3])
+        r00, r01, r02, r10, r11, r12, r20, r21, r22, t0, t1, t2 = cams[1]
+        z = r20 * p0 + r21 * p1 + r22 * p2 + t2
+        if z <= 1e-9:
+            return BIG_COST
+        du = (r00 * p0 + r01 * p1 + r02 * p2 + t0) / z - yn[2]
+        dv = (r10 * p0 + r11 * p1 + r12 * p2 + t1) / z - yn[3]
+        c += du * du + dv * dv
     return c
 
 
