@@ -125,13 +125,23 @@ def _consistency_figure(out_dir: Path, colour, plt) -> bool:
             k = np.ones(w)
             with np.errstate(all="ignore"):
                 mean = np.convolve(np.where(ok, v, 0), k, "same") / np.convolve(ok, k, "same")
-            ax.semilogy(mean, color=colour(meth), lw=1, label=meth)
+            (ax.semilogy if i == 0 else ax.plot)(mean, color=colour(meth), lw=1, label=meth)
             drawn = True
         if drawn:
             ax.axhspan(*bands[i], color="0.85", zorder=0, label="95 % band")
-            ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+        if i == 0:
+            from matplotlib.ticker import ScalarFormatter
+
+            ax.yaxis.set_major_formatter(ScalarFormatter())
+            ax.yaxis.set_minor_formatter(ScalarFormatter())
         ax.set(xlabel="frame", ylabel=f"moving mean over {w} frames", title=title)
         ax.grid(alpha=0.3, which="both")
+    handles: dict[str, object] = {}
+    for ax in axes:
+        for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
+            handles.setdefault(lab, h)
+    fig.legend(list(handles.values()), list(handles), fontsize=8, loc="center left", bbox_to_anchor=(1.0, 0.5))
+    fig.tight_layout()
     _save(fig, out_dir / "figures" / "consistency.png")
     plt.close(fig)
     return True

@@ -32,6 +32,7 @@ from pipeline.estimators.base import (
     Estimator,
     EstimatorConfig,
     InitConfig,
+    Start,
     Step,
     Track,
     not_started,
@@ -138,15 +139,18 @@ class SPSAEstimator(Estimator):
         return Step(np.array(th[:3]), np.array([th[3] * inv, th[4] * inv, th[5] * inv]), predicted=predicted)
 
     def _start(self, y: np.ndarray) -> bool:
-        """Initialise θ from the shared initiator; False while no start is possible."""
+        """Offer this frame to the shared initiator; False while no start is possible."""
         s = self.start(y)
         if s is None:
             return False
-        x0 = s.state
-        self.theta = [*x0[:3].tolist(), *(x0[3:] * self.dt).tolist()]
+        self._begin(s)
+        return True
+
+    def _begin(self, s: Start) -> None:
+        """θ from a start (frame units inside: ``[p, v·dt]``)."""
+        self.theta = [*s.state[:3].tolist(), *(s.state[3:] * self.dt).tolist()]
         self.initialized = True
         self._phase = 0
-        return True
 
     def _step(self, y: np.ndarray) -> Step:
         if not self.initialized:
@@ -210,11 +214,12 @@ class SPSAEstimator(Estimator):
         rows = Yn.tolist()
         states: list = [None] * n
         pred = [True] * n
-        k = 0
-        while k < n and not self.initialized:
-            self.frame = k
-            if self._start(Y[k]):
-                states[k], pred[k] = list(self.theta), False
+        start = self.initiator.first(Y)  # the start `step` finds frame by frame, found at once
+        k = n
+        if start is not None:
+            self._begin(start)
+            k = start.frame
+            states[k], pred[k] = list(self.theta), False
             k += 1
         iterate = self._iterate
         for j in range(k, n):

@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from pipeline.estimators.base import NAN3, Estimator, Step, register
+from pipeline.estimators.base import NAN3, Estimator, Start, Step, register
 from pipeline.estimators.spsa import SPSAConfig, SPSAEstimator, _cost
 
 
@@ -27,14 +27,10 @@ class SPSAVGGEstimator(SPSAEstimator):
     Config = SPSAConfig
     state_dim = 3
 
-    def _start(self, y: np.ndarray) -> bool:
-        s = self.start(y)
-        if s is None:
-            return False
+    def _begin(self, s: Start) -> None:
         self.theta = s.state[:3].tolist()
         self.initialized = True
         self._phase = 0
-        return True
 
     def _out(self, th: list[float], predicted: bool) -> Step:
         return Step(np.array(th[:3]), NAN3.copy(), predicted=predicted)
