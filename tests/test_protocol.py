@@ -269,7 +269,7 @@ def test_methods_command_lists_every_method():
 
 def test_plugin_estimator_through_the_cli(tmp_path):
     """The example plugin, installed with pip, registers `smoothed_triangulation` through the
-    `stereotrack.estimators` entry point and then runs in `estimate` like a built-in method."""
+    `stereotrack.estimators` entry point and then runs in `stereotrack run` like a built-in method."""
     target = tmp_path / "site"
     pip = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--no-build-isolation",
                           "--target", str(target), str(REPO / "examples" / "estimator_plugin")],
@@ -282,17 +282,16 @@ def test_plugin_estimator_through_the_cli(tmp_path):
     cli = [sys.executable, "-m", "pipeline.cli"]
     listed = subprocess.run([*cli, "methods"], capture_output=True, text=True, env=env)
     assert listed.returncode == 0 and "smoothed_triangulation" in listed.stdout, listed.stderr
-    for argv in (["detect", str(clip)],
-                 ["estimate", str(clip), "--methods", "triangulation,smoothed_triangulation"],
-                 ["report", str(clip)]):
-        r = subprocess.run([*cli, *argv], capture_output=True, text=True, env=env)
-        assert r.returncode == 0, r.stdout + r.stderr
+    r = subprocess.run([*cli, "run", str(clip), "--methods", "triangulation,smoothed_triangulation"],
+                       capture_output=True, text=True, env=env)  # detect, estimate, report, recording
+    assert r.returncode == 0, r.stdout + r.stderr
     metrics = json.loads((clip / "out" / "metrics.json").read_text())
     ours, raw = metrics["methods"]["smoothed_triangulation"], metrics["methods"]["triangulation"]
     assert ours["config"]["smoothing"] == 0.5
     assert math.isfinite(ours["rmse"]) and ours["rmse"] != raw["rmse"]
     assert (clip / "out" / "estimates" / "smoothed_triangulation.csv").is_file()
     assert "smoothed_triangulation" in (clip / "out" / "report.md").read_text()
+    assert b"smoothed_triangulation" in (clip / "out" / "run.rrd").read_bytes()  # its entity paths
 
 
 def test_triangulate_is_the_models_inverse():
