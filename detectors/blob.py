@@ -90,6 +90,13 @@ class MarkerColor:
         v_min = int(max(30, 0.7 * np.percentile(sv[:, 2], 5)))
         return cls(name, h_lo, h_hi, s_min, v_min)
 
+    def display_rgb(self) -> tuple[int, int, int]:
+        """The colour this range selects, for drawing: its centre hue at high saturation and value."""
+        span = (self.h_hi - self.h_lo) % 180
+        hue = (self.h_lo + span / 2) % 180
+        r, g, b = colorsys.hsv_to_rgb(hue / 180, 0.85, 0.9)
+        return int(r * 255), int(g * 255), int(b * 255)
+
     def spec(self) -> str:
         """This range as a ``--markers`` spec (``NAME:HLO-HHI:SMIN:VMIN``)."""
         return f"{self.name}:{self.h_lo}-{self.h_hi}:{self.s_min}:{self.v_min}"

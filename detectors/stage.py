@@ -52,6 +52,7 @@ class DetectResult:
     summaries: list[CameraSummary] = field(default_factory=list)
     learned: dict[str, str] = field(default_factory=dict)  # window-learned marker → the range chosen
     checks: list[Check] = field(default_factory=list)
+    marker_colours: dict[str, list[int]] = field(default_factory=dict)  # for drawing, RGB
 
 
 def read_markers_file(path: str | Path) -> list[str]:
@@ -161,9 +162,13 @@ def detect_clip(
     out_dir: str | Path | None = None,
     progress: Callable[[int, int], None] | None = None,
     calib_units: str | None = None,
+    frame_sink: Callable[[int, np.ndarray | None, np.ndarray | None], None] | None = None,
 ) -> DetectResult:
     """Detect every marker in every frame of both cameras and write ``detections.csv`` and
     ``detect.json`` (frames, frame size, the marker ranges used, the colour checks).
+
+    ``frame_sink(index, left, right)`` receives every decoded frame (``run`` records them as they
+    go by, so a clip is decoded once and never held in memory).
 
     Coordinates written are undistorted with the clip's calibration when it has one (real rigs
     have lens distortion; estimators need pinhole coordinates); a calibration for another image
@@ -201,6 +206,8 @@ def detect_clip(
     sampler = BlobDetector(markers, max_per_marker=2, coarse=False)
     n_done = 0
     for fr in source:
+        if frame_sink is not None:
+            frame_sink(fr.index, fr.left, fr.right)
         images = [fr.left] if n_cams == 1 else [fr.left, fr.right]
         for c, img in enumerate(images):
             if img is None:  # a missing frame file: no detection in this camera
@@ -235,8 +242,10 @@ def detect_clip(
     write_json(out_dir / DETECT_INFO, {
         "clip": str(clip), "frames": n_done, "frame_size": list(source.size), "stereo": source.stereo,
         "detector": detector, "markers": [m.spec() for m in markers], "learned": learned,
+        "marker_colours": {m.name: list(m.display_rgb()) for m in markers},
         "checks": [c.as_dict() for c in checks]})
-    result = DetectResult(path, rows, learned=learned, checks=checks)
+    result = DetectResult(path, rows, learned=learned, checks=checks,
+                          marker_colours={m.name: list(m.display_rgb()) for m in markers})
     result.summaries = summarize(rows, clip, n_done, n_cams)
     return result
 

@@ -84,7 +84,7 @@ def _process_one(clip: str, out_root: str, settings: dict[str, Any], parent_pid:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             process_clip(clip_p, partial, detector=settings["detector"], methods=settings.get("methods"),
-                         images_in_recording=False, marker_specs=specs, calib_units=settings.get("calib_units"),
+                         images_in_recording=settings.get("images", True), marker_specs=specs, calib_units=settings.get("calib_units"),
                          lock=False, configs=settings.get("configs"))
         write_manifest(partial, settings)
         if parent_pid is not None and not still_parented(parent_pid):
@@ -129,6 +129,7 @@ def run_batch(
     calib_units: str | None = None,
     scheduler_file: str | Path | None = None,
     configs: dict[str, dict] | None = None,
+    images: bool = True,
 ) -> list[ClipOutcome]:
     """Process every clip under ``input_dir``; write ``summary.csv`` and ``summary.md``.
 
@@ -137,6 +138,7 @@ def run_batch(
     Dask scheduler, whose workers must see ``input_dir`` and ``output_dir`` at the same paths.
 
     ``configs`` (``--config``) are the methods' settings, part of what a complete clip must match.
+    ``images``: whether each clip's recording holds its frames (``--no-images`` leaves them out).
     ``marker_specs`` (``--markers``) apply to every clip; else a clip's own ``markers.yaml``, else
     ``INPUT/markers.yaml``, else the clip's scenario.yaml gives its markers.
 
@@ -153,7 +155,7 @@ def run_batch(
     if not marker_specs and (Path(input_dir) / MARKERS_FILE).is_file():
         marker_specs = read_markers_file(Path(input_dir) / MARKERS_FILE)
     settings = {"detector": detector, "methods": methods, "markers": marker_specs, "calib_units": calib_units,
-                "configs": configs}
+                "configs": configs, "images": images}
     out_root = ensure_dir(output_dir)
     with OutputLock(out_root, f"stereotrack batch {input_dir}"):
         for stale in [*out_root.glob(".*.partial*"), *out_root.glob(".*.old-*")]:

@@ -294,6 +294,7 @@ def batch_cmd(
     markers: MarkersOption = None,
     calib_units: CalibUnitsOption = None,
     config: ConfigOption = None,
+    no_images: Annotated[bool, typer.Option("--no-images", help="Leave the frames out of each clip's recording.")] = False,
 ) -> None:
     """Process every clip folder under INPUT_DIR; exit code 1 if any clip failed.
 
@@ -310,7 +311,7 @@ def batch_cmd(
         outcomes = run_batch(input_dir, output, workers, sched, force, detector, _methods(methods),
                              progress=lambda d, t: bar.update(task, completed=d, total=t),
                              marker_specs=_specs(markers), calib_units=calib_units, scheduler_file=scheduler_file,
-                             configs=configs)
+                             configs=configs, images=not no_images)
     from pipeline.batch import clip_warnings
 
     table = Table("clip", "status", "warnings", "error", title=str(output / "summary.csv"))

@@ -1,34 +1,40 @@
-"""The rerun recording of a run (``out/run.rrd``; rerun-sdk pinned to 0.41).
+"""The rerun recording of a run (``out/run.rrd``; rerun-sdk pinned to 0.41), written as a stream.
 
 Entity paths mirror the transform tree: ``/world`` is the left camera's frame; ``/world/left`` and
 ``/world/right`` carry each camera's ``Transform3D`` (from the calibration) and ``Pinhole``, logged
-once as static data, with the frame image, detections and truth projections beneath them.
-Trajectories live under ``/world/truth`` and ``/world/estimates/<method>``; per-frame errors under
-``/metrics``. The blueprint (3-D view, both camera views, error plots) is built in code and saved
-as the file's default.
+once as static data, with the frame images (JPEG, logged as they are decoded), detections and
+truth projections beneath them. Trajectories live under ``/world/truth`` and
+``/world/estimates/<method>`` as one point per marker per frame; the 3-D view shows them over a
+visible time range from the start to the cursor, so each path is drawn from its points instead of
+being re-logged every frame. Per-frame errors and the target's α and z live under ``/metrics``.
+Everything but the images is sent with ``send_columns``: one call per entity, not one per frame,
+so memory does not grow with the clip. The blueprint (3-D view, both camera views, error plots) is
+built in code and saved as the file's default.
 """
 
 from __future__ import annotations
 
+import os
+import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.camera import StereoRig
-from pipeline.io import atomic_path
-
-PALETTE = [(230, 80, 60), (60, 160, 230), (90, 200, 90), (220, 180, 40), (170, 90, 220), (40, 200, 200),
-           (240, 120, 200), (150, 150, 150)]
+from pipeline.style import TRUTH_RGB, marker_rgb, method_rgb
 
 
-def blueprint(methods: list[str]):
-    """3-D view beside the two camera views, error plots below."""
+def blueprint():
+    """3-D view (paths: every point from the start to the cursor) beside the two camera views,
+    error plots below."""
     import rerun.blueprint as rrb
 
+    trail = rrb.VisibleTimeRange("frame", start=rrb.TimeRangeBoundary.infinite(),
+                                 end=rrb.TimeRangeBoundary.cursor_relative())
     return rrb.Blueprint(
         rrb.Vertical(
             rrb.Horizontal(
-                rrb.Spatial3DView(name="3-D", origin="/world"),
+                rrb.Spatial3DView(name="3-D", origin="/world", time_ranges=[trail]),
                 rrb.Vertical(
                     rrb.Spatial2DView(name="left camera", origin="/world/left"),
                     rrb.Spatial2DView(name="right camera", origin="/world/right"),
@@ -47,82 +53,150 @@ def blueprint(methods: list[str]):
     )
 
 
-def write_recording(
-    path: str | Path,
-    rig: StereoRig,
-    dt: float,
-    observations: dict[str, np.ndarray],
-    tracks: dict[str, dict],
-    truth: dict[str, np.ndarray] | None = None,
-    frames=None,
-    extra_series: dict[str, np.ndarray] | None = None,
-    image_every: int = 1,
-) -> Path:
-    """Write the recording atomically. ``frames`` optionally yields (index, left, right) BGR images."""
-    import cv2
-    import rerun as rr
+class Recorder:
+    """Writes ``run.rrd`` atomically while a run goes: :meth:`log_frame` for each decoded frame
+    pair (compressed at once, never kept), then :meth:`finish` with the calibration and every
+    series as columns. Nothing is written at ``path`` until :meth:`finish` succeeds; :meth:`abort`
+    (or an exception inside ``with``) leaves no file behind."""
 
-    path = Path(path)
-    methods = list(tracks)
-    with atomic_path(path) as tmp:
-        rec = rr.RecordingStream("stereotrack")
-        rec.save(tmp, default_blueprint=blueprint(methods))
+    def __init__(self, path: str | Path, dt: float, jpeg_quality: int = 80, image_every: int = 1) -> None:
+        import rerun as rr
+
+        self.path, self.dt = Path(path), float(dt)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.partial-", dir=self.path.parent)
+        os.close(fd)
+        self.tmp = Path(tmp)
+        self.quality, self.image_every = int(jpeg_quality), max(1, int(image_every))
+        self.rec = rr.RecordingStream("stereotrack")
+        self.rec.save(str(self.tmp), default_blueprint=blueprint())
+        self.images = 0
+
+    def __enter__(self) -> Recorder:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is not None:
+            self.abort()
+
+    def _time(self, k: int) -> None:
+        self.rec.set_time("frame", sequence=k)
+        self.rec.set_time("time", duration=k * self.dt)
+
+    def log_frame(self, k: int, left: np.ndarray | None, right: np.ndarray | None) -> None:
+        """Both cameras' images of frame ``k`` as JPEG (a missing frame is skipped)."""
+        import cv2
+        import rerun as rr
+
+        if k % self.image_every:
+            return
+        self._time(k)
+        for img, name in ((left, "left"), (right, "right")):
+            if img is not None:
+                ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, self.quality])
+                if ok:
+                    self.rec.log(f"world/{name}/image", rr.EncodedImage(contents=buf.tobytes(), media_type="image/jpeg"))
+                    self.images += 1
+
+    def _columns(self, entity: str, frames: np.ndarray, columns) -> None:
+        import rerun as rr
+
+        if len(frames):
+            self.rec.send_columns(entity, indexes=[rr.TimeColumn("frame", sequence=frames),
+                                                   rr.TimeColumn("time", duration=frames * self.dt)],
+                                  columns=columns)
+
+    def _points(self, entity: str, per_frame: list[np.ndarray], colours: list[list], labels: list[list] | None,
+                kind: str, radius: float) -> None:
+        """One batch of points per frame (frames with none are skipped), as partitioned columns."""
+        import rerun as rr
+
+        frames = np.array([k for k, p in enumerate(per_frame) if len(p)], dtype=np.int64)
+        if not len(frames):
+            return
+        lengths = [len(per_frame[k]) for k in frames]
+        pos = np.concatenate([per_frame[k] for k in frames])
+        col = np.concatenate([np.asarray(colours[k], dtype=np.uint8).reshape(-1, 3) for k in frames])
+        arch = rr.Points3D if kind == "3d" else rr.Points2D
+        kw = {"labels": [x for k in frames for x in labels[k]]} if labels is not None else {}
+        cols = arch.columns(positions=pos, colors=col, radii=np.full(len(pos), radius, np.float32), **kw)
+        self._columns(entity, frames, cols.partition(lengths))
+
+    def _scalars(self, entity: str, series: np.ndarray) -> None:
+        import rerun as rr
+
+        series = np.asarray(series, dtype=float)
+        ok = np.flatnonzero(np.isfinite(series))
+        self._columns(entity, ok.astype(np.int64), rr.Scalars.columns(scalars=series[ok]))
+
+    def finish(self, rig: StereoRig, observations: dict[str, np.ndarray], tracks: dict[str, dict],
+               truth: dict[str, np.ndarray] | None = None, extra_series: dict[str, np.ndarray] | None = None,
+               marker_colours: dict[str, list[int]] | None = None) -> Path:
+        """Log the calibration (static), detections, truth, every method's points and every series
+        as columns, then move the file into place."""
+        import rerun as rr
+
+        rec = self.rec
         rec.log("world", rr.ViewCoordinates.RDF, static=True)  # OpenCV axes: x right, y down, z forward
         w, h = rig.image_size
         for cam, name in zip(rig.cameras, ("left", "right"), strict=True):
-            R_wc, C = cam.R.T, cam.center
-            rec.log(f"world/{name}", rr.Transform3D(translation=C, mat3x3=R_wc), static=True)
+            rec.log(f"world/{name}", rr.Transform3D(translation=cam.center, mat3x3=cam.R.T), static=True)
             rec.log(f"world/{name}", rr.Pinhole(image_from_camera=cam.K, width=w or None, height=h or None,
                                                camera_xyz=rr.ViewCoordinates.RDF), static=True)
         markers = list(observations)
-        n = max((len(v) for v in observations.values()), default=0)
-        images = {}
-        if frames is not None:
-            for k, left, right in frames:
-                images[k] = (left, right)
-        for k in range(n):
-            rec.set_time("frame", sequence=k)
-            rec.set_time("time", duration=k * dt)
-            if k in images and k % image_every == 0:
-                for img, name in zip(images[k], ("left", "right"), strict=True):
-                    if img is not None:  # JPEG keeps a 150-frame stereo recording to a few MB
-                        ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 80])
-                        if ok:
-                            rec.log(f"world/{name}/image", rr.EncodedImage(contents=buf.tobytes(), media_type="image/jpeg"))
-            for c, name in enumerate(("left", "right")):
-                pts = [observations[m][k, 2 * c : 2 * c + 2] for m in markers]
-                ok = [np.all(np.isfinite(p)) for p in pts]
-                rec.log(f"world/{name}/detections", rr.Points2D([p for p, o in zip(pts, ok, strict=True) if o],
-                                                                radii=3, colors=(255, 255, 0),
-                                                                labels=[m for m, o in zip(markers, ok, strict=True) if o]))
-                if truth is not None:
-                    tp = np.array([truth[m][k] for m in markers if m in truth and k < len(truth[m])])
-                    if len(tp):
-                        rec.log(f"world/{name}/truth", rr.Points2D(rig.cameras[c].project(tp), radii=2, colors=(0, 255, 0)))
+        mcol = {m: list(marker_rgb(marker_colours or {}, m, i)) for i, m in enumerate(markers)}
+        n = max([len(v) for v in observations.values()] + [len(t.position) for per in tracks.values()
+                                                             for t in per.values()] + [0])
+        for c, name in enumerate(("left", "right")):
+            pts, cols, labs = [], [], []
+            for k in range(n):
+                here = [m for m in markers
+                        if k < len(observations[m]) and np.all(np.isfinite(observations[m][k, 2 * c:2 * c + 2]))]
+                pts.append(np.array([observations[m][k, 2 * c:2 * c + 2] for m in here]).reshape(-1, 2))
+                cols.append([mcol[m] for m in here])
+                labs.append(here)
+            self._points(f"world/{name}/detections", pts, cols, labs, "2d", 3.0)
             if truth is not None:
-                tp = np.array([truth[m][k] for m in markers if m in truth and k < len(truth[m])])
-                if len(tp):
-                    rec.log("world/truth/points", rr.Points3D(tp, radii=0.015, colors=(0, 255, 0)))
-                    rec.log("world/truth/paths", rr.LineStrips3D([truth[m][: k + 1] for m in markers if m in truth],
-                                                                 colors=(0, 200, 0)))
-            for j, (meth, per_marker) in enumerate(tracks.items()):
-                col = PALETTE[j % len(PALETTE)]
-                cur = np.array([t.position[k] for t in per_marker.values()])
-                fin = np.all(np.isfinite(cur), axis=1)
-                rec.log(f"world/estimates/{meth}/points", rr.Points3D(cur[fin], radii=0.012, colors=col))
-                strips = [t.position[: k + 1][np.all(np.isfinite(t.position[: k + 1]), axis=1)] for t in per_marker.values()]
-                rec.log(f"world/estimates/{meth}/paths", rr.LineStrips3D([s for s in strips if len(s) > 1], colors=col))
-                for marker, t in per_marker.items():
-                    if truth is not None and marker in truth and k < len(truth[marker]):
-                        e = float(np.linalg.norm(t.position[k] - truth[marker][k]))
-                        if np.isfinite(e):
-                            rec.log(f"metrics/error/{meth}/{marker}", rr.Scalars(e))
-                    r = float(t.reprojection_error[k])
-                    if np.isfinite(r):
-                        rec.log(f"metrics/reprojection/{meth}/{marker}", rr.Scalars(r))
-            for key, series in (extra_series or {}).items():
-                if k < len(series) and np.isfinite(series[k]):
-                    rec.log(f"metrics/{key}", rr.Scalars(float(series[k])))
+                tp = [np.array([truth[m][k] for m in markers if m in truth and k < len(truth[m])]).reshape(-1, 3)
+                      for k in range(n)]
+                proj = [rig.cameras[c].project(p) if len(p) else p[:, :2] for p in tp]
+                self._points(f"world/{name}/truth", proj, [[TRUTH_RGB] * len(p) for p in proj], None, "2d", 2.0)
+        if truth is not None:
+            tp = [np.array([truth[m][k] for m in markers if m in truth and k < len(truth[m])]).reshape(-1, 3)
+                  for k in range(n)]
+            self._points("world/truth/points", tp, [[TRUTH_RGB] * len(p) for p in tp], None, "3d", 0.012)
+        for meth, per_marker in tracks.items():
+            rgb = list(method_rgb(meth))
+            cur = [np.array([t.position[k] for t in per_marker.values() if k < len(t.position)
+                             and np.all(np.isfinite(t.position[k]))]).reshape(-1, 3) for k in range(n)]
+            self._points(f"world/estimates/{meth}/points", cur, [[rgb] * len(p) for p in cur], None, "3d", 0.01)
+            for marker, t in per_marker.items():
+                if truth is not None and marker in truth:
+                    m = min(len(t.position), len(truth[marker]))
+                    self._scalars(f"metrics/error/{meth}/{marker}", np.linalg.norm(t.position[:m] - truth[marker][:m], axis=1))
+                self._scalars(f"metrics/reprojection/{meth}/{marker}", t.reprojection_error)
+        for key, series in (extra_series or {}).items():
+            self._scalars(f"metrics/{key}", series)
         rec.flush()
         rec.disconnect()
-    return path
+        os.replace(self.tmp, self.path)
+        return self.path
+
+    def abort(self) -> None:
+        """Stop recording and remove the partial file."""
+        try:
+            self.rec.disconnect()
+        finally:
+            self.tmp.unlink(missing_ok=True)
+
+
+def write_recording(path: str | Path, rig: StereoRig, dt: float, observations: dict[str, np.ndarray],
+                    tracks: dict[str, dict], truth: dict[str, np.ndarray] | None = None, frames=None,
+                    extra_series: dict[str, np.ndarray] | None = None,
+                    marker_colours: dict[str, list[int]] | None = None) -> Path:
+    """A recording in one call: ``frames`` optionally yields (index, left, right) BGR images, which
+    are logged as they come."""
+    with Recorder(path, dt) as rec:
+        for k, left, right in frames or ():
+            rec.log_frame(k, left, right)
+        return rec.finish(rig, observations, tracks, truth, extra_series, marker_colours)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +15,7 @@ from detectors.stage import load_detections
 from pipeline.errors import StereotrackError
 from pipeline.estimate import load_truth, read_positions
 from pipeline.io import atomic_path, read_csv, write_text
-from pipeline.recording import PALETTE
+from pipeline.style import marker_rgb, method_colour, method_linestyle
 
 
 def load_estimates(out_dir: Path) -> dict[str, dict[str, np.ndarray]]:
@@ -136,12 +137,7 @@ def _consistency_figure(out_dir: Path, colour, plt) -> bool:
             ax.yaxis.set_minor_formatter(ScalarFormatter())
         ax.set(xlabel="frame", ylabel=f"moving mean over {w} frames", title=title)
         ax.grid(alpha=0.3, which="both")
-    handles: dict[str, object] = {}
-    for ax in axes:
-        for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
-            handles.setdefault(lab, h)
-    fig.legend(list(handles.values()), list(handles), fontsize=8, loc="center left", bbox_to_anchor=(1.0, 0.5))
-    fig.tight_layout()
+    _legend_outside(fig, axes)
     _save(fig, out_dir / "figures" / "consistency.png")
     plt.close(fig)
     return True
@@ -159,8 +155,21 @@ def metrics_table(metrics: dict) -> str:
     return "\n".join(lines)
 
 
-def write_report(clip: str | Path, out_dir: str | Path | None = None) -> Path:
-    """Write ``report.md`` and its figures into ``out_dir`` (default ``CLIP/out``)."""
+def _legend_outside(fig, axes) -> None:
+    """One legend for the figure, right of the axes (never over the data)."""
+    handles: dict[str, object] = {}
+    for ax in np.atleast_1d(axes):
+        for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
+            handles.setdefault(lab, h)
+    if handles:
+        fig.legend(list(handles.values()), list(handles), fontsize=8, loc="center left", bbox_to_anchor=(1.0, 0.5))
+    fig.tight_layout()
+
+
+def write_report(clip: str | Path, out_dir: str | Path | None = None,
+                 progress: Callable[[int, int], None] | None = None) -> Path:
+    """Write ``report.md`` and its figures into ``out_dir`` (default ``CLIP/out``); ``progress``
+    is called with (figures done, figures in all)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -176,6 +185,15 @@ def write_report(clip: str | Path, out_dir: str | Path | None = None) -> Path:
     truth = load_truth(clip)
     est = _hide_behind_camera(clip, est, metrics.get("calibration_units"))
     obs = load_detections(out_dir / "detections.csv") if (out_dir / "detections.csv").is_file() else {}
+    info = out_dir / "detect.json"
+    mcolours = json.loads(info.read_text()).get("marker_colours", {}) if info.is_file() else {}
+    total_figs = 5
+
+    def done(k: int) -> None:
+        if progress is not None:
+            progress(k, total_figs)
+
+    done(0)
     figdir = out_dir / "figures"
     markers = sorted({m for per in est.values() for m in per})
     figs = []
@@ -186,10 +204,10 @@ def write_report(clip: str | Path, out_dir: str | Path | None = None) -> Path:
             if truth and mk in truth.positions:
                 T = truth.positions[mk]
                 ax.plot(T[:, j], T[:, i], "k-", lw=2.5, alpha=0.5, label="truth" if mk == markers[0] else None)
-            for c, (meth, per) in enumerate(est.items()):
+            for meth, per in est.items():
                 if mk in per:
                     P = per[mk]
-                    ax.plot(P[:, j], P[:, i], "-", lw=1, color=np.array(PALETTE[c % len(PALETTE)]) / 255,
+                    ax.plot(P[:, j], P[:, i], method_linestyle(meth), lw=1, color=method_colour(meth),
                             label=meth if mk == markers[0] else None)
         ax.set_xlabel("z (m)")
         ax.set_ylabel(lab.split(":")[1].split("vs")[0].strip())
@@ -197,14 +215,15 @@ def write_report(clip: str | Path, out_dir: str | Path | None = None) -> Path:
         if i == 1:
             ax.invert_yaxis()
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
+    _legend_outside(fig, axes)
     _save(fig, figdir / "trajectories.png")
     plt.close(fig)
     figs.append(("Trajectories (top and side views)", "figures/trajectories.png"))
+    done(1)
 
     if truth is not None:
         fig, ax = plt.subplots(figsize=(12, 4.5))
-        for c, (meth, per) in enumerate(est.items()):
+        for meth, per in est.items():
             errs = [np.linalg.norm(per[mk] - truth.positions[mk][: len(per[mk])], axis=1)
                     for mk in per if mk in truth.positions]
             if errs:
@@ -212,29 +231,33 @@ def write_report(clip: str | Path, out_dir: str | Path | None = None) -> Path:
                 with np.errstate(all="ignore"), warnings.catch_warnings():
                     warnings.simplefilter("ignore", RuntimeWarning)
                     mean_err = np.nanmean([e[:n] for e in errs], axis=0)
-                ax.semilogy(mean_err, color=np.array(PALETTE[c % len(PALETTE)]) / 255,
-                            label=meth)
+                ax.semilogy(mean_err, method_linestyle(meth), color=method_colour(meth), label=meth)
         ax.set_xlabel("frame")
         ax.set_ylabel("3-D error (m), mean over markers")
         ax.grid(alpha=0.3, which="both")
-        ax.legend(fontsize=8, ncol=4)
+        _legend_outside(fig, ax)
         _save(fig, figdir / "error.png")
         plt.close(fig)
         figs.append(("3-D error per frame", "figures/error.png"))
+    done(2)
 
     if obs:
         fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
         for c, ax in enumerate(axes):
             for i, (mk, Y) in enumerate(sorted(obs.items())):
-                ax.plot(Y[:, 2 * c], Y[:, 2 * c + 1], ".", ms=2, color=np.array(PALETTE[i % len(PALETTE)]) / 255, label=mk)
+                ax.plot(Y[:, 2 * c], Y[:, 2 * c + 1], ".", ms=2, color=np.array(marker_rgb(mcolours, mk, i)) / 255,
+                        label=mk)
             ax.set_title(("left", "right")[c] + " camera: detections (px)")
             ax.invert_yaxis()
             ax.set_aspect("equal", adjustable="datalim")
             ax.grid(alpha=0.3)
-        axes[0].legend(fontsize=7, markerscale=4)
+        for ax in axes:
+            ax.set(xlabel="u (px)", ylabel="v (px)")
+        _legend_outside(fig, axes)
         _save(fig, figdir / "image_tracks.png")
         plt.close(fig)
         figs.append(("Image-plane tracks", "figures/image_tracks.png"))
+    done(3)
 
     target_csvs = [f for f in sorted((out_dir / "estimates").glob("[!.]*.csv"))
                    if "alpha" in (f.read_text().split("\n", 1)[0].split(","))]
@@ -244,23 +267,24 @@ def write_report(clip: str | Path, out_dir: str | Path | None = None) -> Path:
             tt = read_csv(clip / "target_truth.csv")
             axes[0].plot(tt["t"], tt["alpha"], "k-", lw=2.5, alpha=0.5, label="truth")
             axes[1].plot(tt["t"], tt["distance"], "k-", lw=2.5, alpha=0.5, label="truth")
-        for c, f in enumerate(target_csvs):
+        for f in target_csvs:
             cols = read_csv(f)
-            col = np.array(PALETTE[c % len(PALETTE)]) / 255
-            axes[0].plot(cols["t"], cols["alpha"], "-", color=col, lw=1, label=f.stem)
-            axes[1].plot(cols["t"], cols["distance"], "-", color=col, lw=1, label=f.stem)
+            col, ls = method_colour(f.stem), method_linestyle(f.stem)
+            axes[0].plot(cols["t"], cols["alpha"], ls, color=col, lw=1, label=f.stem)
+            axes[1].plot(cols["t"], cols["distance"], ls, color=col, lw=1, label=f.stem)
         axes[0].set(xlabel="t (s)", ylabel="α (rad)", title="target angle α")
         axes[1].set(xlabel="t (s)", ylabel="z (m)", title="target distance z")
         for ax in axes:
             ax.grid(alpha=0.3)
-            ax.legend(fontsize=8)
+        _legend_outside(fig, axes)
         _save(fig, figdir / "target.png")
         plt.close(fig)
         figs.append(("Four-point target: α and z", "figures/target.png"))
+    done(4)
 
-    method_colour = {m: np.array(PALETTE[c % len(PALETTE)]) / 255 for c, m in enumerate(est)}
-    if _consistency_figure(out_dir, lambda m: method_colour.get(m, (0.3, 0.3, 0.3)), plt):
+    if _consistency_figure(out_dir, method_colour, plt):
         figs.append(("Filter consistency: NEES and NIS", "figures/consistency.png"))
+    done(5)
 
     lines = [f"# stereotrack report: {clip.name}", "",
              f"{metrics.get('frames', '?')} frames, dt = {metrics.get('dt', float('nan')):.4g} s; "

@@ -8,11 +8,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from detectors.frames import StereoFrameSource
 from detectors.stage import DetectResult, detect_clip
-from pipeline.estimate import EstimateResult, estimate_clip
+from pipeline.estimate import EstimateResult, clip_fps, estimate_clip
 from pipeline.lifeline import OutputLock
-from pipeline.recording import write_recording
+from pipeline.recording import Recorder
 from pipeline.report import write_report
 
 DEFAULT_SCENARIO = "default"
@@ -67,25 +66,30 @@ def _process_clip(clip: Path, out_dir: Path, detector: str, methods: list[str] |
                   configs: dict[str, dict] | None = None) -> RunResult:
     t0 = time.perf_counter()
     say = stage or (lambda s: None)
-    say("detect")
-    det = detect_clip(clip, detector, marker_specs, out_dir=out_dir, progress=progress,  # type: ignore[arg-type]
-                      calib_units=calib_units)
-    say("estimate")
-    est = estimate_clip(clip, methods, out_dir=out_dir, progress=progress, calib_units=calib_units, configs=configs)
-    say("report")
-    report = write_report(clip, out_dir)
-    rrd = None
-    if recording:
-        say("recording")
-        frames = None
-        if images_in_recording:
-            frames = ((f.index, f.left, f.right) for f in StereoFrameSource(clip, allow_unequal=True))
-        truth = est.truth.positions if est.truth else None
-        series = {}
-        for m, tr in est.target_tracks.items():
-            series[f"target/alpha/{m}"] = tr.extra["alpha"]
-            series[f"target/distance/{m}"] = tr.extra["distance"]
-        if est.target is not None and est.target.alpha is not None and est.target.distance is not None:
-            series["target/alpha/truth"], series["target/distance/truth"] = est.target.alpha, est.target.distance
-        rrd = write_recording(out_dir / "run.rrd", est.rig, est.dt, est.observations, est.tracks, truth, frames, series)
+    recorder = Recorder(out_dir / "run.rrd", 1.0 / clip_fps(clip)) if recording else None
+    try:
+        say("detect")
+        sink = recorder.log_frame if recorder is not None and images_in_recording else None
+        det = detect_clip(clip, detector, marker_specs, out_dir=out_dir, progress=progress,  # type: ignore[arg-type]
+                          calib_units=calib_units, frame_sink=sink)
+        say("estimate")
+        est = estimate_clip(clip, methods, out_dir=out_dir, progress=progress, calib_units=calib_units,
+                            configs=configs)
+        say("report")
+        report = write_report(clip, out_dir, progress=progress)
+        rrd = None
+        if recorder is not None:
+            say("recording")
+            truth = est.truth.positions if est.truth else None
+            series = {}
+            for m, tr in est.target_tracks.items():
+                series[f"target/alpha/{m}"] = tr.extra["alpha"]
+                series[f"target/distance/{m}"] = tr.extra["distance"]
+            if est.target is not None and est.target.alpha is not None and est.target.distance is not None:
+                series["target/alpha/truth"], series["target/distance/truth"] = est.target.alpha, est.target.distance
+            rrd = recorder.finish(est.rig, est.observations, est.tracks, truth, series, det.marker_colours)
+    except BaseException:
+        if recorder is not None:
+            recorder.abort()
+        raise
     return RunResult(clip, out_dir, det, est, report, rrd, time.perf_counter() - t0)

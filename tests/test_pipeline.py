@@ -62,24 +62,61 @@ def test_report_written(e2e_run):
         assert png.is_file() and png.read_bytes()[:4] == b"\x89PNG"
 
 
-def test_recording_read_back(e2e_run):
+def read_recording(path) -> tuple[dict[str, dict[str, list]], set[str], object]:
+    """``entity → column → values`` (rows in frame order, static chunks under column names too),
+    the static entities, and the reader."""
     from rerun.chunk import RrdReader
 
-    reader = RrdReader(e2e_run.recording)
-    assert reader.recordings() and reader.blueprints()  # the blueprint is saved as the default
-    rows: dict[str, int] = {}
+    reader = RrdReader(path)
+    cols: dict[str, dict[str, list]] = {}
     static: set[str] = set()
     for chunk in reader.stream():
-        rows[chunk.entity_path] = rows.get(chunk.entity_path, 0) + chunk.num_rows
+        rb = chunk.to_record_batch()
         if chunk.is_static:
             static.add(chunk.entity_path)
+        for name in rb.schema.names:
+            if name in ("log_time", "time", "rerun.controls.RowId"):
+                continue
+            cols.setdefault(chunk.entity_path, {}).setdefault(name, []).extend(rb.column(name).to_pylist())
+    return cols, static, reader
+
+
+def test_recording_read_back(e2e_run):
+    """Images (JPEG), cameras, every method's points, series and the blueprint, with values."""
+    import cv2
+
+    cols, static, reader = read_recording(e2e_run.recording)
+    assert reader.recordings() and reader.blueprints()  # the blueprint is saved as the default
+    rig = e2e_run.estimate.rig
     assert {"/world/left", "/world/right"} <= static  # calibration logged once, static
-    assert rows["/world/left/image"] == 40 and rows["/world/right/image"] == 40
-    assert rows["/world/left/detections"] == 40
-    assert rows["/world/truth/points"] == 40
+    for name, cam in zip(("left", "right"), rig.cameras, strict=True):
+        K = np.array(cols[f"/world/{name}"]["Pinhole:image_from_camera"][0]).reshape(3, 3).T  # column-major
+        np.testing.assert_allclose(K, cam.K, rtol=1e-6)
+        np.testing.assert_allclose(np.ravel(cols[f"/world/{name}"]["Transform3D:translation"][0]), cam.center, atol=1e-6)
+        img = cols[f"/world/{name}/image"]
+        assert img["frame"] == list(range(40)) and {m[0] for m in img["EncodedImage:media_type"]} == {"image/jpeg"}
+        first = cv2.imdecode(np.frombuffer(bytes(img["EncodedImage:blob"][0][0]), np.uint8), cv2.IMREAD_COLOR)
+        assert first.shape == (240, 320, 3)
+    # detections: the pixel coordinates of detections.csv, labelled with the marker
+    det = e2e_run.estimate.observations["red"]
+    d = cols["/world/left/detections"]
+    for k, pos, lab in zip(d["frame"], d["Points2D:positions"], d["Points2D:labels"], strict=True):
+        np.testing.assert_allclose(pos[0], det[k, :2], atol=1e-3)
+        assert lab == ["red"]
+    truth = e2e_run.estimate.truth.positions["red"]
+    np.testing.assert_allclose(np.array(cols["/world/truth/points"]["Points3D:positions"])[:, 0], truth, atol=1e-5)
+    colours = set()
     for meth in METHODS:
-        assert rows[f"/world/estimates/{meth}/points"] == 40
-        assert rows[f"/metrics/error/{meth}/red"] >= 35
+        tr = e2e_run.estimate.tracks[meth]["red"]
+        p = cols[f"/world/estimates/{meth}/points"]
+        started = np.flatnonzero(np.all(np.isfinite(tr.position), axis=1))
+        assert p["frame"] == started.tolist()
+        np.testing.assert_allclose(np.array(p["Points3D:positions"])[:, 0], tr.position[started], atol=1e-5)
+        colours.add(p["Points3D:colors"][0][0])
+        e = cols[f"/metrics/error/{meth}/red"]
+        want = np.linalg.norm(tr.position - truth, axis=1)
+        np.testing.assert_allclose(np.array(e["Scalars:scalars"])[:, 0], want[e["frame"]], rtol=1e-9)
+    assert len(colours) == len(METHODS)  # one colour per method
 
 
 def test_run_cli_on_sample_clip(tmp_path):
