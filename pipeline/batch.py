@@ -84,8 +84,8 @@ def _process_one(clip: str, out_root: str, settings: dict[str, Any], parent_pid:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             process_clip(clip_p, partial, detector=settings["detector"], methods=settings.get("methods"),
-                         images_in_recording=settings.get("images", True), marker_specs=specs, calib_units=settings.get("calib_units"),
-                         lock=False, configs=settings.get("configs"))
+                         images_in_recording=settings.get("images", True), marker_specs=specs,
+                         calib_units=settings.get("calib_units"), lock=False, configs=settings.get("configs"))
         write_manifest(partial, settings)
         if parent_pid is not None and not still_parented(parent_pid):
             shutil.rmtree(partial, ignore_errors=True)
