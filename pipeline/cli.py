@@ -26,6 +26,20 @@ console = Console(stderr=True)
 out = Console()
 
 
+def _version(value: bool) -> None:
+    if value:
+        from pipeline.manifest import stereotrack_version
+
+        out.print(f"stereotrack {stereotrack_version()}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _main(version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
+                                                help="Print the version and exit.")] = False) -> None:
+    """Track objects in stereo video: render synthetic clips, detect markers, estimate 3-D tracks."""
+
+
 def progress_bar() -> Progress:
     """The one progress-bar style of every long command."""
     return Progress(
@@ -186,7 +200,8 @@ def _metrics_table(metrics: dict, title: str) -> Table:
 def estimate_cmd(
     clip: Annotated[Path, typer.Argument(help="Clip folder with calib.yaml and out/detections.csv.")],
     methods: Annotated[str | None, typer.Option(help="Comma-separated methods (default: all point methods).")] = None,
-    output: Annotated[Path | None, typer.Option("-o", "--output", help="Output folder (default CLIP/out).")] = None,
+    output: Annotated[Path | None, typer.Option("-o", "--output", help="Where the outputs go (default CLIP/out); "
+                                                "inputs are always read from CLIP/out.")] = None,
     calib_units: CalibUnitsOption = None,
     config: ConfigOption = None,
 ) -> None:
@@ -196,7 +211,7 @@ def estimate_cmd(
     configs = _configs(config)
     with progress_bar() as bar:
         task = bar.add_task("estimate", total=None)
-        res = estimate_clip(clip, _methods(methods), output, configs=configs,
+        res = estimate_clip(clip, _methods(methods), output, configs=configs, in_dir=clip / "out",
                             progress=lambda d, t: bar.update(task, completed=d, total=t), calib_units=calib_units)
     out.print(_metrics_table(res.metrics, str(res.out_dir / "metrics.json")))
 
@@ -204,12 +219,17 @@ def estimate_cmd(
 @app.command("report")
 def report_cmd(
     clip: Annotated[Path, typer.Argument(help="Clip folder whose out/ holds estimates and metrics.")],
-    output: Annotated[Path | None, typer.Option("-o", "--output", help="Output folder (default CLIP/out).")] = None,
+    output: Annotated[Path | None, typer.Option("-o", "--output", help="Where the outputs go (default CLIP/out); "
+                                                "inputs are always read from CLIP/out.")] = None,
 ) -> None:
     """Write out/report.md with the metrics table and figures."""
     from pipeline.report import write_report
 
-    out.print(f"wrote {write_report(clip, output)}")
+    with progress_bar() as bar:
+        task = bar.add_task("report", total=None)
+        path = write_report(clip, output, progress=lambda d, t: bar.update(task, completed=d, total=t),
+                            in_dir=clip / "out")
+    out.print(f"wrote {path}")
 
 
 @app.command("run")
@@ -262,15 +282,19 @@ def run_cmd(
 
 
 @app.command("view")
-def view_cmd(clip: Annotated[Path, typer.Argument(help="Clip folder whose out/run.rrd to open.")]) -> None:
-    """Open the run's recording in the rerun viewer (or print the command when there is no display)."""
+def view_cmd(folder: Annotated[Path, typer.Argument(
+        help="A clip folder (its out/run.rrd), an output folder holding run.rrd (a batch's OUT/<clip>), or a .rrd file.")],
+) -> None:
+    """Open a recording in the rerun viewer (or print the command when there is no display)."""
     import os
     import shutil
     import subprocess
 
-    rrd = clip / "out" / "run.rrd" if clip.is_dir() else clip
-    if not rrd.is_file():
-        raise StereotrackError("no recording: run `stereotrack run` first", rrd)
+    candidates = [folder] if folder.suffix == ".rrd" else [folder / "run.rrd", folder / "out" / "run.rrd"]
+    rrd = next((p for p in candidates if p.is_file()), None)
+    if rrd is None:
+        raise StereotrackError("no recording here (looked for " + ", ".join(map(str, candidates))
+                               + "): run `stereotrack run` first", folder)
     viewer = shutil.which("rerun")
     if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")) or viewer is None:
         out.print(f"no display here; on a machine with one run:\n  rerun {rrd}")

@@ -204,10 +204,13 @@ def estimate_clip(
     progress: Callable[[int, int], None] | None = None,
     target_radius: float | None = None,
     calib_units: str | None = None,
+    in_dir: str | Path | None = None,
 ) -> EstimateResult:
     """Run every requested method on every marker of a clip and write estimates and metrics.
 
-    Point methods run on each marker; on clips with a four-point target the target methods
+    Detections are read from ``in_dir`` (default ``out_dir``, itself default ``CLIP/out``);
+    estimates and metrics go to ``out_dir``. Point methods run on each marker; on clips with a
+    four-point target the target methods
     (raw measurement, Kalman–Bucy, PnP + KF) run on its four labelled points too. Input checks
     (left/right swapped, epipolar consistency, points behind a camera, track jumps, and the
     detect stage's colour and image-size checks) are warned about and written to
@@ -215,14 +218,15 @@ def estimate_clip(
     """
     clip = Path(clip)
     out_dir = Path(out_dir) if out_dir else clip / "out"
+    in_dir = Path(in_dir) if in_dir else out_dir  # where the detect stage wrote (run: the same folder)
     reg = registry()
     for m in methods or []:
         if m not in reg:
             raise StereotrackError(f"unknown method {m!r} (known: {', '.join(reg)})")
-    det_path = out_dir / "detections.csv"
+    det_path = in_dir / "detections.csv"
     if not det_path.is_file():
         raise StereotrackError("no detections.csv: run `stereotrack detect` first", det_path)
-    footage = footage_info(clip, out_dir)
+    footage = footage_info(clip, in_dir)
     rig = load_calibration(clip, calib_units)
     checks = list(footage.checks)
     if footage.frame_size is not None and not any(c.name == "image_size" for c in checks):

@@ -92,13 +92,13 @@ def consistency_section(metrics: dict) -> list[str]:
             *rows, ""]
 
 
-def _consistency_figure(out_dir: Path, colour, plt) -> bool:
+def _consistency_figure(src: Path, figdir: Path, colour, plt) -> bool:
     """NEES and NIS per frame (moving mean over 15 frames, all markers) with the 95 % band of
     that mean; False when no method has them."""
     from pipeline.consistency import band
 
     series: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    for f in sorted((out_dir / "estimates").glob("[!.]*.csv")):
+    for f in sorted((src / "estimates").glob("[!.]*.csv")):
         cols = read_csv(f)
         if "nis" not in cols or not (np.isfinite(cols["nis"]).any() or np.isfinite(cols["nees"]).any()):
             continue
@@ -138,7 +138,7 @@ def _consistency_figure(out_dir: Path, colour, plt) -> bool:
         ax.set(xlabel="frame", ylabel=f"moving mean over {w} frames", title=title)
         ax.grid(alpha=0.3, which="both")
     _legend_outside(fig, axes)
-    _save(fig, out_dir / "figures" / "consistency.png")
+    _save(fig, figdir / "consistency.png")
     plt.close(fig)
     return True
 
@@ -167,9 +167,9 @@ def _legend_outside(fig, axes) -> None:
 
 
 def write_report(clip: str | Path, out_dir: str | Path | None = None,
-                 progress: Callable[[int, int], None] | None = None) -> Path:
-    """Write ``report.md`` and its figures into ``out_dir`` (default ``CLIP/out``); ``progress``
-    is called with (figures done, figures in all)."""
+                 progress: Callable[[int, int], None] | None = None, in_dir: str | Path | None = None) -> Path:
+    """Write ``report.md`` and its figures into ``out_dir`` (default ``CLIP/out``) from the stage
+    files in ``in_dir`` (default ``out_dir``); ``progress`` gets (figures done, figures in all)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -177,15 +177,16 @@ def write_report(clip: str | Path, out_dir: str | Path | None = None,
 
     clip = Path(clip)
     out_dir = Path(out_dir) if out_dir else clip / "out"
-    mpath = out_dir / "metrics.json"
+    src = Path(in_dir) if in_dir else out_dir
+    mpath = src / "metrics.json"
     if not mpath.is_file():
         raise StereotrackError("no metrics.json: run `stereotrack estimate` first", mpath)
     metrics = json.loads(mpath.read_text())
-    est = load_estimates(out_dir)
+    est = load_estimates(src)
     truth = load_truth(clip)
     est = _hide_behind_camera(clip, est, metrics.get("calibration_units"))
-    obs = load_detections(out_dir / "detections.csv") if (out_dir / "detections.csv").is_file() else {}
-    info = out_dir / "detect.json"
+    obs = load_detections(src / "detections.csv") if (src / "detections.csv").is_file() else {}
+    info = src / "detect.json"
     mcolours = json.loads(info.read_text()).get("marker_colours", {}) if info.is_file() else {}
     total_figs = 5
 
@@ -259,7 +260,7 @@ def write_report(clip: str | Path, out_dir: str | Path | None = None,
         figs.append(("Image-plane tracks", "figures/image_tracks.png"))
     done(3)
 
-    target_csvs = [f for f in sorted((out_dir / "estimates").glob("[!.]*.csv"))
+    target_csvs = [f for f in sorted((src / "estimates").glob("[!.]*.csv"))
                    if "alpha" in (f.read_text().split("\n", 1)[0].split(","))]
     if target_csvs:
         fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
@@ -282,7 +283,7 @@ def write_report(clip: str | Path, out_dir: str | Path | None = None,
         figs.append(("Four-point target: α and z", "figures/target.png"))
     done(4)
 
-    if _consistency_figure(out_dir, method_colour, plt):
+    if _consistency_figure(src, figdir, method_colour, plt):
         figs.append(("Filter consistency: NEES and NIS", "figures/consistency.png"))
     done(5)
 
