@@ -1,5 +1,6 @@
 """Peak memory of `stereotrack run` against clip length: the default scenario rendered at 640×480
-with 150 and 1500 frames, each run in a fresh process (`resource.getrusage`, the whole process).
+with 150 and 1500 frames, each run in a fresh process (its VmHWM: the peak resident memory of the whole process; getrusage's
+ru_maxrss would also count the RSS of the process that started it, which Linux carries across exec).
 Every row is printed as it is measured.
 
     python benchmarks/memory.py [--frames 150 1500] [--out DIR]
@@ -20,9 +21,9 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 from renderers.render import render_clip
 from renderers.scenario import load_scenario
 
-CODE = ("import resource, sys\nfrom pipeline.cli import main\nsys.argv = ['stereotrack', *sys.argv[1:]]\n"
+CODE = ("import sys\nfrom pipeline.cli import main\nsys.argv = ['stereotrack', *sys.argv[1:]]\n"
         "try:\n    main()\nexcept SystemExit as e:\n    assert not e.code, e.code\n"
-        "print('PEAK', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)")
+        "print('PEAK', next(int(ln.split()[1]) for ln in open('/proc/self/status') if ln.startswith('VmHWM')))")
 
 
 def main() -> None:

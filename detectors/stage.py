@@ -11,22 +11,28 @@ from typing import Literal
 
 import cv2
 import numpy as np
-import yaml
 from scipy.optimize import linear_sum_assignment
 
 from detectors.blob import BlobDetector, Detection, MarkerColor
 from detectors.frames import CameraReader, StereoFrameSource
 from detectors.meanshift import MeanShiftTracker
-from pipeline.camera import StereoRig, has_calibration, load_calibration
+from pipeline.camera import StereoRig
 from pipeline.checks import Check, colour_checks, rig_for_frames, warn_failed
+from pipeline.clip import (
+    CLIP_INFO,
+    DETECT_INFO,
+    DETECTION_COLUMNS,
+    MARKERS_FILE,
+    Clip,
+    FootageInfo,
+    observations_from_columns,
+    resolve_marker_specs,
+)
 from pipeline.errors import StereotrackError
-from pipeline.io import check_frame_column, read_csv, write_csv, write_json
+from pipeline.io import write_csv, write_json
 
-DETECTION_COLUMNS = ["frame", "camera", "marker", "u", "v", "area", "score"]
 #: The detect stage's record beside detections.csv: frames, frame size, markers used, checks.
-DETECT_INFO = "detect.json"
 #: A clip folder (or a batch's input root) may name its markers here, in ``--markers`` syntax.
-MARKERS_FILE = "markers.yaml"
 #: Whole frames sampled per camera for the colour-range checks.
 CHECK_SAMPLES = 10
 CAMERAS = ("left", "right")
@@ -53,50 +59,18 @@ class DetectResult:
     learned: dict[str, str] = field(default_factory=dict)  # window-learned marker → the range chosen
     checks: list[Check] = field(default_factory=list)
     marker_colours: dict[str, list[int]] = field(default_factory=dict)  # for drawing, RGB
+    observations: dict[str, np.ndarray] = field(default_factory=dict)  # marker → frames × [u1, v1, u2, v2]
+    footage: FootageInfo | None = None  # what the estimate stage needs to know of the frames
 
 
-def read_markers_file(path: str | Path) -> list[str]:
-    """``markers.yaml``: a list of ``--markers`` specs, or a mapping with key ``markers`` holding one."""
-    path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
-        raise StereotrackError(f"cannot read marker list ({str(exc).splitlines()[0]})", path) from None
-    if isinstance(data, dict):
-        if set(data) != {"markers"}:
-            raise StereotrackError(f"expected one key 'markers', found {', '.join(map(str, data))}", path)
-        data = data["markers"]
-    if not isinstance(data, list) or not data or not all(isinstance(s, str) for s in data):
-        raise StereotrackError("'markers' must be a non-empty list of specs such as 'ball:30-60:60:60', "
-                               "'red=#e61e1e' or 'ball@100,120,40,40'", path)
-    for spec in data:  # validate now, naming the file
-        try:
-            if MarkerColor.parse_window(spec) is None:
-                MarkerColor.parse(spec)
-        except StereotrackError as exc:
-            raise StereotrackError(str(exc), path) from None
-    return data
-
-
-def resolve_marker_specs(clip: Path, specs: list[str] | None, default: list[str] | None = None) -> list[str] | None:
-    """The marker specs that apply to ``clip``: ``--markers``, else the clip's own ``markers.yaml``,
-    else ``default`` (a batch root's ``markers.yaml``); None leaves the colours to scenario.yaml."""
-    if specs:
-        return specs
-    folder = clip if clip.is_dir() else clip.parent
-    if (folder / MARKERS_FILE).is_file():
-        return read_markers_file(folder / MARKERS_FILE)
-    return default
-
-
-def markers_for_clip(clip: Path, specs: list[str] | None, left_frame: Callable[[int], np.ndarray | None] | None = None,
+def markers_for_clip(clip: Clip, specs: list[str] | None, left_frame: Callable[[int], np.ndarray | None] | None = None,
                      learned: dict[str, str] | None = None) -> tuple[list[MarkerColor], dict[str, list[str]]]:
     """Marker colour ranges (from ``--markers`` specs, else ``markers.yaml``, else the clip's
-    scenario.yaml) and, for four-point targets whose points share one colour, the group name →
+    description of a rendered clip) and, for four-point targets whose points share one colour, the group name →
     its four point names. A ``NAME@x,y,w,h[@FRAME]`` spec learns its range from that window of
     the left camera's frame FRAME (default the first), read through ``left_frame``; the ranges
     chosen go into ``learned``."""
-    specs = resolve_marker_specs(clip, specs)
+    specs = resolve_marker_specs(clip.path, specs)
     if specs:
         colors = []
         for spec in specs:
@@ -106,28 +80,25 @@ def markers_for_clip(clip: Path, specs: list[str] | None, left_frame: Callable[[
                 continue
             frame = left_frame(win[2]) if left_frame is not None else None
             if frame is None:
-                raise StereotrackError(f"marker {spec!r} learns its colour from left frame {win[2]}, which is missing", clip)
-            mk = MarkerColor.learn(win[0], frame, win[1], f" (left frame {win[2]} of {clip})")
+                raise StereotrackError(f"marker {spec!r} learns its colour from left frame {win[2]}, which is missing",
+                                       clip.path)
+            mk = MarkerColor.learn(win[0], frame, win[1], f" (left frame {win[2]} of {clip.path})")
             colors.append(mk)
             if learned is not None:
                 learned[mk.name] = mk.spec()
         return colors, {}
-    scen_path = clip / "scenario.yaml" if clip.is_dir() else None
-    if scen_path is None or not scen_path.is_file():
+    if not clip.markers:
         raise StereotrackError(f"no marker colours: give --markers NAME:HLO-HHI, NAME=#RRGGBB or NAME@x,y,w,h, "
-                               f"or put them in {MARKERS_FILE} (no scenario.yaml to take them from)", clip)
-    from renderers.scenario import load_scenario
-
-    scen = load_scenario(scen_path)
+                               f"or put them in {MARKERS_FILE} (no {CLIP_INFO} or scenario.yaml to take them from)",
+                               clip.path)
     colors: list[MarkerColor] = []
     groups: dict[str, list[str]] = {}
-    for obj in scen.objects:
-        names, cols = obj.marker_names(), obj.marker_colors()
-        if obj.is_target and len(set(cols)) == 1:
-            colors.append(MarkerColor.from_rgb(obj.name, cols[0]))
-            groups[obj.name] = names
-        else:
-            colors += [MarkerColor.from_rgb(n, c) for n, c in zip(names, cols, strict=True)]
+    for mk in clip.markers:
+        if mk.group is None:
+            colors.append(MarkerColor.from_rgb(mk.name, mk.rgb))
+        elif mk.group not in groups:
+            colors.append(MarkerColor.from_rgb(mk.group, mk.rgb))
+            groups[mk.group] = [m.name for m in clip.markers if m.group == mk.group]
     return colors, groups
 
 
@@ -154,7 +125,7 @@ def label_four_points(points: np.ndarray, previous: np.ndarray | None) -> np.nda
 
 
 def detect_clip(
-    clip: str | Path,
+    clip: str | Path | Clip,
     detector: DetectorName = "blob",
     marker_specs: list[str] | None = None,
     roi: tuple[int, int, int, int] | None = None,
@@ -174,18 +145,18 @@ def detect_clip(
     have lens distortion; estimators need pinhole coordinates); a calibration for another image
     size is an error, or scaled with a warning when only the resolution differs.
     """
-    clip = Path(clip)
+    clip_ = Clip.open(clip)
+    clip = clip_.path
     source = StereoFrameSource(clip, allow_unequal=allow_unequal)
-    base = clip if clip.is_dir() else clip.parent
-    out_dir = Path(out_dir) if out_dir else base / "out"
+    out_dir = Path(out_dir) if out_dir else clip_.folder / "out"
     rig: StereoRig | None = None
     checks: list[Check] = []
-    if has_calibration(clip):
-        rig, size_check = rig_for_frames(load_calibration(clip, calib_units), source.size, clip)
+    if clip_.has_calibration:
+        rig, size_check = rig_for_frames(clip_.rig(calib_units), source.size, clip)
         checks += [size_check] if size_check else []
     learned: dict[str, str] = {}
     specs = resolve_marker_specs(clip, marker_specs)
-    markers, groups = markers_for_clip(clip, specs, lambda k: _left_frame(source, k), learned)
+    markers, groups = markers_for_clip(clip_, specs, lambda k: _left_frame(source, k), learned)
     n_cams = 2 if source.stereo else 1
     if detector == "blob":
         blob = BlobDetector(markers, max_per_marker=4)
@@ -244,9 +215,12 @@ def detect_clip(
         "detector": detector, "markers": [m.spec() for m in markers], "learned": learned,
         "marker_colours": {m.name: list(m.display_rgb()) for m in markers},
         "checks": [c.as_dict() for c in checks]})
+    cols = {name: [r[i] for r in rows] for i, name in enumerate(DETECTION_COLUMNS)}
     result = DetectResult(path, rows, learned=learned, checks=checks,
-                          marker_colours={m.name: list(m.display_rgb()) for m in markers})
-    result.summaries = summarize(rows, clip, n_done, n_cams)
+                          marker_colours={m.name: list(m.display_rgb()) for m in markers},
+                          observations=observations_from_columns(cols, n_done, path),
+                          footage=FootageInfo(n_done, tuple(source.size), checks))
+    result.summaries = summarize(rows, clip_, n_done, n_cams)
     return result
 
 
@@ -305,10 +279,9 @@ def _best_per_marker(dets: list[Detection], groups: dict[str, list[str]], previo
     return out
 
 
-def summarize(rows: list[tuple], clip: Path, n_frames: int, n_cams: int) -> list[CameraSummary]:
+def summarize(rows: list[tuple], clip: Clip, n_frames: int, n_cams: int) -> list[CameraSummary]:
     """Frames, detections, misses and pixel errors against truth (when ``truth.csv`` exists)."""
-    truth_path = clip / "truth.csv" if clip.is_dir() else None
-    truth = read_csv(truth_path) if truth_path is not None and truth_path.is_file() else None
+    truth = clip.truth_table()
     out = []
     for c in range(n_cams):
         cam = CAMERAS[c]
@@ -331,35 +304,4 @@ def summarize(rows: list[tuple], clip: Path, n_frames: int, n_cams: int) -> list
                 e = np.array(errs)
                 s.err_median, s.err_p95, s.err_max = float(np.median(e)), float(np.percentile(e, 95)), float(e.max())
         out.append(s)
-    return out
-
-
-def load_detections(path: str | Path, n_frames: int | None = None) -> dict[str, np.ndarray]:
-    """``detections.csv`` → per marker an array frames × 4 ``[u1, v1, u2, v2]`` (NaN = missed),
-    keeping the highest-scoring detection per frame, camera and marker.
-
-    ``n_frames`` is the clip's frame count: a row outside ``0 .. n_frames − 1`` is an error naming
-    the line, as are non-numeric or non-finite fields and unknown cameras.
-    """
-    path = Path(path)
-    cols = read_csv(path, DETECTION_COLUMNS, numeric=["area", "score"], finite=["frame", "u", "v"])
-    if len(cols["frame"]) == 0:
-        return {}
-    frames = cols["frame"]
-    check_frame_column(frames, n_frames, path)
-    n = max(int(frames.max()) + 1, n_frames or 0)
-    out: dict[str, np.ndarray] = {}
-    best: dict[tuple[str, int, int], float] = {}
-    for i, (k, cam, name, u, v, score) in enumerate(zip(frames.astype(int), cols["camera"], cols["marker"], cols["u"],
-                                                         cols["v"], cols["score"], strict=True)):
-        c = {"left": 0, "right": 1}.get(str(cam))
-        if c is None:
-            raise StereotrackError(f"line {i + 2}: unknown camera {cam!r} (expected left/right)", path)
-        score = score if np.isfinite(score) else 0.0
-        arr = out.setdefault(str(name), np.full((n, 4), np.nan))
-        key = (str(name), int(k), c)
-        if key in best and best[key] >= score:
-            continue
-        best[key] = score
-        arr[k, 2 * c : 2 * c + 2] = (u, v)
     return out

@@ -73,7 +73,7 @@ def _process_one(clip: str, out_root: str, settings: dict[str, Any], parent_pid:
     import uuid
     import warnings
 
-    from detectors.stage import resolve_marker_specs
+    from pipeline.clip import resolve_marker_specs
     from pipeline.run import process_clip
 
     clip_p, name = Path(clip), Path(clip).name
@@ -146,7 +146,7 @@ def run_batch(
     the holder). A clip counts as done only if its manifest verifies and was made with the same
     settings; anything else (including leftovers of a killed batch) is redone.
     """
-    from detectors.stage import MARKERS_FILE, read_markers_file
+    from pipeline.clip import MARKERS_FILE, read_markers_file
 
     clips = find_clips(input_dir)
     if not clips:

@@ -3,8 +3,6 @@ when the clip has truth, ``out/metrics.json`` (SPEC §3)."""
 
 from __future__ import annotations
 
-import json
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -12,66 +10,25 @@ from typing import Any
 
 import numpy as np
 
-from detectors.stage import DETECT_INFO, load_detections
 from pipeline import consistency
-from pipeline.camera import StereoRig, load_calibration
-from pipeline.checks import Check, jump_checks, rig_for_frames, stereo_checks, warn_failed
+from pipeline.camera import StereoRig
+from pipeline.checks import jump_checks, rig_for_frames, stereo_checks, warn_failed
+from pipeline.clip import (
+    ESTIMATE_COLUMNS,
+    TARGET_COLUMNS,
+    Clip,
+    ClipTruth,
+    FootageInfo,
+    TargetInfo,
+    find_target,
+    footage_info,
+    load_detections,
+)
 from pipeline.errors import StereotrackError
 from pipeline.estimators import Track, create, registry
 from pipeline.estimators import methods as registered_methods
-from pipeline.io import check_frame_column, read_csv, write_csv, write_json
+from pipeline.io import write_csv, write_json
 from pipeline.manifest import stereotrack_version
-
-#: per frame: position, velocity, and for filters the NIS of the update (with its degrees of
-#: freedom) and the position NEES against the truth (empty where there is none)
-ESTIMATE_COLUMNS = ["frame", "t", "marker", "x", "y", "z", "vx", "vy", "vz", "nis", "nis_dof", "nees"]
-TARGET_COLUMNS = [*ESTIMATE_COLUMNS, "alpha", "distance"]
-
-
-@dataclass
-class ClipTruth:
-    """Per-marker truth positions (frames × 3) and the clip's frame count and fps."""
-
-    positions: dict[str, np.ndarray]
-    n_frames: int
-
-
-@dataclass
-class TargetInfo:
-    """A four-point target in a clip: its name, radius and (rendered clips) truth and dynamics."""
-
-    name: str
-    radius: float
-    config: dict
-    alpha: np.ndarray | None = None
-    distance: np.ndarray | None = None
-
-
-def find_target(clip: Path, target_radius: float | None, obs: dict[str, np.ndarray]) -> TargetInfo | None:
-    """The clip's four-point target: from scenario.yaml (radius and the known dynamics the
-    Kalman–Bucy filter assumes) or, for real footage, detections named NAME_1..NAME_4 plus
-    ``target_radius``."""
-    info = None
-    if (clip / "scenario.yaml").is_file():
-        from renderers.scenario import FourPointTarget, load_scenario
-
-        for obj in load_scenario(clip / "scenario.yaml").objects:
-            if isinstance(obj.motion, FourPointTarget):
-                m = obj.motion
-                cfg = {"a_alpha": m.alpha_matrix[1][1], "alpha_feedback": (-m.alpha_matrix[1][0], 0.0), "a_z": m.a_z}
-                info = TargetInfo(obj.name, target_radius or m.radius, cfg)
-    if info is None:
-        names = {k.rsplit("_", 1)[0] for k in obs if k.rsplit("_", 1)[-1] in "1234" and "_" in k}
-        full = [n for n in names if all(f"{n}_{j}" in obs for j in range(1, 5))]
-        if not full:
-            return None
-        if target_radius is None:
-            raise StereotrackError(f"four-point target '{full[0]}' found: give its radius (--target-radius)", clip)
-        info = TargetInfo(full[0], target_radius, {})
-    if (clip / "target_truth.csv").is_file():
-        tt = read_csv(clip / "target_truth.csv", ["frame", "alpha", "distance"])
-        info.alpha, info.distance = tt["alpha"], tt["distance"]
-    return info
 
 
 @dataclass
@@ -86,81 +43,6 @@ class EstimateResult:
     target: TargetInfo | None = None
     target_tracks: dict[str, Track] = field(default_factory=dict)
     metrics: dict[str, Any] = field(default_factory=dict)
-
-
-def clip_fps(clip: Path) -> float:
-    """Frame rate from ``scenario.yaml``, else the left video's header, else 30."""
-    if (clip / "scenario.yaml").is_file():
-        from renderers.scenario import load_scenario
-
-        return load_scenario(clip / "scenario.yaml").fps
-    from detectors.frames import CameraReader, find_camera_source
-
-    try:
-        reader = CameraReader(find_camera_source(clip, "left"))
-    except StereotrackError:
-        return 30.0
-    reader.close()
-    return reader.fps or 30.0
-
-
-def read_positions(path: Path, n_frames: int | None = None) -> tuple[dict[str, np.ndarray], int]:
-    """A long-format table (``frame, marker, x, y, z``: truth.csv, estimates/*.csv) → marker →
-    positions (frames × 3, NaN where absent), and the frame count. A row whose frame lies
-    outside ``0 .. n_frames − 1`` is an error naming the line."""
-    cols = read_csv(path, ["frame", "marker", "x", "y", "z"], numeric=["x", "y", "z"], finite=["frame"])
-    frames = cols["frame"]
-    check_frame_column(frames, n_frames, path)
-    n = int(np.nanmax(frames)) + 1 if len(frames) else 0
-    pos: dict[str, np.ndarray] = {}
-    for k, name, x, y, z in zip(cols["frame"].astype(int), cols["marker"], cols["x"], cols["y"], cols["z"], strict=True):
-        pos.setdefault(str(name), np.full((n, 3), np.nan))[k] = (x, y, z)
-    return pos, n
-
-
-def load_truth(clip: Path, n_frames: int | None = None) -> ClipTruth | None:
-    """``truth.csv`` → per-marker positions, or None for real footage. With the clip's frame
-    count: rows past the clip are an error, a truth shorter than the clip a warning (the
-    frames without truth are not scored)."""
-    path = clip / "truth.csv"
-    if not path.is_file():
-        return None
-    truth = ClipTruth(*read_positions(path, n_frames))
-    if n_frames is not None and truth.n_frames < n_frames:
-        warnings.warn(f"{path}: truth covers {truth.n_frames} of the clip's {n_frames} frames; "
-                      f"the last {n_frames - truth.n_frames} are not scored", stacklevel=2)
-    return truth
-
-
-@dataclass
-class FootageInfo:
-    """What the detect stage saw of the footage (``detect.json``), or the footage's headers."""
-
-    frames: int | None
-    frame_size: tuple[int, int] | None
-    checks: list[Check]
-
-
-def footage_info(clip: Path, out_dir: Path) -> FootageInfo:
-    """Frame count and size of the clip, from ``detect.json`` when the detect stage wrote one,
-    else from the footage itself (opened, not decoded), else unknown."""
-    info = out_dir / DETECT_INFO
-    if info.is_file():
-        try:
-            d = json.loads(info.read_text())
-            checks = [Check(**c) for c in d.get("checks", [])]
-            return FootageInfo(int(d["frames"]), tuple(d["frame_size"]), checks)  # type: ignore[arg-type]
-        except (ValueError, KeyError, TypeError) as exc:
-            raise StereotrackError(f"unreadable detect record ({exc}): rerun `stereotrack detect`", info) from None
-    from detectors.frames import StereoFrameSource
-
-    try:
-        src = StereoFrameSource(clip, allow_unequal=True, prefetch=False)
-    except StereotrackError:
-        return FootageInfo(None, None, [])
-    for r in src.readers:
-        r.close()
-    return FootageInfo(len(src), src.size, [])
 
 
 def error_stats(est: np.ndarray, truth: np.ndarray) -> dict[str, float]:
@@ -197,7 +79,7 @@ def estimate_pixel_sigma(rig: StereoRig, observations: dict[str, np.ndarray]) ->
 
 
 def estimate_clip(
-    clip: str | Path,
+    clip: str | Path | Clip,
     methods: list[str] | None = None,
     out_dir: str | Path | None = None,
     configs: dict[str, dict] | None = None,
@@ -205,10 +87,13 @@ def estimate_clip(
     target_radius: float | None = None,
     calib_units: str | None = None,
     in_dir: str | Path | None = None,
+    detections: tuple[dict[str, np.ndarray], FootageInfo] | None = None,
 ) -> EstimateResult:
     """Run every requested method on every marker of a clip and write estimates and metrics.
 
-    Detections are read from ``in_dir`` (default ``out_dir``, itself default ``CLIP/out``);
+    Detections are read from ``in_dir`` (default ``out_dir``, itself default ``CLIP/out``), or
+    handed over in memory as ``detections`` (observations per marker and what the detect stage saw
+    of the footage) when the stages run together;
     estimates and metrics go to ``out_dir``. Point methods run on each marker; on clips with a
     four-point target the target methods
     (raw measurement, Kalman–Bucy, PnP + KF) run on its four labelled points too. Input checks
@@ -216,38 +101,38 @@ def estimate_clip(
     detect stage's colour and image-size checks) are warned about and written to
     ``metrics.json`` under ``checks``.
     """
-    clip = Path(clip)
-    out_dir = Path(out_dir) if out_dir else clip / "out"
+    clip_ = Clip.open(clip)
+    clip = clip_.path
+    out_dir = Path(out_dir) if out_dir else clip_.folder / "out"
     in_dir = Path(in_dir) if in_dir else out_dir  # where the detect stage wrote (run: the same folder)
     reg = registry()
     for m in methods or []:
         if m not in reg:
             raise StereotrackError(f"unknown method {m!r} (known: {', '.join(reg)})")
     det_path = in_dir / "detections.csv"
-    if not det_path.is_file():
+    if detections is None and not det_path.is_file():
         raise StereotrackError("no detections.csv: run `stereotrack detect` first", det_path)
-    footage = footage_info(clip, in_dir)
-    rig = load_calibration(clip, calib_units)
+    footage = detections[1] if detections is not None else footage_info(clip, in_dir)
+    rig = clip_.rig(calib_units)
     checks = list(footage.checks)
     if footage.frame_size is not None and not any(c.name == "image_size" for c in checks):
         rig, size_check = rig_for_frames(rig, footage.frame_size, clip)
         checks += [size_check] if size_check else []
     elif any(c.name == "image_size" for c in checks) and footage.frame_size is not None:
         rig = rig.scaled_to(footage.frame_size)
-    dt = 1.0 / clip_fps(clip)
-    truth = load_truth(clip, footage.frames)
-    obs = load_detections(det_path, footage.frames)
+    dt = 1.0 / clip_.fps
+    truth = clip_.truth(footage.frames)
+    obs = detections[0] if detections is not None else load_detections(det_path, footage.frames)
     if not obs:
-        raise StereotrackError("detections.csv holds no detections", det_path)
+        raise StereotrackError("no detections in this clip", det_path)
     n = max(len(v) for v in obs.values())
     if truth is not None:
         n = max(n, truth.n_frames)
     obs = {k: np.vstack([v, np.full((n - len(v), 4), np.nan)]) for k, v in obs.items()}
-    calib_name = next((p.name for p in clip.iterdir() if p.name.startswith(("calib", "extrinsics"))), "the calibration")
-    new_checks = stereo_checks(rig, obs, calib_name) + jump_checks(obs, rig.image_size[0] or 640)
+    new_checks = stereo_checks(rig, obs, clip_.calibration_name) + jump_checks(obs, rig.image_size[0] or 640)
     warn_failed(new_checks)
     checks += new_checks
-    target = find_target(clip, target_radius, obs)
+    target = find_target(clip_, target_radius, obs)
     methods = methods or registered_methods("point") + (registered_methods("target") if target else [])
     configs = {k: dict(v) for k, v in (configs or {}).items()}
     sigma = estimate_pixel_sigma(rig, obs)

@@ -11,9 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from detectors.stage import load_detections
+from pipeline.clip import Clip, load_detections, read_positions
 from pipeline.errors import StereotrackError
-from pipeline.estimate import load_truth, read_positions
 from pipeline.io import atomic_path, read_csv, write_text
 from pipeline.style import marker_rgb, method_colour, method_linestyle
 
@@ -166,7 +165,7 @@ def _legend_outside(fig, axes) -> None:
     fig.tight_layout()
 
 
-def write_report(clip: str | Path, out_dir: str | Path | None = None,
+def write_report(clip: str | Path | Clip, out_dir: str | Path | None = None,
                  progress: Callable[[int, int], None] | None = None, in_dir: str | Path | None = None) -> Path:
     """Write ``report.md`` and its figures into ``out_dir`` (default ``CLIP/out``) from the stage
     files in ``in_dir`` (default ``out_dir``); ``progress`` gets (figures done, figures in all)."""
@@ -175,7 +174,8 @@ def write_report(clip: str | Path, out_dir: str | Path | None = None,
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    clip = Path(clip)
+    clip_ = Clip.open(clip)
+    clip = clip_.folder
     out_dir = Path(out_dir) if out_dir else clip / "out"
     src = Path(in_dir) if in_dir else out_dir
     mpath = src / "metrics.json"
@@ -183,7 +183,7 @@ def write_report(clip: str | Path, out_dir: str | Path | None = None,
         raise StereotrackError("no metrics.json: run `stereotrack estimate` first", mpath)
     metrics = json.loads(mpath.read_text())
     est = load_estimates(src)
-    truth = load_truth(clip)
+    truth = clip_.truth()
     est = _hide_behind_camera(clip, est, metrics.get("calibration_units"))
     obs = load_detections(src / "detections.csv") if (src / "detections.csv").is_file() else {}
     info = src / "detect.json"

@@ -9,7 +9,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from detectors.stage import DetectResult, detect_clip
-from pipeline.estimate import EstimateResult, clip_fps, estimate_clip
+from pipeline.clip import Clip
+from pipeline.estimate import EstimateResult, estimate_clip
 from pipeline.lifeline import OutputLock
 from pipeline.recording import Recorder
 from pipeline.report import write_report
@@ -66,17 +67,18 @@ def _process_clip(clip: Path, out_dir: Path, detector: str, methods: list[str] |
                   configs: dict[str, dict] | None = None) -> RunResult:
     t0 = time.perf_counter()
     say = stage or (lambda s: None)
-    recorder = Recorder(out_dir / "run.rrd", 1.0 / clip_fps(clip)) if recording else None
+    clip_ = Clip.open(clip)  # read once, handed to every stage
+    recorder = Recorder(out_dir / "run.rrd", 1.0 / clip_.fps) if recording else None
     try:
         say("detect")
         sink = recorder.log_frame if recorder is not None and images_in_recording else None
-        det = detect_clip(clip, detector, marker_specs, out_dir=out_dir, progress=progress,  # type: ignore[arg-type]
+        det = detect_clip(clip_, detector, marker_specs, out_dir=out_dir, progress=progress,  # type: ignore[arg-type]
                           calib_units=calib_units, frame_sink=sink)
         say("estimate")
-        est = estimate_clip(clip, methods, out_dir=out_dir, progress=progress, calib_units=calib_units,
-                            configs=configs)
+        est = estimate_clip(clip_, methods, out_dir=out_dir, progress=progress, calib_units=calib_units,
+                            configs=configs, detections=(det.observations, det.footage))
         say("report")
-        report = write_report(clip, out_dir, progress=progress)
+        report = write_report(clip_, out_dir, progress=progress)
         rrd = None
         if recorder is not None:
             say("recording")

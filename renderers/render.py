@@ -22,10 +22,11 @@ import cv2
 import numpy as np
 
 from pipeline.camera import save_calibration
+from pipeline.clip import CLIP_INFO
 from pipeline.errors import ClipError, StereotrackError
-from pipeline.io import write_text
+from pipeline.io import write_json, write_text
 from renderers.motion import Truth, simulate_truth
-from renderers.scenario import Scenario
+from renderers.scenario import Scenario, clip_description
 from renderers.truth import project_truth, write_target_truth, write_truth
 
 CAMERA_NAMES = ("left", "right")
@@ -207,7 +208,8 @@ def _staging_dir(clip_dir: Path) -> Path:
 
 
 #: What a render puts in a clip folder; a re-render replaces exactly these (and the stale ``out/``).
-RENDERED = ("calib.yaml", "scenario.yaml", "truth.csv", "target_truth.csv", "left", "right", "left.mp4", "right.mp4", "out")
+RENDERED = ("calib.yaml", CLIP_INFO, "scenario.yaml", "truth.csv", "target_truth.csv", "left", "right", "left.mp4",
+            "right.mp4", "out")
 
 
 def _commit(staging: Path, clip_dir: Path) -> None:
@@ -235,6 +237,7 @@ def _write_clip_files(scenario: Scenario, staging: Path, truth: Truth) -> list[s
     notes = [f"marker '{name}' is never visible in either camera" for i, name in enumerate(truth.names)
              if not proj.visible[:, i, :].any()]
     write_text(staging / "scenario.yaml", scenario.to_yaml())
+    write_json(staging / CLIP_INFO, clip_description(scenario))
     write_truth(staging / "truth.csv", truth, proj)
     if truth.targets:
         write_target_truth(staging / "target_truth.csv", truth, proj)

@@ -259,3 +259,21 @@ def parse_scenario(data: dict, source: str | Path = "<scenario>") -> Scenario:
             parts.append(f"{loc or '(top level)'}: {err['msg']}")
         more = f" (+{exc.error_count() - 3} more)" if exc.error_count() > 3 else ""
         raise ScenarioError("invalid scenario: " + "; ".join(parts) + more, source) from None
+
+
+def clip_description(scenario: Scenario) -> dict:
+    """What a clip rendered from ``scenario`` shows, for ``clip.json``: fps, frames, every marker
+    with its colour (the points of a one-colour four-point target grouped under its name), and the
+    target's radius and the dynamics the Kalman–Bucy filter assumes. Stages downstream read this
+    instead of the scenario model."""
+    markers, target = [], None
+    for obj in scenario.objects:
+        names, cols = obj.marker_names(), obj.marker_colors()
+        group = obj.name if obj.is_target and len(set(cols)) == 1 else None
+        markers += [{"name": n, "rgb": list(c), "group": group} for n, c in zip(names, cols, strict=True)]
+        if isinstance(obj.motion, FourPointTarget):
+            m = obj.motion
+            target = {"name": obj.name, "radius": m.radius,
+                      "config": {"a_alpha": m.alpha_matrix[1][1], "alpha_feedback": [-m.alpha_matrix[1][0], 0.0],
+                                 "a_z": m.a_z}}
+    return {"fps": scenario.fps, "frames": scenario.frames, "markers": markers, "target": target}

@@ -9,17 +9,11 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.camera import StereoRig
+from pipeline.clip import TARGET_TRUTH_COLUMNS, TRUTH_COLUMNS
 from pipeline.io import write_csv
 from renderers.motion import Truth, distractor_positions
 from renderers.scenario import Scenario
 
-TRUTH_COLUMNS = [
-    "frame", "t", "marker", "x", "y", "z", "vx", "vy", "vz",
-    "u_left", "v_left", "u_right", "v_right", "visible_left", "visible_right",
-]
-TARGET_COLUMNS = ["frame", "t", "alpha", "alpha_dot", "distance", "distance_dot", "axis_angle"] + [
-    f"{c}{i}_{cam}" for cam in ("left", "right") for i in range(1, 5) for c in ("u", "v")
-]
 NEAR = 0.05  # metres; closer than this counts as not in front of the camera
 
 
@@ -109,4 +103,4 @@ def write_target_truth(path: Path, truth: Truth, proj: ProjectedTruth) -> None:
             px = [proj.uv[k, i, 2 * c + d] for c in range(2) for i in idx for d in range(2)]
             yield (k, truth.t[k], tgt.alpha[k], tgt.alpha_dot[k], tgt.distance[k], tgt.distance_dot[k], tgt.axis_angle, *px)
 
-    write_csv(path, TARGET_COLUMNS, rows())
+    write_csv(path, TARGET_TRUTH_COLUMNS, rows())

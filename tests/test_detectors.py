@@ -11,7 +11,8 @@ import pytest
 from detectors.blob import BlobDetector, MarkerColor
 from detectors.frames import StereoFrameSource
 from detectors.meanshift import MeanShiftTracker
-from detectors.stage import detect_clip, label_four_points, load_detections
+from detectors.stage import detect_clip, label_four_points
+from pipeline.clip import load_detections
 from pipeline.errors import ClipError, StereotrackError
 from pipeline.io import read_csv
 from renderers.render import render_clip

@@ -16,8 +16,9 @@ import pytest
 
 from detectors.blob import BlobDetector, MarkerColor
 from detectors.frames import StereoFrameSource
-from detectors.stage import detect_clip, load_detections
+from detectors.stage import detect_clip
 from pipeline.camera import Camera, StereoRig, load_calibration, save_calibration, triangulate
+from pipeline.clip import load_detections
 from pipeline.errors import ClipError
 from pipeline.estimate import estimate_clip
 from pipeline.io import read_csv

@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 
 from pipeline.camera import load_calibration
+from pipeline.clip import TARGET_TRUTH_COLUMNS, TRUTH_COLUMNS
 from pipeline.io import read_csv
-from renderers.truth import TARGET_COLUMNS, TRUTH_COLUMNS
 
 HUE = {"red": 0, "green": 1, "blue": 2}
 
@@ -64,7 +64,7 @@ def test_clip_contents_and_truth_schema(png_clip, target_clip):
         header = (clip / "truth.csv").read_text().splitlines()[0].split(",")
         assert header == TRUTH_COLUMNS
         assert not list(clip.glob(".*partial*"))
-    tt = read_csv(target_clip / "target_truth.csv", TARGET_COLUMNS)
+    tt = read_csv(target_clip / "target_truth.csv", TARGET_TRUTH_COLUMNS)
     assert len(tt["frame"]) == 40 and np.all(np.isfinite(tt["alpha"]))
 
 

@@ -1,0 +1,340 @@
+"""The clip folder (SPEC §3), read in one place: which files a clip has and what they mean, and
+the schemas of every table a clip or its ``out/`` folder holds (Kubric's one folder per scene,
+with its settings written beside it).
+
+A clip folder holds ``left``/``right`` videos (or folders of numbered frames) and a calibration;
+a rendered clip adds ``clip.json`` (fps, markers and their colours, the four-point target's
+description — written by the renderer from its scenario), ``scenario.yaml``, ``truth.csv`` and
+``target_truth.csv``. :class:`Clip` loads each piece once, when first asked; every stage takes a
+``Clip`` (or a path, opened here) so that nothing downstream needs to know how the clip was made.
+Frames themselves are decoded by :mod:`detectors.frames`.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from pipeline.camera import CALIB_NAMES, EXTRINSICS_NAMES, StereoRig, has_calibration, load_calibration
+from pipeline.checks import Check
+from pipeline.errors import ClipError, StereotrackError
+from pipeline.io import check_frame_column, read_csv
+
+VIDEO_EXTS = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm")
+IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+CLIP_INFO = "clip.json"
+DETECT_INFO = "detect.json"
+MARKERS_FILE = "markers.yaml"
+
+# -- table schemas ------------------------------------------------------------------------------
+TRUTH_COLUMNS = [
+    "frame", "t", "marker", "x", "y", "z", "vx", "vy", "vz",
+    "u_left", "v_left", "u_right", "v_right", "visible_left", "visible_right",
+]
+TARGET_TRUTH_COLUMNS = ["frame", "t", "alpha", "alpha_dot", "distance", "distance_dot", "axis_angle"] + [
+    f"{c}{i}_{cam}" for cam in ("left", "right") for i in range(1, 5) for c in ("u", "v")
+]
+DETECTION_COLUMNS = ["frame", "camera", "marker", "u", "v", "area", "score"]
+#: per frame: position, velocity, and for filters the NIS of the update (with its degrees of
+#: freedom) and the position NEES against the truth (empty where there is none)
+ESTIMATE_COLUMNS = ["frame", "t", "marker", "x", "y", "z", "vx", "vy", "vz", "nis", "nis_dof", "nees"]
+TARGET_COLUMNS = [*ESTIMATE_COLUMNS, "alpha", "distance"]
+
+
+@dataclass(frozen=True)
+class MarkerInfo:
+    """A marker a rendered clip shows: its name, colour (RGB) and, for the points of a four-point
+    target that share one colour, the target it belongs to."""
+
+    name: str
+    rgb: tuple[int, int, int]
+    group: str | None = None
+
+
+@dataclass
+class ClipTruth:
+    """Per-marker truth positions (frames × 3) and the truth's frame count."""
+
+    positions: dict[str, np.ndarray]
+    n_frames: int
+
+
+
+@dataclass
+class TargetInfo:
+    """A four-point target in a clip: its name, radius and (rendered clips) truth and dynamics."""
+
+    name: str
+    radius: float
+    config: dict
+    alpha: np.ndarray | None = None
+    distance: np.ndarray | None = None
+
+
+
+class Clip:
+    """One clip folder (or a single stereo video file), each piece loaded once when first asked."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.folder = self.path if self.path.is_dir() else self.path.parent
+        self._rigs: dict[str | None, StereoRig] = {}
+        self._truth: dict[int | None, ClipTruth | None] = {}
+
+    @classmethod
+    def open(cls, clip: str | Path | Clip) -> Clip:
+        """A :class:`Clip` for a path (a Clip is returned as it is)."""
+        return clip if isinstance(clip, Clip) else cls(clip)
+
+    def __repr__(self) -> str:
+        return f"Clip({str(self.path)!r})"
+
+    # -- what the clip is ----------------------------------------------------------------------
+    @cached_property
+    def info(self) -> dict[str, Any]:
+        """``clip.json`` (rendered clips), else the same description derived from an older
+        clip's ``scenario.yaml``, else ``{}`` (real footage)."""
+        path = self.folder / CLIP_INFO
+        if path.is_file():
+            try:
+                return json.loads(path.read_text())
+            except (OSError, ValueError) as exc:
+                raise ClipError(f"unreadable clip description ({exc})", path) from None
+        if (self.folder / "scenario.yaml").is_file() and self.path.is_dir():
+            from renderers.scenario import clip_description, load_scenario  # clips rendered before clip.json
+
+            return clip_description(load_scenario(self.folder / "scenario.yaml"))
+        return {}
+
+    @property
+    def markers(self) -> list[MarkerInfo]:
+        """The markers a rendered clip shows (empty for real footage)."""
+        return [MarkerInfo(m["name"], tuple(m["rgb"]), m.get("group")) for m in self.info.get("markers", [])]
+
+    @cached_property
+    def fps(self) -> float:
+        """Frame rate: the clip description's, else the left video's header, else 30."""
+        if "fps" in self.info:
+            return float(self.info["fps"])
+        from detectors.frames import CameraReader
+
+        try:
+            reader = CameraReader(self.camera_source("left") if self.path.is_dir() else self.path)
+        except StereotrackError:
+            return 30.0
+        reader.close()
+        return reader.fps or 30.0
+
+    def camera_source(self, name: str) -> Path:
+        """``<name>.<video ext>`` or a ``<name>/`` folder of frames inside the clip folder."""
+        return find_camera_source(self.folder, name)
+
+    # -- calibration and truth -----------------------------------------------------------------
+    @property
+    def has_calibration(self) -> bool:
+        return has_calibration(self.path)
+
+    @property
+    def calibration_name(self) -> str:
+        """The calibration's file name, for messages."""
+        for name in (*CALIB_NAMES, *EXTRINSICS_NAMES):
+            if (self.folder / name).is_file():
+                return name
+        return "the calibration"
+
+    def rig(self, units: str | None = None) -> StereoRig:
+        """The calibration (loaded once per unit override)."""
+        if units not in self._rigs:
+            self._rigs[units] = load_calibration(self.path, units)
+        return self._rigs[units]
+
+    @cached_property
+    def _truth_table(self) -> dict[str, np.ndarray] | None:
+        path = self.folder / "truth.csv"
+        return read_csv(path, TRUTH_COLUMNS) if self.path.is_dir() and path.is_file() else None
+
+    def truth_table(self) -> dict[str, np.ndarray] | None:
+        """``truth.csv`` as columns (with the projected pixels and visibility), or None."""
+        return self._truth_table
+
+    def truth(self, n_frames: int | None = None) -> ClipTruth | None:
+        """``truth.csv`` (loaded once per frame count), or None for real footage."""
+        if n_frames not in self._truth:
+            self._truth[n_frames] = load_truth(self.folder, n_frames) if self.path.is_dir() else None
+        return self._truth[n_frames]
+
+
+@dataclass
+class FootageInfo:
+    """What the detect stage saw of the footage (``detect.json``), or the footage's headers."""
+
+    frames: int | None
+    frame_size: tuple[int, int] | None
+    checks: list[Check]
+
+
+def footage_info(clip: Path, out_dir: Path) -> FootageInfo:
+    """Frame count and size of the clip, from ``detect.json`` when the detect stage wrote one,
+    else from the footage itself (opened, not decoded), else unknown."""
+    info = out_dir / DETECT_INFO
+    if info.is_file():
+        try:
+            d = json.loads(info.read_text())
+            checks = [Check(**c) for c in d.get("checks", [])]
+            return FootageInfo(int(d["frames"]), tuple(d["frame_size"]), checks)  # type: ignore[arg-type]
+        except (ValueError, KeyError, TypeError) as exc:
+            raise StereotrackError(f"unreadable detect record ({exc}): rerun `stereotrack detect`", info) from None
+    from detectors.frames import StereoFrameSource
+
+    try:
+        src = StereoFrameSource(clip, allow_unequal=True, prefetch=False)
+    except StereotrackError:
+        return FootageInfo(None, None, [])
+    for r in src.readers:
+        r.close()
+    return FootageInfo(len(src), src.size, [])
+
+
+def find_camera_source(clip_dir: Path, name: str) -> Path:
+    """``<name>.<video ext>`` or a ``<name>/`` folder of frames inside ``clip_dir``."""
+    for ext in VIDEO_EXTS:
+        p = clip_dir / f"{name}{ext}"
+        if p.is_file():
+            return p
+    if (clip_dir / name).is_dir():
+        return clip_dir / name
+    raise ClipError(f"no {name} video ({'/'.join(e[1:] for e in VIDEO_EXTS)}) or {name}/ frame folder", clip_dir)
+
+
+
+def read_positions(path: Path, n_frames: int | None = None) -> tuple[dict[str, np.ndarray], int]:
+    """A long-format table (``frame, marker, x, y, z``: truth.csv, estimates/*.csv) → marker →
+    positions (frames × 3, NaN where absent), and the frame count. A row whose frame lies
+    outside ``0 .. n_frames − 1`` is an error naming the line."""
+    cols = read_csv(path, ["frame", "marker", "x", "y", "z"], numeric=["x", "y", "z"], finite=["frame"])
+    frames = cols["frame"]
+    check_frame_column(frames, n_frames, path)
+    n = int(np.nanmax(frames)) + 1 if len(frames) else 0
+    pos: dict[str, np.ndarray] = {}
+    for k, name, x, y, z in zip(cols["frame"].astype(int), cols["marker"], cols["x"], cols["y"], cols["z"], strict=True):
+        pos.setdefault(str(name), np.full((n, 3), np.nan))[k] = (x, y, z)
+    return pos, n
+
+
+
+def load_truth(clip: str | Path, n_frames: int | None = None) -> ClipTruth | None:
+    """``truth.csv`` → per-marker positions, or None for real footage. With the clip's frame
+    count: rows past the clip are an error, a truth shorter than the clip a warning (the
+    frames without truth are not scored)."""
+    path = Path(clip) / "truth.csv"
+    if not path.is_file():
+        return None
+    truth = ClipTruth(*read_positions(path, n_frames))
+    if n_frames is not None and truth.n_frames < n_frames:
+        warnings.warn(f"{path}: truth covers {truth.n_frames} of the clip's {n_frames} frames; "
+                      f"the last {n_frames - truth.n_frames} are not scored", stacklevel=2)
+    return truth
+
+
+
+def load_detections(path: str | Path, n_frames: int | None = None) -> dict[str, np.ndarray]:
+    """``detections.csv`` → per marker an array frames × 4 ``[u1, v1, u2, v2]`` (NaN = missed),
+    keeping the highest-scoring detection per frame, camera and marker.
+
+    ``n_frames`` is the clip's frame count: a row outside ``0 .. n_frames − 1`` is an error naming
+    the line, as are non-numeric or non-finite fields and unknown cameras.
+    """
+    path = Path(path)
+    cols = read_csv(path, DETECTION_COLUMNS, numeric=["area", "score"], finite=["frame", "u", "v"])
+    return observations_from_columns(cols, n_frames, path)
+
+
+def observations_from_columns(cols: dict[str, np.ndarray], n_frames: int | None, path: str | Path) -> dict[str, np.ndarray]:
+    """Detection columns (the ``detections.csv`` schema, from the file or from the detect stage
+    in memory) → per marker frames × 4 ``[u1, v1, u2, v2]``, best score per frame and camera."""
+    if len(cols["frame"]) == 0:
+        return {}
+    frames = np.asarray(cols["frame"], dtype=float)
+    check_frame_column(frames, n_frames, path)
+    n = max(int(frames.max()) + 1, n_frames or 0)
+    out: dict[str, np.ndarray] = {}
+    best: dict[tuple[str, int, int], float] = {}
+    for i, (k, cam, name, u, v, score) in enumerate(zip(frames.astype(int), cols["camera"], cols["marker"], cols["u"],
+                                                         cols["v"], cols["score"], strict=True)):
+        c = {"left": 0, "right": 1}.get(str(cam))
+        if c is None:
+            raise StereotrackError(f"line {i + 2}: unknown camera {cam!r} (expected left/right)", path)
+        score = score if np.isfinite(score) else 0.0
+        arr = out.setdefault(str(name), np.full((n, 4), np.nan))
+        key = (str(name), int(k), c)
+        if key in best and best[key] >= score:
+            continue
+        best[key] = score
+        arr[k, 2 * c : 2 * c + 2] = (u, v)
+    return out
+
+
+def find_target(clip: Clip, target_radius: float | None, obs: dict[str, np.ndarray]) -> TargetInfo | None:
+    """The clip's four-point target: from its description (radius and the known dynamics the
+    Kalman–Bucy filter assumes) or, for real footage, detections named NAME_1..NAME_4 plus
+    ``target_radius``."""
+    info = None
+    desc = clip.info.get("target")
+    if desc:
+        info = TargetInfo(desc["name"], target_radius or float(desc["radius"]), dict(desc.get("config", {})))
+    if info is None:
+        names = {k.rsplit("_", 1)[0] for k in obs if k.rsplit("_", 1)[-1] in "1234" and "_" in k}
+        full = [n for n in names if all(f"{n}_{j}" in obs for j in range(1, 5))]
+        if not full:
+            return None
+        if target_radius is None:
+            raise StereotrackError(f"four-point target '{full[0]}' found: give its radius (--target-radius)", clip.folder)
+        info = TargetInfo(full[0], target_radius, {})
+    path = clip.folder / "target_truth.csv"
+    if path.is_file():
+        tt = read_csv(path, ["frame", "alpha", "distance"])
+        info.alpha, info.distance = tt["alpha"], tt["distance"]
+    return info
+
+
+def read_markers_file(path: str | Path) -> list[str]:
+    """``markers.yaml``: a list of ``--markers`` specs, or a mapping with key ``markers`` holding one."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise StereotrackError(f"cannot read marker list ({str(exc).splitlines()[0]})", path) from None
+    if isinstance(data, dict):
+        if set(data) != {"markers"}:
+            raise StereotrackError(f"expected one key 'markers', found {', '.join(map(str, data))}", path)
+        data = data["markers"]
+    if not isinstance(data, list) or not data or not all(isinstance(s, str) for s in data):
+        raise StereotrackError("'markers' must be a non-empty list of specs such as 'ball:30-60:60:60', "
+                               "'red=#e61e1e' or 'ball@100,120,40,40'", path)
+    from detectors.blob import MarkerColor
+
+    for spec in data:  # validate now, naming the file
+        try:
+            if MarkerColor.parse_window(spec) is None:
+                MarkerColor.parse(spec)
+        except StereotrackError as exc:
+            raise StereotrackError(str(exc), path) from None
+    return data
+
+
+def resolve_marker_specs(clip: Path, specs: list[str] | None, default: list[str] | None = None) -> list[str] | None:
+    """The marker specs that apply to ``clip``: ``--markers``, else the clip's own ``markers.yaml``,
+    else ``default`` (a batch root's ``markers.yaml``); None leaves the colours to scenario.yaml."""
+    if specs:
+        return specs
+    folder = clip if clip.is_dir() else clip.parent
+    if (folder / MARKERS_FILE).is_file():
+        return read_markers_file(folder / MARKERS_FILE)
+    return default
