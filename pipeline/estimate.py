@@ -29,6 +29,7 @@ from pipeline.estimators import Track, create, registry
 from pipeline.estimators import methods as registered_methods
 from pipeline.io import write_csv, write_json
 from pipeline.manifest import stereotrack_version
+from pipeline.metrics import compute_metrics
 
 
 @dataclass
@@ -43,17 +44,6 @@ class EstimateResult:
     target: TargetInfo | None = None
     target_tracks: dict[str, Track] = field(default_factory=dict)
     metrics: dict[str, Any] = field(default_factory=dict)
-
-
-def error_stats(est: np.ndarray, truth: np.ndarray) -> dict[str, float]:
-    """RMSE, mean, median and final 3-D error (m) over frames where both are finite."""
-    e = np.linalg.norm(est - truth, axis=1)
-    ok = np.isfinite(e)
-    if not ok.any():
-        return {"rmse": float("nan"), "mean": float("nan"), "median": float("nan"), "final": float("nan"), "frames": 0}
-    e = e[ok]
-    return {"rmse": float(np.sqrt(np.mean(e**2))), "mean": float(e.mean()), "median": float(np.median(e)),
-            "final": float(e[-1]), "frames": int(ok.sum())}
 
 
 def estimate_pixel_sigma(rig: StereoRig, observations: dict[str, np.ndarray]) -> float | None:
@@ -215,57 +205,3 @@ def _write_target_estimates(path: Path, name: str, tr: Track, dt: float) -> None
     write_csv(path, TARGET_COLUMNS, rows())
 
 
-def rmse(a: np.ndarray, b: np.ndarray) -> float | None:
-    """RMSE over frames where both are finite (None when there are none)."""
-    d = np.asarray(a, float)[: len(b)] - np.asarray(b, float)[: len(a)]
-    d = d[np.isfinite(d)]
-    return float(np.sqrt(np.mean(d**2))) if d.size else None
-
-
-def compute_metrics(res: EstimateResult) -> dict[str, Any]:
-    """Per method: error statistics against truth (all markers pooled, and per marker),
-    reprojection RMSE (px), time per step, and for filters the consistency of their covariance
-    (NEES on position against truth, NIS of their innovations; :mod:`pipeline.consistency`)."""
-    out: dict[str, Any] = {"frames": res.n_frames, "dt": res.dt, "has_truth": res.truth is not None, "methods": {}}
-    for m, per_marker in res.tracks.items():
-        entry: dict[str, Any] = {}
-        reps = np.concatenate([t.reprojection_error for t in per_marker.values()])
-        positions = np.vstack([t.position for t in per_marker.values()])
-        fin = np.all(np.isfinite(positions), axis=1)
-        entry["behind_camera"] = int(np.any(res.rig.depths(positions[fin]) <= 0, axis=1).sum())
-        entry["reprojection_rmse_px"] = float(np.sqrt(np.nanmean(reps**2))) if np.isfinite(reps).any() else None
-        nis = [(t.nis, t.nis_dof) for t in per_marker.values() if t.nis is not None]
-        if nis:
-            entry["nis"] = consistency.summary(np.concatenate([a for a, _ in nis]), np.concatenate([d for _, d in nis]))
-        sps = [t.seconds_per_step for t in per_marker.values()]
-        entry["seconds_per_step"] = float(np.mean(sps))
-        entry["steps_per_second"] = float(1.0 / np.mean(sps)) if np.mean(sps) > 0 else None
-        if res.truth is not None:
-            est, tru, markers, nees = [], [], {}, []
-            for marker, t in per_marker.items():
-                if marker not in res.truth.positions:
-                    continue
-                T = res.truth.positions[marker][: len(t.position)]
-                P = t.position[: len(T)]
-                markers[marker] = error_stats(P, T)
-                est.append(P)
-                tru.append(T)
-                if t.covariance is not None:
-                    nees.append(consistency.nees(t, T))
-            if est:
-                entry.update(error_stats(np.vstack(est), np.vstack(tru)))
-                entry["final"] = float(np.nanmean([v["final"] for v in markers.values()]))
-                entry["markers"] = markers
-            if nees:
-                entry["nees_position"] = consistency.summary(np.concatenate(nees), 3)
-        out["methods"][m] = entry
-    for m, t in res.target_tracks.items():
-        entry = {"target": True, "seconds_per_step": t.seconds_per_step,
-                 "steps_per_second": 1.0 / t.seconds_per_step if t.seconds_per_step > 0 else None,
-                 "valid_frames": int(np.isfinite(t.extra["alpha"]).sum())}
-        tg = res.target
-        if tg is not None and tg.alpha is not None and tg.distance is not None:
-            entry["alpha_rmse_rad"] = rmse(t.extra["alpha"], tg.alpha)
-            entry["distance_rmse_m"] = rmse(t.extra["distance"], tg.distance)
-        out["methods"][m] = entry
-    return out

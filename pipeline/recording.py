@@ -16,11 +16,13 @@ from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.camera import StereoRig
+from pipeline.metrics import errors_per_frame
 from pipeline.style import TRUTH_RGB, marker_rgb, method_rgb
 
 
@@ -131,9 +133,10 @@ class Recorder:
 
     def finish(self, rig: StereoRig, observations: dict[str, np.ndarray], tracks: dict[str, dict],
                truth: dict[str, np.ndarray] | None = None, extra_series: dict[str, np.ndarray] | None = None,
-               marker_colours: dict[str, list[int]] | None = None) -> Path:
+               marker_colours: dict[str, list[int]] | None = None,
+               progress: Callable[[int, int], None] | None = None) -> Path:
         """Log the calibration (static), detections, truth, every method's points and every series
-        as columns, then move the file into place."""
+        as columns, then move the file into place; ``progress`` gets (methods done, methods)."""
         import rerun as rr
 
         rec = self.rec
@@ -165,15 +168,16 @@ class Recorder:
             tp = [np.array([truth[m][k] for m in markers if m in truth and k < len(truth[m])]).reshape(-1, 3)
                   for k in range(n)]
             self._points("world/truth/points", tp, [[TRUTH_RGB] * len(p) for p in tp], None, "3d", 0.012)
-        for meth, per_marker in tracks.items():
+        for j, (meth, per_marker) in enumerate(tracks.items()):
+            if progress is not None:
+                progress(j, len(tracks))
             rgb = list(method_rgb(meth))
             cur = [np.array([t.position[k] for t in per_marker.values() if k < len(t.position)
                              and np.all(np.isfinite(t.position[k]))]).reshape(-1, 3) for k in range(n)]
             self._points(f"world/estimates/{meth}/points", cur, [[rgb] * len(p) for p in cur], None, "3d", 0.01)
             for marker, t in per_marker.items():
                 if truth is not None and marker in truth:
-                    m = min(len(t.position), len(truth[marker]))
-                    self._scalars(f"metrics/error/{meth}/{marker}", np.linalg.norm(t.position[:m] - truth[marker][:m], axis=1))
+                    self._scalars(f"metrics/error/{meth}/{marker}", errors_per_frame(t.position, truth[marker]))
                 self._scalars(f"metrics/reprojection/{meth}/{marker}", t.reprojection_error)
         for key, series in (extra_series or {}).items():
             self._scalars(f"metrics/{key}", series)

@@ -14,6 +14,7 @@ import numpy as np
 from pipeline.clip import Clip, load_detections, read_positions
 from pipeline.errors import StereotrackError
 from pipeline.io import atomic_path, read_csv, write_text
+from pipeline.metrics import errors_per_frame
 from pipeline.style import marker_rgb, method_colour, method_linestyle
 
 
@@ -225,8 +226,7 @@ def write_report(clip: str | Path | Clip, out_dir: str | Path | None = None,
     if truth is not None:
         fig, ax = plt.subplots(figsize=(12, 4.5))
         for meth, per in est.items():
-            errs = [np.linalg.norm(per[mk] - truth.positions[mk][: len(per[mk])], axis=1)
-                    for mk in per if mk in truth.positions]
+            errs = [errors_per_frame(per[mk], truth.positions[mk]) for mk in per if mk in truth.positions]
             if errs:
                 n = min(len(e) for e in errs)
                 with np.errstate(all="ignore"), warnings.catch_warnings():

@@ -89,7 +89,7 @@ def _process_clip(clip: Path, out_dir: Path, detector: str, methods: list[str] |
                 series[f"target/distance/{m}"] = tr.extra["distance"]
             if est.target is not None and est.target.alpha is not None and est.target.distance is not None:
                 series["target/alpha/truth"], series["target/distance/truth"] = est.target.alpha, est.target.distance
-            rrd = recorder.finish(est.rig, est.observations, est.tracks, truth, series, det.marker_colours)
+            rrd = recorder.finish(est.rig, est.observations, est.tracks, truth, series, det.marker_colours, progress)
     except BaseException:
         if recorder is not None:
             recorder.abort()

@@ -93,9 +93,13 @@ def test_real_clips_through_batch_with_root_markers(tmp_path, monkeypatch, capsy
     rc, _out, err = cli(monkeypatch, capsys, "batch", root, "-o", tmp_path / "out", "--workers", "1",
                        "--methods", "triangulation")
     assert rc == 0, err
+    from rerun.chunk import RrdReader
+
     for name, marker in (("a", "red"), ("b", "blue")):
         res = tmp_path / "out" / name
         assert (res / "report.md").is_file() and (res / "run.rrd").is_file()
+        images = sum(c.num_rows for c in RrdReader(res / "run.rrd").stream() if c.entity_path == "/world/left/image")
+        assert images == 40  # batch recordings hold the frames unless --no-images
         assert set(read_csv(res / "detections.csv")["marker"]) == {marker}
 
 

@@ -183,3 +183,46 @@ def test_batch_local_then_rerun_then_dask(tmp_path):
     ours, theirs = read_csv(out / "summary.csv"), read_csv(out2 / "summary.csv")
     np.testing.assert_allclose(np.sort(ours["rmse_m"][np.isfinite(ours["rmse_m"])]),
                                np.sort(theirs["rmse_m"][np.isfinite(theirs["rmse_m"])]), rtol=1e-9)
+
+
+def test_view_works_on_any_folder_with_a_recording(e2e_run, tmp_path, monkeypatch):
+    """A batch's OUT/<clip> holds run.rrd directly: `view` finds it and, with no display, prints the
+    viewer command."""
+    batch_clip = tmp_path / "OUT" / "clip"
+    batch_clip.mkdir(parents=True)
+    shutil.copy(e2e_run.recording, batch_clip / "run.rrd")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    for target, rrd in ((batch_clip, batch_clip / "run.rrd"), (e2e_run.clip, e2e_run.recording)):
+        res = CliRunner().invoke(app, ["view", str(target)])
+        assert res.exit_code == 0 and f"rerun {rrd}" in res.output.replace("\n", ""), res.output
+    res = CliRunner().invoke(app, ["view", str(tmp_path)])
+    assert res.exit_code != 0 and "no recording" in str(res.exception)
+
+
+def test_version_and_plain_flags():
+    res = CliRunner().invoke(app, ["--version"])
+    assert res.exit_code == 0 and res.output.startswith("stereotrack ")
+    helptext = CliRunner().invoke(app, ["batch", "--help"]).output
+    assert "--no-images" in helptext and "--force" in helptext and "<bool>" not in helptext
+
+
+def test_every_method_has_its_own_colour():
+    from pipeline.estimators import registry
+    from pipeline.style import method_colour, method_rgb
+
+    names = list(registry())
+    assert len({method_rgb(m) for m in names}) == len(names)
+    assert method_colour("ekf") == tuple(c / 255 for c in method_rgb("ekf"))
+
+
+def test_output_option_is_output_only(tmp_path):
+    """`estimate -o X` reads CLIP/out/detections.csv and writes only under X."""
+    clip = tmp_path / "sample"
+    shutil.copytree(REPO / "data" / "clips" / "sample_small", clip)
+    assert CliRunner().invoke(app, ["detect", str(clip)]).exit_code == 0
+    before = sorted(p.name for p in (clip / "out").iterdir())
+    res = CliRunner().invoke(app, ["estimate", str(clip), "-o", str(tmp_path / "X"), "--methods", "ekf"])
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "X" / "metrics.json").is_file() and (tmp_path / "X" / "estimates" / "ekf.csv").is_file()
+    assert sorted(p.name for p in (clip / "out").iterdir()) == before
