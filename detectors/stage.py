@@ -3,6 +3,7 @@ per-camera summary, with pixel errors against ``truth.csv`` when the clip has on
 
 from __future__ import annotations
 
+import statistics
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -174,7 +175,7 @@ def detect_clip(
     total = len(source)
     sample_at = set(np.linspace(0, max(total - 1, 0), min(CHECK_SAMPLES, max(total, 1))).astype(int).tolist())
     samples: dict[tuple[str, str], list] = {}
-    sampler = BlobDetector(markers, max_per_marker=2, coarse=False)
+    sampler = BlobDetector(markers, max_per_marker=2)
     n_done = 0
     for fr in source:
         if frame_sink is not None:
@@ -187,7 +188,7 @@ def detect_clip(
             if fr.index in sample_at:
                 _sample_colours(sampler, img, CAMERAS[c], grouped | set(groups), samples)
             if detector == "blob":
-                expected = {m: float(np.median(a)) for m, a in areas[c].items() if a}
+                expected = {m: statistics.median(a) for m, a in areas[c].items() if a}
                 dets = _best_per_marker(blob.detect(img, rois=windows[c], expected_area=expected), groups, previous, c)
                 windows[c] = {d.marker: _window(d, img.shape) for d in dets if d.marker not in grouped}
                 seen = {d.marker for d in dets}
