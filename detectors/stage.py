@@ -239,15 +239,20 @@ def _left_frame(source: StereoFrameSource, k: int) -> np.ndarray | None:
 
 def _sample_colours(sampler: BlobDetector, img: np.ndarray, cam: str, skip: set[str],
                     samples: dict[tuple[str, str], list]) -> None:
-    """Whole-frame mask coverage and the two largest blobs of each marker's colour (colour checks)."""
-    hsv = cv2.cvtColor(img, cv2.COLOR_BGR2HSV)
+    """Whole-frame mask coverage and the two largest blobs of each marker's colour (colour checks),
+    measured on the frame at half resolution (areas scaled back to full-resolution pixels): the
+    check asks whether a range selects far more than a marker, not where the marker is."""
+    small = cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA)
+    scale = (img.shape[0] * img.shape[1]) / (small.shape[0] * small.shape[1])
+    hsv = cv2.cvtColor(small, cv2.COLOR_BGR2HSV)
     for mk in sampler.markers:
         if mk.name in skip:
             continue
-        mask_px = int(cv2.countNonZero(mk.mask(hsv)))
-        found = sampler._detect_one(mk, img, hsv, 0, 0)
-        areas = [*sorted((d.area for d in found), reverse=True), 0.0, 0.0]
-        samples.setdefault((mk.name, cam), []).append((mask_px / (img.shape[0] * img.shape[1]), mask_px, areas[0], areas[1]))
+        mask_px = int(cv2.countNonZero(mk.mask(hsv))) * scale
+        found = sampler._detect_one(mk, small, hsv, 0, 0)
+        areas = [*sorted((d.area * scale for d in found), reverse=True), 0.0, 0.0]
+        samples.setdefault((mk.name, cam), []).append((mask_px / (img.shape[0] * img.shape[1]), mask_px, areas[0],
+                                                      areas[1]))
 
 
 def _window(d: Detection, shape: tuple[int, ...]) -> tuple[int, int, int, int]:
