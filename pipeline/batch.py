@@ -140,7 +140,7 @@ def run_batch(
     ``configs`` (``--config``) are the methods' settings, part of what a complete clip must match.
     ``images``: whether each clip's recording holds its frames (``--no-images`` leaves them out).
     ``marker_specs`` (``--markers``) apply to every clip; else a clip's own ``markers.yaml``, else
-    ``INPUT/markers.yaml``, else the clip's scenario.yaml gives its markers.
+    ``INPUT/markers.yaml``, else a rendered clip's description (clip.json) gives its markers.
 
     The output folder is locked for the whole batch (a second batch on it fails at once, naming
     the holder). A clip counts as done only if its manifest verifies and was made with the same

@@ -120,7 +120,7 @@ def _parse_roi(roi: str | None) -> tuple[int, int, int, int] | None:
 MarkersOption = Annotated[list[str] | None, typer.Option(
     "--markers", help="Marker colour, NAME:HLO-HHI[:SMIN[:VMIN]] (OpenCV HSV), NAME=#RRGGBB, or NAME@x,y,w,h to learn "
     "the range from that window of the first left frame; repeatable or comma-separated. Default: the clip's "
-    "markers.yaml, else the colours in its scenario.yaml.")]
+    "markers.yaml, else the colours of a rendered clip (clip.json).")]
 CalibUnitsOption = Annotated[str | None, typer.Option(
     "--calib-units", help="Length unit of the calibration's T (m, cm or mm) when calib.yaml does not declare "
     "'units'; outputs are in metres.")]
@@ -323,7 +323,7 @@ def batch_cmd(
     """Process every clip folder under INPUT_DIR; exit code 1 if any clip failed.
 
     Markers: --markers for every clip, else each clip's markers.yaml, else INPUT_DIR/markers.yaml,
-    else each clip's scenario.yaml."""
+    else the colours of a rendered clip (clip.json)."""
     from pipeline.batch import run_batch
 
     configs = _configs(config)

@@ -331,7 +331,7 @@ def read_markers_file(path: str | Path) -> list[str]:
 
 def resolve_marker_specs(clip: Path, specs: list[str] | None, default: list[str] | None = None) -> list[str] | None:
     """The marker specs that apply to ``clip``: ``--markers``, else the clip's own ``markers.yaml``,
-    else ``default`` (a batch root's ``markers.yaml``); None leaves the colours to scenario.yaml."""
+    else ``default`` (a batch root's ``markers.yaml``); None leaves the colours to a rendered clip's description."""
     if specs:
         return specs
     folder = clip if clip.is_dir() else clip.parent
