@@ -121,3 +121,22 @@ def test_marker_never_in_view_warns_not_fatal(tmp_path):
     with pytest.warns(UserWarning, match="'behind' is never visible"):
         res = render_clip(parse_scenario(data), tmp_path / "clip", fmt="png", workers=1)
     assert res.warnings and (tmp_path / "clip" / "truth.csv").is_file()
+
+
+def test_clip_description_written_and_derived_alike(tmp_path):
+    """A rendered clip's clip.json, and the description derived from scenario.yaml for a clip made
+    before clip.json existed, say the same thing (fps, markers and colours, the target)."""
+    import json
+    import shutil
+
+    from pipeline.clip import Clip
+    from tests.conftest import REPO
+
+    for name in ("sample_small", "four_point_small"):
+        clip = tmp_path / name
+        shutil.copytree(REPO / "data" / "clips" / name, clip)
+        written = Clip(clip).info
+        (clip / "clip.json").unlink()
+        derived = json.loads(json.dumps(Clip(clip).info))
+        assert written == derived and written["markers"]
+    assert Clip(tmp_path / "four_point_small").info["target"]["radius"] > 0
