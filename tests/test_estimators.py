@@ -87,7 +87,7 @@ def _noisy_runs(receding, sigma=2.0):
         good = {"pixel_sigma": sigma, "process_noise": 1e-4}
         cfgs = {
             "spsa": ("spsa", {}),
-            "spsa_no_projection": ("spsa", {"th": 1e12}),
+            "spsa_no_projection": ("spsa", {"th": None}),
             "ekf": ("ekf", good),
             "ekf_wrong": ("ekf", {**good, "q_scale": 100.0, "r_scale": 0.01}),
         }
@@ -105,9 +105,11 @@ def noisy(receding):
 def test_claim_c_projection_rule_keeps_spsa_bounded(noisy):
     X, out = noisy
     final = {k: np.mean([np.linalg.norm(P[-1] - X[-1]) for P in v]) for k, v in out.items()}
-    assert final["spsa_no_projection"] > 2 * final["spsa"], final
+    assert final["spsa_no_projection"] > 100 * final["spsa"], final
+    # bounded: the rule caps each iteration's step at α·th. (With the earlier inert gains the worst
+    # error stayed under 0.5 m only because the update never moved the true-velocity start.)
     worst = max(np.nanmax(np.linalg.norm(P - X, axis=1)) for P in out["spsa"])
-    assert worst < 0.5  # metres, over a 1.5 → 7.5 m trajectory
+    assert worst < 5.0  # metres, over a 1.5 → 7.5 m trajectory
 
 
 def test_claim_d_ekf_with_correct_covariances_beats_spsa(noisy):
@@ -115,9 +117,13 @@ def test_claim_d_ekf_with_correct_covariances_beats_spsa(noisy):
     assert np.mean([rmse(P, X) for P in out["ekf"]]) < np.mean([rmse(P, X) for P in out["spsa"]])
 
 
-def test_claim_e_ekf_with_wrong_covariances_worse_than_spsa(noisy):
+def test_claim_e_is_not_supported_once_algorithm_1_acts(noisy):
+    """Claim (e), measured: an EKF told q×100, R×0.01 is still better than Algorithm 1 with gains at
+    which its update acts. (With the earlier inert gains Algorithm 1 "won" only because it never
+    left its true-velocity start.)"""
     X, out = noisy
-    assert np.mean([rmse(P, X) for P in out["ekf_wrong"]]) > np.mean([rmse(P, X) for P in out["spsa"]])
+    r = {k: np.mean([rmse(P, X) for P in v]) for k, v in out.items()}
+    assert r["ekf_wrong"] < r["spsa"], r
 
 
 def test_ekf_agrees_with_plain_filterpy(receding):

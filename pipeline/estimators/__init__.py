@@ -13,10 +13,12 @@ from pipeline.estimators import (  # noqa: F401  (imported to register, in this 
     ukf,
     spsa,
     spsa_vgg,
+    spsa_stereo,
     alphabeta,
     four_point,
     kalman_bucy,
     pnp_kf,
+    predict_only,
 )
 # isort: on
 from pipeline.estimators.base import (

@@ -5,8 +5,8 @@ baseline Algorithm 1 improves on. State = position only; Δ_n components ±1/√
     θ_{2n} = θ_{2n−2} − (α/2β) Δ_n (z_{2n} − z_{2n−1}),   θ_{2n−1} = θ_{2n−2}
 
 with ``z_j = ‖h(x_j) − y_j‖²`` in normalized image coordinates. It knows nothing of the motion, so
-it "latches" behind a moving point even without noise (thesis Fig. 3). The projection rule of
-Algorithm 1 (``|d| ≤ th``) is applied as well, so the two differ only in the motion model.
+it "latches" behind a moving point even without noise (thesis Fig. 3). As published it has no
+projection rule (``th: null``, the default); setting ``th`` applies Algorithm 1's ``|d| ≤ th``.
 """
 
 from __future__ import annotations
@@ -19,12 +19,18 @@ from pipeline.estimators.base import NAN3, Estimator, Start, Step, register
 from pipeline.estimators.spsa import SPSAConfig, SPSAEstimator, _cost
 
 
+class SPSAVGGConfig(SPSAConfig):
+    """Algorithm 1's settings, without the projection rule by default (the 2009 algorithm)."""
+
+    th: float | None = None
+
+
 @register
 class SPSAVGGEstimator(SPSAEstimator):
     """Position-only SPSA without motion prediction."""
 
     name = "spsa_vgg"
-    Config = SPSAConfig
+    Config = SPSAVGGConfig
     state_dim = 3
 
     def _begin(self, s: Start) -> None:
@@ -38,7 +44,7 @@ class SPSAVGGEstimator(SPSAEstimator):
     def _iterate(self, yn: tuple, ok_l: bool, ok_r: bool) -> tuple[list[float], bool]:
         cfg: SPSAConfig = self.config  # type: ignore[assignment]
         t = self.theta
-        b = cfg.beta
+        b, th = cfg.beta, self._th
         if self._phase == 0:
             self._delta = self._draw_delta()
             self._y_odd = (yn, ok_l, ok_r)
@@ -51,7 +57,7 @@ class SPSAVGGEstimator(SPSAEstimator):
         if use_l or use_r:
             z_odd = _cost(t[0] - b * D[0], t[1] - b * D[1], t[2] - b * D[2], yo, use_l, use_r, self._cams)
             z_even = _cost(t[0] + b * D[0], t[1] + b * D[1], t[2] + b * D[2], yn, use_l, use_r, self._cams)
-            d = max(-cfg.th, min(cfg.th, (z_even - z_odd) / (2 * b)))
+            d = max(-th, min(th, (z_even - z_odd) / (2 * b)))
             if math.isfinite(d):
                 self.theta = [t[i] - cfg.alpha * d * D[i] for i in range(3)]
         return list(self.theta), not (use_l or use_r)

@@ -1,0 +1,127 @@
+"""``spsa_stereo`` (issue 12) and the predict-only baseline: accuracy against ground truth on
+simulated observations with fixed seeds, convergence from a wrong start, gaps, and that Algorithm 1's
+default update acts."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.estimators import create
+from renderers.motion import simulate_truth
+from renderers.scenario import load_scenario
+
+SEEDS = (0, 1, 2, 3)
+
+
+@pytest.fixture(scope="module")
+def receding():
+    s = load_scenario("receding").with_overrides(frames=300)
+    tr = simulate_truth(s)
+    return s.rig.build(), s.dt, tr.positions[:, 0], tr.velocities[:, 0]
+
+
+def noisy(rig, X, sigma, seed):
+    return rig.project(X) + np.random.default_rng(100 + seed).normal(0.0, sigma, (len(X), 4))
+
+
+def err(P, X):
+    return np.linalg.norm(P - X, axis=1)
+
+
+def rmse(P, X):
+    return float(np.sqrt(np.nanmean(err(P, X) ** 2)))
+
+
+def test_cost_in_disparity_coordinates_equals_the_model(receding):
+    """The plain-float cost through ``g⁻¹`` equals the rig's normalized projection residual."""
+    rig, dt, X, _ = receding
+    est = create("spsa_stereo", rig, dt)
+    Y = noisy(rig, X, 1.5, 0)
+    yn = rig.normalize(Y)
+    nrig = rig.normalized()
+    for k in range(0, 300, 37):
+        q = est.g(X[k] + 0.05)
+        np.testing.assert_allclose(est.g_inv(*q), X[k] + 0.05, atol=1e-12)
+        want = float(np.sum((nrig.project((X[k] + 0.05)[None])[0] - yn[k]) ** 2))
+        assert abs(est.cost(*q, tuple(yn[k]), True, True) - want) < 1e-12 * max(want, 1.0)
+        want_l = float(np.sum((nrig.left.project((X[k] + 0.05)[None])[0] - yn[k, :2]) ** 2))
+        assert abs(est.cost(*q, tuple(yn[k]), True, False) - want_l) < 1e-12 * max(want_l, 1.0)
+
+
+def test_spsa_stereo_beats_triangulation_1_5x_at_1_5_px(receding):
+    rig, dt, X, _ = receding
+    ratios = []
+    for seed in SEEDS:
+        Y = noisy(rig, X, 1.5, seed)
+        tri = rmse(create("triangulation", rig, dt).run(Y).position, X)
+        ours = rmse(create("spsa_stereo", rig, dt, {"seed": seed}).run(Y).position, X)
+        ratios.append(tri / ours)
+    assert min(ratios) >= 1.5, ratios
+
+
+def test_spsa_stereo_stays_finite_through_gaps_and_recovers(receding):
+    rig, dt, X, _ = receding
+    Y = noisy(rig, X, 1.5, 0)
+    Y[100:115] = np.nan  # a blackout
+    Y[150:170, 2:] = np.nan  # the right camera lost
+    Y[200:210, :2] = np.nan  # the left camera lost
+    tr = create("spsa_stereo", rig, dt).run(Y)
+    assert np.isfinite(tr.position[1:]).all() and np.isfinite(tr.velocity[1:]).all()
+    assert tr.predicted[100:115].all() and not tr.predicted[150:170].any()
+    tri = create("triangulation", rig, dt).run(noisy(rig, X, 1.5, 0)).position
+    late = slice(230, 300)
+    assert rmse(tr.position[late], X[late]) * 1.5 < rmse(tri[late], X[late])
+
+
+@pytest.mark.parametrize("start_error", [0.3, 1.0])
+def test_spsa_stereo_converges_from_a_wrong_start(receding, start_error):
+    """Given a start ``start_error`` metres off (random direction) with a velocity 0.5 m/s off, the
+    error falls under 5 cm within 20 frames and stays under triangulation's afterwards."""
+    rig, dt, X, V = receding
+    tri_late, ours_late = [], []
+    for seed in SEEDS:
+        rng = np.random.default_rng(seed)
+        u, w = rng.normal(size=3), rng.normal(size=3)
+        state = np.r_[X[0] + start_error * u / np.linalg.norm(u), V[0] + 0.5 * w / np.linalg.norm(w)]
+        Y = noisy(rig, X, 1.5, seed)
+        P = create("spsa_stereo", rig, dt, {"seed": seed, "init": {"mode": "given", "state": tuple(state)}}).run(Y).position
+        e = err(P, X)
+        assert e[0] == pytest.approx(start_error)
+        assert e[20] < 0.05, (seed, e[:25])
+        tri_late.append(rmse(create("triangulation", rig, dt).run(Y).position[20:], X[20:]))
+        ours_late.append(rmse(P[20:], X[20:]))
+    assert np.mean(ours_late) * 1.5 < np.mean(tri_late)
+
+
+def test_predict_only_is_the_start_carried_forward(receding):
+    rig, dt, X, _ = receding
+    Y = noisy(rig, X, 1.5, 0)
+    cfg = {"init": {"frames": 5}}
+    po = create("predict_only", rig, dt, cfg).run(Y)
+    start = create("ekf", rig, dt, cfg).initiator.first(Y)
+    k0 = start.frame
+    k = np.arange(k0, 300)
+    np.testing.assert_allclose(po.position[k0:], start.state[:3] + (k - k0)[:, None] * dt * start.state[3:], atol=1e-9)
+    assert po.predicted[k0 + 1 :].all() and not po.predicted[k0]
+    static = create("predict_only", rig, dt, {**cfg, "static": True}).run(Y)
+    np.testing.assert_allclose(static.position[k0:], np.broadcast_to(start.state[:3], (300 - k0, 3)), atol=1e-12)
+
+
+def test_algorithm_1_default_update_acts(receding):
+    """Started from the true position with a 0.2 m/s velocity error, Algorithm 1's default gains
+    move the estimate: on every seed its trajectory leaves predict-only's (same start, no update) by
+    more than 10 cm RMS and its RMSE differs from predict-only's by more than 5 cm. (Whether that
+    helps is the benchmark's question: on this rig it mostly does not — see docs/thesis.md.)"""
+    rig, dt, X, V = receding
+    diffs = []
+    for seed in SEEDS:
+        rng = np.random.default_rng(seed)
+        w = rng.normal(size=3)
+        init = {"mode": "given", "state": tuple(np.r_[X[0], V[0] + 0.2 * w / np.linalg.norm(w)])}
+        Y = noisy(rig, X, 1.5, seed)
+        po = create("predict_only", rig, dt, {"init": init}).run(Y).position
+        alg1 = create("spsa", rig, dt, {"init": init, "seed": seed}).run(Y).position
+        assert rmse(alg1, po) > 0.10, seed
+        diffs.append(abs(rmse(po, X) - rmse(alg1, X)))
+    assert min(diffs) > 0.05, diffs
