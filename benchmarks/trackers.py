@@ -97,7 +97,7 @@ def main() -> None:
     for m in names:
         per: dict[str, list] = {s: [] for s in SCENARIOS}
         finals, div, sps = [], [], []
-        for (s, sigma, err, seed), (Y, init, tri_tail) in obs.items():
+        for (s, sigma, _err, seed), (Y, init, tri_tail) in obs.items():
             rig, dt, X, _ = setups[s]
             r, f, d, sec, _ = one_run(m, rig, dt, X, Y, sigma, init, seed, tri_tail)
             per[s].append(r)
