@@ -82,3 +82,14 @@ def ball_reference() -> dict[int, tuple[float, float]]:
         if d and d[0].score > 0.55:
             ref[fr.index] = (d[0].u, d[0].v)
     return ref
+
+
+@pytest.fixture(scope="module")
+def receding():
+    """The ``receding`` scenario's truth over 300 frames: (rig, dt, positions, velocities)."""
+    from renderers.motion import simulate_truth
+    from renderers.scenario import load_scenario
+
+    s = load_scenario("receding").with_overrides(frames=300)
+    tr = simulate_truth(s)
+    return s.rig.build(), s.dt, tr.positions[:, 0], tr.velocities[:, 0]

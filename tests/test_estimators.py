@@ -15,19 +15,10 @@ from pipeline.errors import CalibrationError, StereotrackError
 from pipeline.estimators import create, methods
 from pipeline.estimators.alphabeta import ABFilter
 from pipeline.estimators.base import transition, white_noise_acceleration
-from renderers.motion import simulate_truth
-from renderers.scenario import load_scenario
 
 POINT_METHODS = methods("point")
 
 SEEDS = (0, 1, 2)
-
-
-@pytest.fixture(scope="module")
-def receding():
-    s = load_scenario("receding").with_overrides(frames=300)
-    tr = simulate_truth(s)
-    return s.rig.build(), s.dt, tr.positions[:, 0], tr.velocities[:, 0]
 
 
 def observe(rig, X, sigma, seed):

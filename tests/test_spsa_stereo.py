@@ -8,17 +8,8 @@ import numpy as np
 import pytest
 
 from pipeline.estimators import create
-from renderers.motion import simulate_truth
-from renderers.scenario import load_scenario
 
 SEEDS = (0, 1, 2, 3)
-
-
-@pytest.fixture(scope="module")
-def receding():
-    s = load_scenario("receding").with_overrides(frames=300)
-    tr = simulate_truth(s)
-    return s.rig.build(), s.dt, tr.positions[:, 0], tr.velocities[:, 0]
 
 
 def noisy(rig, X, sigma, seed):

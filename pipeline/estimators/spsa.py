@@ -89,6 +89,14 @@ def camera_tuples(rig) -> tuple[tuple, tuple]:
     return tuple((*c.R.ravel().tolist(), *np.ravel(c.t).tolist()) for c in rig.cameras)  # type: ignore[return-value]
 
 
+def normalized_rows(rig, Y: np.ndarray) -> tuple[list, list, list]:
+    """A clip's observations through the camera model at once, as plain-float rows, with which
+    cameras are present per frame: ``(rows, left_ok, right_ok)`` for the single-track fast loops."""
+    Yn = rig.normalize(Y)
+    ok = np.isfinite(Yn)
+    return Yn.tolist(), (ok[:, 0] & ok[:, 1]).tolist(), (ok[:, 2] & ok[:, 3]).tolist()
+
+
 def delta_sequence(seed: int, count: int, dim: int) -> np.ndarray:
     """The first ``count`` perturbations Δ (components ±1/√dim) a track with this seed draws: the
     same blocks of 256 from the same generator as :meth:`SPSAEstimator._draw_delta`."""
@@ -212,11 +220,7 @@ class SPSAEstimator(Estimator):
         per-frame objects); the same arithmetic as repeated :meth:`step`."""
         self.reset()
         n = len(Y)
-        Yn = self.rig.normalize(Y)
-        ok = np.isfinite(Yn)
-        okl = (ok[:, 0] & ok[:, 1]).tolist()
-        okr = (ok[:, 2] & ok[:, 3]).tolist()
-        rows = Yn.tolist()
+        rows, okl, okr = normalized_rows(self.rig, Y)
         states: list = [None] * n
         pred = [True] * n
         start = self.initiator.first(Y)  # the start `step` finds frame by frame, found at once

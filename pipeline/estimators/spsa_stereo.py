@@ -74,6 +74,7 @@ from pipeline.estimators.base import (
     register,
     reprojection_errors,
 )
+from pipeline.estimators.spsa import normalized_rows
 
 BIG_COST = 1.0e6  # cost of a trial point behind a camera or beyond infinity
 #: the four cube diagonals: any three are independent, and Σ DDᵀ = 4I (a tight frame)
@@ -324,11 +325,7 @@ class SPSAStereoEstimator(Estimator):
         normalized at once): the same arithmetic as repeated :meth:`step`."""
         self.reset()
         n = len(Y)
-        Yn = self.rig.normalize(Y)
-        ok = np.isfinite(Yn)
-        okl = (ok[:, 0] & ok[:, 1]).tolist()
-        okr = (ok[:, 2] & ok[:, 3]).tolist()
-        rows = Yn.tolist()
+        rows, okl, okr = normalized_rows(self.rig, Y)
         nan6 = [math.nan] * 6
         states, pred, costs, gains = [nan6] * n, [True] * n, [math.nan] * n, [math.nan] * n
         start = self.initiator.first(Y)
