@@ -148,11 +148,12 @@ def main() -> None:
            + f" `spsa_stereo`: {fb['spsa_stereo']:.3f} m.", "",
            "![latching](figures/thesis_b_latching.png)", ""]
     fig, ax = plt.subplots(figsize=(7, 4))
-    for k, lab in (("spsa", "Algorithm 1"), ("spsa_vgg", "unmodified SPSA (2009)"), ("spsa_stereo", "spsa_stereo"),
-                   ("predict_only (static)", "start held (2009 baseline)")):
+    for k, lab in (("spsa", "Algorithm 1"), ("predict_only", "true velocity carried (Algorithm 1's baseline)"),
+                   ("spsa_vgg", "unmodified SPSA (2009)"), ("predict_only (static)", "start held (2009 baseline)"),
+                   ("spsa_stereo", "spsa_stereo")):
         ax.plot(np.mean(b[k], axis=0), label=lab)
     ax.set(xlabel="frame", ylabel="3-D error (m)", title="(b) noise-free tracking")
-    ax.legend()
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     ax.grid(alpha=0.3)
     save(fig, figs / "thesis_b_latching.png")
 
@@ -201,7 +202,6 @@ def main() -> None:
     save(fig, figs / "thesis_cde.png")
 
     # (f) maneuvering
-    notes: list[str] = []
     rig_m, dt_m, Xm, Vm = setup("maneuvering")
     f = run_methods(rig_m, dt_m, Xm, Vm, 1.0, args.seeds, {
         "spsa": ("spsa", {}), "spsa, th = 0.003 (earlier default)": ("spsa", {"th": 0.003}),
@@ -228,6 +228,7 @@ def main() -> None:
            "Read as pixels and metres (the thesis states neither); `receding`; start = true velocity and the "
            "true position plus N(0, σ_start²) per axis, the same for every method.", "",
            "| σ_img (px) | σ_start (m) | method | 3-D RMSE (m) | final error (m) |", "|---|---|---|---|---|"]
+    notes: list[str] = []
     for s_img_t, s_start in ((0.02, 0.5), (0.1, 1.0)):
         th = run_methods(rig, dt, X, V, s_img_t, args.seeds, {
             "spsa": ("spsa", {}), "spsa, no projection": ("spsa", {"th": None}), "spsa_vgg": ("spsa_vgg", {}),

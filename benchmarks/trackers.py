@@ -17,7 +17,6 @@ than 5× triangulation's on the same observations, or not finite. The divergence
 from __future__ import annotations
 
 import argparse
-import time
 
 import numpy as np
 from _common import LiveDoc, add_output_args, output_dir
@@ -55,13 +54,11 @@ def config(method: str, sigma: float, init: dict | None, seed: int) -> dict:
 
 
 def one_run(method, rig, dt, X, Y, sigma, init, seed, tri_tail):
-    t0 = time.perf_counter()
     tr = create(method, rig, dt, config(method, sigma, init, seed)).run(Y)
-    wall = time.perf_counter() - t0
     e = np.linalg.norm(tr.position - X, axis=1)
     tail = float(np.sqrt(np.mean(e[-30:] ** 2)))
     diverged = not np.isfinite(tail) or tail > 5 * tri_tail
-    return float(np.sqrt(np.nanmean(e**2))), float(e[-1]), diverged, tr.seconds_per_step, wall
+    return float(np.sqrt(np.nanmean(e**2))), float(e[-1]), diverged, tr.seconds_per_step
 
 
 def main() -> None:
@@ -99,7 +96,7 @@ def main() -> None:
         finals, div, sps = [], [], []
         for (s, sigma, _err, seed), (Y, init, tri_tail) in obs.items():
             rig, dt, X, _ = setups[s]
-            r, f, d, sec, _ = one_run(m, rig, dt, X, Y, sigma, init, seed, tri_tail)
+            r, f, d, sec = one_run(m, rig, dt, X, Y, sigma, init, seed, tri_tail)
             per[s].append(r)
             finals.append(f)
             div.append(d)
@@ -122,7 +119,7 @@ def main() -> None:
             Y = rig.project(X) + rng.normal(0, sigma, (FRAMES, 4))
             tri = create("triangulation", rig, dt).run(Y).position
             et = np.linalg.norm(tri - X, axis=1)
-            r, _, d, _, _ = one_run("spsa_stereo", rig, dt, X, Y, sigma, start_state(X, V, err, rng), i,
+            r, _, d, _ = one_run("spsa_stereo", rig, dt, X, Y, sigma, start_state(X, V, err, rng), i,
                                     float(np.sqrt(np.mean(et[-30:] ** 2))))
             n_div += d
             rms.append(r)

@@ -1,6 +1,6 @@
 """``spsa_stereo``: an SPSA tracker that tracks — Algorithm 1's ingredients (random simultaneous
-perturbations, two cost evaluations per direction, a linear motion prediction, no noise statistics,
-no matrix inversion) rearranged so that the update acts on a stereo rig (issue 12).
+perturbations, a few cost evaluations per frame, a linear motion prediction, no noise statistics, no
+matrix inversion) rearranged so that the update acts on a stereo rig (issue 12).
 
 Why Algorithm 1 stalls. Its cost pairs two *different* frames and is minimised in metres; on a
 0.3 m rig at 2–7 m the cost's curvature along depth is ~z²/b² ≈ 50–500× weaker than sideways, so a
@@ -9,51 +9,50 @@ gain small enough to be stable sideways leaves depth (and velocity) practically 
 What this method does instead, every frame k with observation ``y_k``:
 
 1. **Predict** (linear extremum prediction, as Algorithm 1): ``p⁻ = p + v·dt``, ``v⁻ = v``.
-2. **Re-parametrise** the position in the left camera's image/disparity coordinates, where the
-   reprojection cost is well conditioned (its Hessian is close to ``[[2,0,−1],[0,2,0],[−1,0,1]]``
-   for any depth)::
+2. **Re-parametrise** the position in the left camera's image coordinates, where the reprojection
+   cost is well conditioned at any depth::
 
-       s = g(p) = (x_c / z_c,  y_c / z_c,  b / z_c),   (x_c, y_c, z_c) = R_l p + t_l,   b = baseline
+       q = g(p) = (x_c/z_c,  y_c/z_c,  x_c/z_c − b/z_c),   (x_c, y_c, z_c) = R_l p + t_l
 
-3. **Minimise that frame's cost** ``J(s) = ‖h(g⁻¹(s)) − y_k‖²`` (normalized image coordinates,
-   the rig's :class:`~pipeline.camera.StereoMeasurementModel`) by ``directions`` SPSA line steps
-   from ``q⁻ = g(p⁻)`` — taken in ``q = (s₀, s₁, s₀ − s₂)``, the left image point and the right
-   camera's x (for a rectified rig), where the cost's Hessian is ≈ 2·diag(1, 2, 1) — along
-   perturbations ``Δ`` with components ±1 (the coordinate only the missing camera sees held at 0
-   when one camera is missing)::
+   (b the baseline): the left image point and, for a rectified rig, the right camera's x, so the
+   cost's Hessian is ≈ 2·diag(1, 2, 1). The disparity is ``q₀ − q₂ = b/z_c``. In these coordinates
+   each camera's normalized projection is a projective map of ``(q₀, q₁, 1, q₀ − q₂)`` —
+   ``M_c (q₀, q₁, 1) + (m_c / b)(q₀ − q₂)`` dehomogenised, ``M_c = R_c R_lᵀ``,
+   ``m_c = t_c − M_c t_l`` — the rig's model composed with ``g⁻¹`` (tested equal to it).
+3. **Minimise that frame's cost** ``J(q) = ‖h(g⁻¹(q)) − y_k‖²`` (normalized image coordinates)
+   from ``q⁻ = g(p⁻)`` by SPSA line steps along the four cube diagonals ``Δ`` in a random order
+   (any three are independent; random ±1 vectors in R³ repeat a line often; the coordinate only a
+   missing camera sees is held)::
 
-       d = (J(s + cΔ) − J(s − cΔ)) / 2c          (directional derivative, exact for a quadratic)
-       h = (J(s + cΔ) + J(s − cΔ) − 2 J(s)) / c²  (directional curvature, a scalar)
-       s ← s − (d / h) Δ
+       d = (J(q + cΔ) − J(q − cΔ)) / 2c          (directional derivative, exact for a quadratic)
+       h = (J(q + cΔ) + J(q − cΔ) − 2 J(q)) / c²  (directional curvature, a scalar)
+       q ← q − (d / h) Δ
 
-   giving ``ŝ`` — three cost evaluations per direction (J(s) is evaluated again at each new s: the
-   curvature's numerator is ~c² and cannot use an extrapolated value), and a division by a scalar,
-   never a matrix. The directions are the four cube diagonals in a random order (any three
-   are independent; random ±1 vectors in R³ repeat a line often); another sweep of them runs only
-   while the last one still halved the cost. In these coordinates each camera's normalized projection is a projective
-   map of ``(s₀, s₁, 1, s₂)``: camera c sees ``M_c (s₀, s₁, 1) + (m_c / b) s₂`` (dehomogenised),
-   with ``M_c = R_c R_lᵀ`` and ``m_c = t_c − M_c t_l`` — the rig's model composed with ``g⁻¹``
-   (tested equal to it), so one evaluation costs a few dozen float operations.
-4. **Correct with decreasing gains to a floor** (the growing-memory line fit, then a fixed
-   Benedict–Bordner alpha–beta; Brookner, *Tracking and Kalman Filtering Made Easy*, §1.2.6)::
+   Three cost evaluations per direction (J(q) is evaluated again at each new q: the curvature's
+   numerator is ~c² and cannot use an extrapolated value) and a division by a scalar, never a
+   matrix. A sweep is ``directions`` steps; another sweep runs only while the last one halved the
+   cost (far from the minimum: at a start, after a manoeuvre), at most ``max_sweeps``. Result: ``q̂``.
+4. **Correct** each of the image coordinates x/z, y/z and the disparity b/z with its own
+   growing-memory line-fit gains (Brookner, *Tracking and Kalman Filtering Made Easy*, §1.2.6)::
 
-       α_n = max(2(2n − 1) / (n(n + 1)), α_min),   β_n = max(6 / (n(n + 1)), α_min² / (2 − α_min))
-       s⁺ = s⁻ + α_n (ŝ − s⁻),   p⁺ = g⁻¹(s⁺),   v⁺ = v⁻ + (β_n / α_n) (p⁺ − p⁻) / dt
+       α_n = 2(2n − 1) / (n(n + 1)),   β_n / α_n = 3 / (2n − 1)
+       s⁺ = s⁻ + α_n (ŝ − s⁻),   p⁺ = g⁻¹(s⁺),   v⁺ = v⁻ + (g⁻¹(s⁻ + β_n (ŝ − s⁻)) − p⁻) / dt
 
-   with n the number of corrections since the start plus ``init.frames`` (a line fitted through n
-   frames already carries n frames' worth of evidence; a given start counts for none: the first
-   correction takes the measured position and keeps the given velocity). The velocity is learned
-   from the position steps alone. α and β are applied per coordinate: the image coordinates x/z, y/z
-   and the disparity b/z each have their own memory n and floor (``alpha_min``,
-   ``alpha_min_depth``), because the image coordinates move ~z/b times faster than the disparity
-   while their noise is the same.
+   The memory n of each coordinate grows by one per correction up to where α_n reaches its floor
+   (``alpha_min`` for the image coordinates, ``alpha_min_depth`` for the disparity: the image
+   coordinates move ~z/b times faster than the disparity while their noise is the same). It starts
+   at ``init.frames`` after a fitted start (a line through n frames carries n frames' evidence) and
+   at 0 after a given one: the first correction (n = 1) then takes the measured position and keeps
+   the given velocity. The velocity is learned from the position steps alone.
 5. **Kesten's rule** (Kesten 1958, the classic step-size adaptation of stochastic approximation),
-   per coordinate: the memory grows by one while the innovation ``ŝ − s⁻`` alternates in sign (noise)
-   and halves after ``run`` same-sign innovations in a row (the estimate lags a manoeuvre).
+   per coordinate: the memory halves after ``run`` innovations ``ŝ − s⁻`` in a row with the same
+   sign (the estimate lags a manoeuvre); white noise alternates in sign.
 
-A frame whose minimised cost stays above ``gate`` (normalized units², e.g. a detection on the wrong
-blob) is treated as a gap. ``α_min`` is the one tuning knob, as α is Algorithm 1's: small for smooth
-motion, larger to follow manoeuvres.
+A prediction behind the left camera restarts the track from the frame's own minimum. A frame whose
+minimised cost stays above ``gate`` (normalized units² per camera) is treated as a gap: that catches
+a detection off the epipolar line (a wrong blob at another height), not one shifted along it, which
+the frame's own cost reads as a change of depth. The floors are the tuning knobs, as α is Algorithm 1's: small for
+smooth motion, larger to follow manoeuvres.
 """
 
 from __future__ import annotations
@@ -85,7 +84,7 @@ class SPSAStereoConfig(EstimatorConfig):
     """Gain floor, directions per frame, perturbation size and outlier gate of ``spsa_stereo``."""
 
     init: InitConfig = InitConfig(frames=2)
-    #: the floor of the gain α_n of the image coordinates x/z, y/z (β follows as α²/(2 − α))
+    #: the floor of the gain α_n of the image coordinates x/z, y/z (the memory stops growing there)
     alpha_min: float = Field(0.5, gt=0, le=1)
     #: the floor of the gain of the disparity b/z (depth is ~z/b times noisier than the image)
     alpha_min_depth: float = Field(0.1, gt=0, le=1)
@@ -99,7 +98,7 @@ class SPSAStereoConfig(EstimatorConfig):
     #: perturbation size c in normalized image coordinates (1e-3 ≈ 0.6 px at f = 600 px)
     perturbation: float = Field(1e-3, gt=0)
     #: a frame whose minimised cost (normalized units², per camera) exceeds this is skipped as an
-    #: outlier; inf disables the gate
+    #: outlier (it catches detections off the epipolar line); inf disables the gate
     gate: float = Field(math.inf, gt=0)
 
 
@@ -144,7 +143,6 @@ class SPSAStereoEstimator(Estimator):
         self._gate = cfg.gate
         self.p = [0.0, 0.0, 0.0]
         self.v = [0.0, 0.0, 0.0]
-        self.n = 0
         self._signs: list[list[float]] = []
         self._sign_i = 0
 
@@ -204,11 +202,15 @@ class SPSAStereoEstimator(Estimator):
             c += du * du + dv * dv
         return c
 
-    def _begin(self, state: np.ndarray) -> None:
-        self.p, self.v = state[:3].tolist(), state[3:].tolist()
+    def _start_memory(self) -> float:
+        """Evidence a start carries: the fitted frames, or none for a given state."""
         init = self.config.init
-        self.n = init.frames if init.mode == "triangulation" else 0
-        self._mem = [float(self.n)] * 3
+        return float(init.frames) if init.mode == "triangulation" else 0.0
+
+    def _begin(self, state, memory: float) -> None:
+        """Start from ``state = [p; v]`` with ``memory`` frames' worth of evidence per coordinate."""
+        self.p, self.v = list(state[:3]), list(state[3:])
+        self._mem = [float(memory)] * 3
         self._run = [0, 0, 0]
         self._sgn = [0.0, 0.0, 0.0]
         self.initialized = True
@@ -281,14 +283,11 @@ class SPSAStereoEstimator(Estimator):
             if not (use_l and use_r) or yn[0] - yn[2] <= 1e-12:
                 return True, math.nan, math.nan
             h0, h1, h2, cost = self._minimise([yn[0], yn[1], yn[2]], yn, True, True)
-            self._begin(np.r_[self.g_inv(h0, h1, h2), 0.0, 0.0, 0.0])
-            self.n = 1
-            self._mem = [1.0] * 3
+            self._begin((*self.g_inv(h0, h1, h2), 0.0, 0.0, 0.0), 1.0)
             return False, cost, 1.0
         h0, h1, h2, cost = self._minimise(q, yn, use_l, use_r)
         if cost > self._gate * (int(use_l) + int(use_r)):
             return True, cost, math.nan
-        self.n += 1
         e0, e1, ed = h0 - q[0], h1 - q[1], (h0 - h2) - (q[0] - q[2])
         a0, r0 = self._gains(self._memory(0, e0))
         a1, r1 = self._gains(self._memory(1, e1))
@@ -313,7 +312,7 @@ class SPSAStereoEstimator(Estimator):
             st = self.start(y)
             if st is None:
                 return not_started()
-            self._begin(st.state)
+            self._begin(st.state.tolist(), self._start_memory())
             return Step(np.array(self.p), np.array(self.v))
         yn = tuple(self.rig.normalize(y).tolist())
         pred, cost, gain = self._update(yn, math.isfinite(yn[0]) and math.isfinite(yn[1]),
@@ -331,7 +330,7 @@ class SPSAStereoEstimator(Estimator):
         start = self.initiator.first(Y)
         k = n
         if start is not None:
-            self._begin(start.state)
+            self._begin(start.state.tolist(), self._start_memory())
             k = start.frame
             states[k], pred[k] = self.p + self.v, False
             k += 1
