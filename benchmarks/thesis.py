@@ -244,6 +244,32 @@ def main() -> None:
                      f"{rt['ekf, correct covariances']:.3f} m.")
     md += ["", *notes, ""]
 
+    # why Algorithm 1 stalls on this rig, and what spsa_stereo does instead
+    H = [np.linalg.eigvalsh(J.T @ J) for J in rig.jacobian(X[[0, -1]])]
+    z0, z1 = (float(z) for z in rig.left.depth(X[[0, -1]]))
+    md += ["## `spsa_stereo`: why Algorithm 1 stalls on a stereo rig, and what tracks", "",
+           f"The reprojection cost's curvature in metres (eigenvalues of JᵀJ) on `receding`'s rig ({rig.baseline:g} m "
+           f"baseline) is {H[0][-1] / H[0][0]:.0f}× weaker along its flattest direction (depth) than along its "
+           f"steepest at z = {z0:.1f} m, and {H[1][-1] / H[1][0]:.0f}× at z = {z1:.1f} m: a gain small enough to be "
+           "stable sideways leaves depth, and the velocity learned from it, practically unchanged — what (c) and the "
+           "thesis-settings table show. `spsa_stereo` keeps Algorithm 1's ingredients (simultaneous ±1 "
+           "perturbations, a linear prediction, no noise statistics, no matrix inversion) and changes three things:",
+           "",
+           "1. it minimises *each frame's* cost at the predicted position, not a cost pairing two frames;",
+           "2. in the coordinates q = (x/z, y/z, x/z − b/z) — the left image point and the right camera's x — where "
+           f"the cost's Hessian is 2·diag(1, 2, 1) for a rectified rig at any depth (curvature ratio 2, not "
+           f"{H[0][-1] / H[0][0]:.0f}–{H[1][-1] / H[1][0]:.0f}): "
+           "one simultaneous-perturbation Newton step over the four cube diagonals (nine cost evaluations, a scalar "
+           "curvature) lands on the frame's minimum;",
+           "3. it corrects image coordinates and disparity with growing-memory line-fit gains that fall to a floor, "
+           "each with its own memory, shortened by Kesten's rule when the innovations keep one sign; the velocity "
+           "comes from the position corrections.", "",
+           "The equations are in `pipeline/estimators/spsa_stereo.py`; its accuracy, divergence rate and speed "
+           "against every point method on the scenario suite are in [trackers.md](trackers.md) "
+           "(`python benchmarks/trackers.py`). In the thesis-settings table above triangulation is the one to beat: "
+           "with 0.02 or 0.1 px of image noise it is within millimetres or centimetres from the first frame, while "
+           "every filter there starts 0.5 or 1 m off and carries that error for some frames.", ""]
+
     # R1 timing
     md += ["## R1 — time to filter one trajectory (seconds)", "",
            "Both single-track per-frame Python loops, neither vectorised over time nor compiled: Algorithm 1 in "
@@ -266,8 +292,10 @@ def main() -> None:
            "MAE after a 10-sample settling. Ratios to the measurement MAE compare shapes.", "",
            "| motion | measurement MAE | αβ MAE (lecture) | αβγ MAE (lecture) | αβ/meas. ours (lecture) | "
            "αβγ/meas. ours (lecture) |", "|---|---|---|---|---|---|"]
+    r4: dict[str, tuple[float, float]] = {}
     for motion, (l_ab, l_abg) in LECTURE_R4.items():
         m_meas, m_ab, m_abg = _r4(motion, args.seeds)
+        r4[motion] = (m_ab, m_abg)
         labg = f"{l_abg:.3f}" if l_abg else "—"
         rabg = f"{l_abg / 0.194:.2f}" if l_abg else "—"
         md.append(f"| {motion} | {m_meas:.3f} (0.194) | {m_ab:.3f} ({l_ab:.3f}) | {m_abg:.3f} ({labg}) | "
@@ -277,9 +305,12 @@ def main() -> None:
            "the gamma term does not help (the lecture reports 0.132 vs 0.144); its gains and trajectory are not "
            "given, and on a sinusoid the acceleration is never constant, so the extra state mostly adds noise.", "",
            "The γ convention: our αβγ (like filterpy's `GHKFilter`) adds 2γ·r/dt² to the acceleration, the lecture's "
-           "formula γ·r/dt², so the same γ means twice the acceleration correction here; with the lecture's gains "
-           "unknown, the accelerated-motion cells are compared as ratios to the measurement error above, not "
-           "absolute values.", ""]
+           "formula γ·r/dt², so the same γ means twice the acceleration correction here. The cells off the "
+           f"lecture are the accelerated ones: αβ {r4['accelerated'][0] / LECTURE_R4['accelerated'][0]:.1f}× and αβγ "
+           f"{r4['accelerated'][1] / LECTURE_R4['accelerated'][1]:.1f}× the lecture's MAE. With the lecture's gains "
+           "unknown (its gains may well be larger, which an accelerating target favours) we compare shapes: the "
+           "ordering αβγ < αβ under acceleration " + ("holds" if r4["accelerated"][1] < r4["accelerated"][0]
+                                                     else "does not hold") + " here, the absolute values do not.", ""]
     out = args.out / "thesis.md"
     write_text(out, "\n".join(md) + "\n")
     print(f"\nwrote {out}")

@@ -1,10 +1,14 @@
-"""``spsa_stereo``: an SPSA tracker that tracks — Algorithm 1's ingredients (random simultaneous
+"""``spsa_stereo``: an SPSA tracker that tracks — Algorithm 1's ingredients (simultaneous ±1
 perturbations, a few cost evaluations per frame, a linear motion prediction, no noise statistics, no
-matrix inversion) rearranged so that the update acts on a stereo rig (issue 12).
+matrix inversion) rearranged so that the update acts on a stereo rig (issue 12). The perturbations
+are a deterministic ±1 sequence, as in Bhatnagar, Fu, Marcus & Wang (2003), *Two-timescale
+simultaneous perturbation stochastic approximation using deterministic perturbation sequences*,
+ACM TOMACS 13(2): a full cycle of them estimates the gradient without the random cross terms.
 
-Why Algorithm 1 stalls. Its cost pairs two *different* frames and is minimised in metres; on a
-0.3 m rig at 2–7 m the cost's curvature along depth is ~z²/b² ≈ 50–500× weaker than sideways, so a
-gain small enough to be stable sideways leaves depth (and velocity) practically unchanged.
+Why Algorithm 1 stalls. Its cost pairs two *different* frames and is minimised in metres; the
+cost's curvature along depth falls like b²/z² against sideways (on `receding`'s 0.3 m rig it is
+120× weaker at 1.5 m and 2,600× at 7.5 m: docs/thesis.md), so a gain small enough to be stable
+sideways leaves depth (and velocity) practically unchanged.
 
 What this method does instead, every frame k with observation ``y_k``:
 
@@ -20,18 +24,23 @@ What this method does instead, every frame k with observation ``y_k``:
    ``M_c (q₀, q₁, 1) + (m_c / b)(q₀ − q₂)`` dehomogenised, ``M_c = R_c R_lᵀ``,
    ``m_c = t_c − M_c t_l`` — the rig's model composed with ``g⁻¹`` (tested equal to it).
 3. **Minimise that frame's cost** ``J(q) = ‖h(g⁻¹(q)) − y_k‖²`` (normalized image coordinates)
-   from ``q⁻ = g(p⁻)`` by SPSA line steps along the four cube diagonals ``Δ`` in a random order
-   (any three are independent; random ±1 vectors in R³ repeat a line often; the coordinate only a
-   missing camera sees is held)::
+   from ``q⁻ = g(p⁻)`` by simultaneous-perturbation Newton steps. The perturbations are the four
+   cube diagonals ``Δᵢ`` (any three independent, ``Σ ΔᵢΔᵢᵀ = 4I``: a tight frame) in coordinates
+   ``q' = (q₀, √2·q₁, q₂)`` where both cameras see ``q₁``, so the Hessian is ≈ 2I (the coordinate
+   only a missing camera sees is held)::
 
-       d = (J(q + cΔ) − J(q − cΔ)) / 2c          (directional derivative, exact for a quadratic)
-       h = (J(q + cΔ) + J(q − cΔ) − 2 J(q)) / c²  (directional curvature, a scalar)
-       q ← q − (d / h) Δ
+       dᵢ = (J(q + cΔᵢ) − J(q − cΔᵢ)) / 2c         (directional derivative, exact for a quadratic)
+       hᵢ = (J(q + cΔᵢ) + J(q − cΔᵢ) − 2 J(q)) / c²  (directional curvature, a scalar)
+       ∇ = ¼ Σ Δᵢ dᵢ   (exact for a quadratic: the frame is tight)
+       h = Σ hᵢ / (4·dim)   (the mean curvature: a scalar, never a matrix)
+       q ← q − ∇ / h
 
-   Three cost evaluations per direction (J(q) is evaluated again at each new q: the curvature's
-   numerator is ~c² and cannot use an extrapolated value) and a division by a scalar, never a
-   matrix. A sweep is ``directions`` steps; another sweep runs only while the last one halved the
-   cost (far from the minimum: at a start, after a manoeuvre), at most ``max_sweeps``. Result: ``q̂``.
+   Nine cost evaluations and one division by a scalar; one more evaluates the new point. For a
+   rectified rig the cost is exactly quadratic in q with Hessian 2·diag(1, 2, 1), so one step lands
+   on the minimum; a toed-in rig or a distant depth makes it a few per cent anisotropic, and the
+   step repeats (at most ``max_sweeps`` times) while it moved any coordinate by more than 5c —
+   the residual then is a few per cent of the step, well below the pixel noise. A step that
+   does not lower the cost is not taken. Result: ``q̂``.
 4. **Correct** each of the image coordinates x/z, y/z and the disparity b/z with its own
    growing-memory line-fit gains (Brookner, *Tracking and Kalman Filtering Made Easy*, §1.2.6)::
 
@@ -75,23 +84,22 @@ from pipeline.estimators.base import (
 )
 from pipeline.estimators.spsa import normalized_rows
 
+SQRT_HALF = math.sqrt(0.5)
 BIG_COST = 1.0e6  # cost of a trial point behind a camera or beyond infinity
 #: the four cube diagonals: any three are independent, and Σ DDᵀ = 4I (a tight frame)
 DIAGONALS = ((1.0, 1.0, 1.0), (1.0, 1.0, -1.0), (1.0, -1.0, 1.0), (-1.0, 1.0, 1.0))
 
 
 class SPSAStereoConfig(EstimatorConfig):
-    """Gain floor, directions per frame, perturbation size and outlier gate of ``spsa_stereo``."""
+    """Gain floors, Newton steps per frame, perturbation size and outlier gate of ``spsa_stereo``."""
 
     init: InitConfig = InitConfig(frames=2)
     #: the floor of the gain α_n of the image coordinates x/z, y/z (the memory stops growing there)
     alpha_min: float = Field(0.5, gt=0, le=1)
     #: the floor of the gain of the disparity b/z (depth is ~z/b times noisier than the image)
     alpha_min_depth: float = Field(0.1, gt=0, le=1)
-    #: SPSA line steps per sweep on a frame's cost (2 cost evaluations each, plus 1 per frame)
-    directions: int = Field(4, ge=1, le=12)
-    #: sweeps at most per frame: another sweep runs only while the last one halved the cost (far
-    #: from the minimum: at a start, after a manoeuvre); near it one sweep is all a frame costs
+    #: Newton steps at most per frame: another runs only while the last one moved q by more than
+    #: 5 perturbations (far from the minimum: at a start, after a manoeuvre); near it, one
     max_sweeps: int = Field(4, ge=1, le=20)
     #: corrections in a row with the same innovation sign that halve the memory (Kesten's rule)
     run: int = Field(4, ge=2)
@@ -138,26 +146,16 @@ class SPSAStereoEstimator(Estimator):
         self._nmax = nmax
         self._runlen = cfg.run
         self._c = cfg.perturbation
-        self._K = cfg.directions
+        self._far = 5.0 * cfg.perturbation
         self._sweeps = cfg.max_sweeps
         self._gate = cfg.gate
         self.p = [0.0, 0.0, 0.0]
         self.v = [0.0, 0.0, 0.0]
-        self._signs: list[list[float]] = []
-        self._sign_i = 0
 
     @property
     def x(self) -> np.ndarray:
         """State ``[p; v]`` (m, m/s)."""
         return np.array(self.p + self.v)
-
-    def _order(self) -> list[int]:
-        """This frame's order of the four cube diagonals (a seeded random permutation)."""
-        if self._sign_i >= len(self._signs):
-            self._signs = np.argsort(self.rng.random((256, 4)), axis=1).tolist()
-            self._sign_i = 0
-        self._sign_i += 1
-        return self._signs[self._sign_i - 1]
 
     def g(self, p) -> list[float] | None:
         """``q = (x_c/z_c, y_c/z_c, x_c/z_c − b/z_c)`` of a world point (the left camera's image
@@ -216,34 +214,39 @@ class SPSAStereoEstimator(Estimator):
         self.initialized = True
 
     def _minimise(self, q: list[float], yn: tuple, use_l: bool, use_r: bool) -> tuple[float, float, float, float]:
-        """``directions`` SPSA line steps on this frame's cost from ``q``; (q̂₀, q̂₁, q̂₂, J(q̂))."""
-        c, J, K = self._c, self.cost, self._K
+        """Simultaneous-perturbation Newton steps on this frame's cost from ``q`` (module docstring,
+        step 3); (q̂₀, q̂₁, q̂₂, J(q̂))."""
+        c, J = self._c, self.cost
         q0, q1, q2 = q
         J0 = J(q0, q1, q2, yn, use_l, use_r)
         m0 = 1.0 if use_l else 0.0  # a coordinate only one camera sees is not perturbed without it
         m2 = 1.0 if use_r else 0.0
-        order = self._order()
-        sweeps, before = 0, J0
-        i = 0
-        while True:
-            D = DIAGONALS[order[i % 4]]
-            i += 1
-            d0, d1, d2 = D[0] * m0, D[1], D[2] * m2
-            Jp = J(q0 + c * d0, q1 + c * d1, q2 + c * d2, yn, use_l, use_r)
-            Jm = J(q0 - c * d0, q1 - c * d1, q2 - c * d2, yn, use_l, use_r)
-            h = (Jp + Jm - 2.0 * J0) / (c * c)
-            if h > 0.0:
-                d = (Jp - Jm) / (2.0 * c)
-                step = d / h
-                while (q0 - step * d0) - (q2 - step * d2) <= 1e-12:  # would cross infinity: shorten
-                    step *= 0.5
-                q0, q1, q2 = q0 - step * d0, q1 - step * d1, q2 - step * d2
-                J0 = J(q0, q1, q2, yn, use_l, use_r)  # evaluated: the next curvature needs it exactly
-            if i % K == 0:  # a sweep done: another only while the last one still halved the cost
-                sweeps += 1
-                if sweeps >= self._sweeps or not J0 < 0.5 * before:
-                    break
-                before = J0
+        s1 = SQRT_HALF if (use_l and use_r) else 1.0  # both cameras see q₁: twice the curvature
+        dim = 1.0 + m0 + m2
+        for _ in range(self._sweeps):
+            g0 = g1 = g2 = hsum = 0.0
+            for D in DIAGONALS:
+                d0, d1, d2 = D[0] * m0, D[1] * s1, D[2] * m2
+                Jp = J(q0 + c * d0, q1 + c * d1, q2 + c * d2, yn, use_l, use_r)
+                Jm = J(q0 - c * d0, q1 - c * d1, q2 - c * d2, yn, use_l, use_r)
+                d = Jp - Jm
+                g0 += D[0] * m0 * d
+                g1 += D[1] * d
+                g2 += D[2] * m2 * d
+                hsum += Jp + Jm - 2.0 * J0
+            if not hsum > 0.0:
+                break
+            # ∇' = Σ Dᵢ dᵢ / 4 with dᵢ = (J₊ − J₋)/2c; h = Σ hᵢ / (4·dim) with hᵢ = (J₊ + J₋ − 2J)/c²
+            k = dim * c / (2.0 * hsum)  # Newton step −∇'/h = −k·(g0, g1, g2), back to q through s₁
+            t0, t1, t2 = k * g0, k * g1 * s1, k * g2
+            while (q0 - t0) - (q2 - t2) <= 1e-12:  # would cross infinity: shorten
+                t0, t1, t2 = 0.5 * t0, 0.5 * t1, 0.5 * t2
+            J1 = J(q0 - t0, q1 - t1, q2 - t2, yn, use_l, use_r)
+            if not J1 < J0:  # no decrease: the model is poor this far out; keep q
+                break
+            q0, q1, q2, J0 = q0 - t0, q1 - t1, q2 - t2, J1
+            if max(abs(t0), abs(t1), abs(t2)) < self._far:  # near: the remaining error is a few % of this step
+                break
         return q0, q1, q2, J0
 
     def _gains(self, n: float) -> tuple[float, float]:
