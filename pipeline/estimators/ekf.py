@@ -17,7 +17,6 @@ smoother applies as it is).
 from __future__ import annotations
 
 import numpy as np
-from filterpy.kalman import ExtendedKalmanFilter
 
 from pipeline.estimators.base import Estimator, Step, not_started, register, transition, white_noise_acceleration
 from pipeline.estimators.kalman_common import KalmanConfig, RTSMixin, available_rows, filtered_step, kalman_batch
@@ -36,6 +35,8 @@ class EKFEstimator(Estimator):
         self.A = transition(self.dt)
         self.Q = white_noise_acceleration(self.dt, cfg.process_noise * cfg.q_scale)
         self.R = self.model.covar() * cfg.r_scale
+        from filterpy.kalman import ExtendedKalmanFilter  # imported when a filter is built (see base.py)
+
         self.filter = ExtendedKalmanFilter(dim_x=6, dim_z=4)
         self.filter.F, self.filter.Q, self.filter.R = self.A, self.Q, self.R
 

@@ -7,7 +7,6 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-from filterpy.kalman import KalmanFilter
 from pydantic import Field
 
 from pipeline.estimators.base import Estimator, EstimatorConfig, Step, Track, reprojection_errors
@@ -95,6 +94,8 @@ def rts_smooth(est: Estimator, track: Track) -> Track:
         return track
     s = ok[0]
     Xs = np.hstack([track.position[s:], track.velocity[s:]])
+    from filterpy.kalman import KalmanFilter  # imported when a filter is built (see base.py)
+
     kf = KalmanFilter(dim_x=6, dim_z=1)
     kf.F, kf.Q = est.A, est.Q
     xs, Ps, _, _ = kf.rts_smoother(Xs, track.covariance[s:].copy())

@@ -13,7 +13,6 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
-from filterpy.kalman import KalmanFilter
 from pydantic import Field
 
 from pipeline.estimators.base import Estimator, Step, not_started, register, transition, white_noise_acceleration
@@ -40,6 +39,8 @@ class KF3DEstimator(Estimator):
         cfg: KF3DConfig = self.config  # type: ignore[assignment]
         self.A = transition(self.dt)
         self.Q = white_noise_acceleration(self.dt, cfg.process_noise * cfg.q_scale)
+        from filterpy.kalman import KalmanFilter  # imported when a filter is built (see base.py)
+
         self.filter = KalmanFilter(dim_x=6, dim_z=3)
         self.filter.F, self.filter.Q, self.filter.H = self.A, self.Q, H3
 

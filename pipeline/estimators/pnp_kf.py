@@ -13,7 +13,6 @@ import math
 
 import cv2
 import numpy as np
-from filterpy.kalman import KalmanFilter
 from scipy.linalg import expm
 
 from pipeline.estimators.base import Step, register
@@ -60,6 +59,8 @@ class PnPKFEstimator(TargetEstimator):
         c: KalmanBucyConfig = self.config  # type: ignore[assignment]
         A = block_diag2(channel_matrix(c.a_alpha, c.alpha_feedback), channel_matrix(c.a_z, c.z_feedback))
         F, Qd = van_loan(A, G4 @ np.diag([c.q_alpha, c.q_z]) @ G4.T, self.dt)
+        from filterpy.kalman import KalmanFilter  # imported when a filter is built (see base.py)
+
         self.kf = KalmanFilter(dim_x=4, dim_z=2)
         self.kf.F, self.kf.Q, self.kf.H = F, Qd, C4
         self.prev_normals: dict[int, np.ndarray] = {}

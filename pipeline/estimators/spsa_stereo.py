@@ -47,9 +47,13 @@ What this method does instead, every frame k with observation ``y_k``:
        α_n = 2(2n − 1) / (n(n + 1)),   β_n / α_n = 3 / (2n − 1)
        s⁺ = s⁻ + α_n (ŝ − s⁻),   p⁺ = g⁻¹(s⁺),   v⁺ = v⁻ + (g⁻¹(s⁻ + β_n (ŝ − s⁻)) − p⁻) / dt
 
-   The memory n of each coordinate grows by one per correction up to where α_n reaches its floor
-   (``alpha_min`` for the image coordinates, ``alpha_min_depth`` for the disparity: the image
-   coordinates move ~z/b times faster than the disparity while their noise is the same). It starts
+   The memory n of each coordinate grows by one per correction up to where α_n reaches its floor.
+   The image coordinates' floor is ``alpha_min``. The disparity's floor is proportional to the
+   predicted disparity itself, ``alpha_depth_per_disparity · b/z`` (at least ``alpha_min_depth``):
+   a given acceleration moves the disparity by ``b·a/z²`` while its noise stays the same, so the
+   tracking index falls like 1/z² and the steady-state gain of a line fit with it like 1/z (Kalata,
+   *The tracking index*, IEEE TAES 20(2), 1984: α ≈ √(2λ) for small λ). Near, depth is allowed to
+   follow; far, where a disparity error is a large depth error, it is smoothed harder. It starts
    at ``init.frames`` after a fitted start (a line through n frames carries n frames' evidence) and
    at 0 after a given one: the first correction (n = 1) then takes the measured position and keeps
    the given velocity. The velocity is learned from the position steps alone.
@@ -96,8 +100,11 @@ class SPSAStereoConfig(EstimatorConfig):
     init: InitConfig = InitConfig(frames=2)
     #: the floor of the gain α_n of the image coordinates x/z, y/z (the memory stops growing there)
     alpha_min: float = Field(0.5, gt=0, le=1)
-    #: the floor of the gain of the disparity b/z (depth is ~z/b times noisier than the image)
-    alpha_min_depth: float = Field(0.1, gt=0, le=1)
+    #: the floor of the disparity's gain is this times the predicted normalized disparity b/z
+    #: (0.1 at 4.5 m on a 0.3 m rig): the disparity's tracking index falls like 1/z²
+    alpha_depth_per_disparity: float = Field(1.5, gt=0)
+    #: the disparity's floor never falls below this (very far points)
+    alpha_min_depth: float = Field(0.02, gt=0, le=1)
     #: Newton steps at most per frame: another runs only while the last one moved q by more than
     #: 5 perturbations (far from the minimum: at a start, after a manoeuvre); near it, one
     max_sweeps: int = Field(4, ge=1, le=20)
@@ -142,8 +149,8 @@ class SPSAStereoEstimator(Estimator):
         self._tl = np.ravel(left.t).tolist()
         self._b = self.rig.baseline
         self._Al, self._Ar = disparity_maps(self.rig)
-        nmax = [max_memory(cfg.alpha_min)] * 2 + [max_memory(cfg.alpha_min_depth)]
-        self._nmax = nmax
+        self._nmax = [max_memory(cfg.alpha_min)] * 2 + [max_memory(cfg.alpha_min_depth)]
+        self._kd, self._amin_d = cfg.alpha_depth_per_disparity, cfg.alpha_min_depth
         self._runlen = cfg.run
         self._c = cfg.perturbation
         self._far = 5.0 * cfg.perturbation
@@ -292,11 +299,12 @@ class SPSAStereoEstimator(Estimator):
         if cost > self._gate * (int(use_l) + int(use_r)):
             return True, cost, math.nan
         e0, e1, ed = h0 - q[0], h1 - q[1], (h0 - h2) - (q[0] - q[2])
+        dd = q[0] - q[2]  # the predicted disparity b/z sets the disparity's floor
+        self._nmax[2] = max_memory(min(1.0, max(self._amin_d, self._kd * dd)))
         a0, r0 = self._gains(self._memory(0, e0))
         a1, r1 = self._gains(self._memory(1, e1))
         ad, rad = self._gains(self._memory(2, ed))
         # the correction in (x/z, y/z, b/z): image coordinates and disparity have their own gains
-        dd = q[0] - q[2]
         d_new = dd + ad * ed
         if d_new <= 1e-12:  # a correction beyond infinity: keep the predicted disparity
             d_new = dd

@@ -5,7 +5,6 @@ sigma points (Van der Merwe's scaled set) through ``x ↦ A x`` and the measurem
 from __future__ import annotations
 
 import numpy as np
-from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 
 from pipeline.estimators.base import Estimator, Step, not_started, register, transition, white_noise_acceleration
 from pipeline.estimators.kalman_common import KalmanConfig, available_rows, filtered_step
@@ -24,6 +23,8 @@ class UKFEstimator(Estimator):
         self.A = transition(self.dt)
         self.Q = white_noise_acceleration(self.dt, cfg.process_noise * cfg.q_scale)
         self.R = self.model.covar() * cfg.r_scale
+        from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter  # when built (see base.py)
+
         points = MerweScaledSigmaPoints(6, alpha=0.3, beta=2.0, kappa=-3.0)
         A, h = self.A, self.model.function
         self.filter = UnscentedKalmanFilter(dim_x=6, dim_z=4, dt=self.dt, hx=h, fx=lambda x, dt: A @ x, points=points)
