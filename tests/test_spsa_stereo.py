@@ -136,3 +136,52 @@ def test_spsa_stereo_gate_skips_an_outlier_detection(receding):
         gated_e.append(err(gated.position, X)[150])
         assert gated_e[-1] < plain_e[-1], seed
     assert np.mean(plain_e) > 1.5 * np.mean(gated_e), (plain_e, gated_e)
+
+
+def test_newton_step_lands_on_the_frames_minimum(receding):
+    """From a prediction several pixels off, the simultaneous-perturbation Newton steps reach the
+    frame's own least-squares point (scipy) to well under the pixel noise, in ≤ 19 cost calls."""
+    from scipy.optimize import least_squares
+
+    rig, dt, X, _ = receding
+    est = create("spsa_stereo", rig, dt)
+    Y = noisy(rig, X, 1.5, 0)
+    yn = rig.normalize(Y)
+    nrig = rig.normalized()
+    rng = np.random.default_rng(7)
+    calls = [0]
+    cost = est.cost
+
+    def counted(*a):
+        calls[0] += 1
+        return cost(*a)
+
+    est.cost = counted
+    for k in range(0, 300, 23):
+        start = X[k] + rng.normal(0.0, 0.05, 3)  # ~5–20 px off in the image
+        calls[0] = 0
+        q = est._minimise(est.g(start), tuple(yn[k]), True, True)
+        assert calls[0] <= 19
+        best = least_squares(lambda p, k=k: nrig.project(p[None])[0] - yn[k], start, xtol=1e-14, ftol=1e-14).x
+        got = nrig.project(np.array(est.g_inv(*q[:3]))[None])[0]
+        want = nrig.project(best[None])[0]
+        assert np.max(np.abs(got - want)) * rig.left.K[0, 0] < 0.1  # pixels, against σ = 1.5 px
+
+
+def test_disparity_floor_follows_the_disparity(receding):
+    """The disparity's gain floor is ``alpha_depth_per_disparity · b/z``: near the rig it lets depth
+    follow more than far away (memory caps grow as the marker recedes)."""
+    from pipeline.estimators.spsa_stereo import max_memory
+
+    rig, dt, X, _ = receding
+    est = create("spsa_stereo", rig, dt)
+    Y = noisy(rig, X, 1.0, 0)
+    caps = []
+    for k in range(300):
+        est.step(Y[k])
+        if est.initialized and k > 2:
+            caps.append(est._nmax[2])
+    z = rig.left.depth(X)
+    assert caps[0] < caps[-1]
+    b_over_z = rig.baseline / z[-1]
+    assert abs(caps[-1] - max_memory(1.5 * b_over_z)) < 0.2 * caps[-1]
