@@ -298,3 +298,15 @@ def test_triangulate_is_the_models_inverse():
     X = cv_track()
     np.testing.assert_allclose(triangulate(RIG, RIG.project(X)), X, atol=1e-9)
     np.testing.assert_allclose(RIG.triangulate(RIG.project(X)[None])[0], X, atol=1e-9)
+
+
+def test_chi2_band_matches_scipy_stats():
+    """The χ² band from the incomplete gamma function equals scipy.stats' quantiles."""
+    from scipy.stats import chi2
+
+    from pipeline.consistency import band
+
+    dof = np.array([1, 2, 3, 4, 6, 60])
+    lo, hi = band(dof, 0.95)
+    np.testing.assert_allclose(lo, chi2.ppf(0.025, dof), rtol=1e-10)
+    np.testing.assert_allclose(hi, chi2.ppf(0.975, dof), rtol=1e-10)
