@@ -125,9 +125,9 @@ def main() -> None:
         ax.plot(t, y1 + rng.normal(0, sig, len(t)), "+", label="noisy y1")
         ax.plot(t, y3 + rng.normal(0, sig, len(t)), "+", label="noisy y3")
         ax.plot(t, est - alpha, "x-", ms=3, label="error")
-        ax.set(title=f"SNR = {snr} dB (α0 = π/6)", xlabel="t (s)")
+        ax.set(title=f"SNR = {snr} dB (α0 = π/6)", xlabel="t (s)", ylabel="α, error (rad); y1, y3 (m)")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
+    axes[1].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.02, 1.0))
     with atomic_path(figs / "soifer_fig3.png") as tmp:
         fig.savefig(tmp, dpi=100, bbox_inches="tight")
     plt.close(fig)

@@ -149,7 +149,7 @@ class SPSAStereoEstimator(Estimator):
         self._tl = np.ravel(left.t).tolist()
         self._b = self.rig.baseline
         self._Al, self._Ar = disparity_maps(self.rig)
-        self._nmax = [max_memory(cfg.alpha_min)] * 2 + [max_memory(cfg.alpha_min_depth)]
+        self._nmax_image = max_memory(cfg.alpha_min)
         self._kd, self._amin_d = cfg.alpha_depth_per_disparity, cfg.alpha_min_depth
         self._runlen = cfg.run
         self._c = cfg.perturbation
@@ -256,6 +256,11 @@ class SPSAStereoEstimator(Estimator):
                 break
         return q0, q1, q2, J0
 
+    def disparity_memory_cap(self, disparity: float) -> float:
+        """The disparity's memory cap at a predicted normalized disparity b/z: where α reaches
+        ``alpha_depth_per_disparity · b/z`` (at least ``alpha_min_depth``, at most 1)."""
+        return max_memory(min(1.0, max(self._amin_d, self._kd * disparity)))
+
     def _gains(self, n: float) -> tuple[float, float]:
         """(α, β/α) of the growing-memory line fit after n corrections (Brookner §1.2.6). The first
         correction after a given start (n = 1) takes the measured position and keeps the velocity:
@@ -264,10 +269,10 @@ class SPSAStereoEstimator(Estimator):
             return 1.0, 0.0
         return 2.0 * (2 * n - 1) / (n * (n + 1)), 3.0 / (2 * n - 1)
 
-    def _memory(self, i: int, e: float) -> float:
+    def _memory(self, i: int, e: float, cap: float) -> float:
         """Kesten's rule per coordinate: the memory n grows by one while the innovation's sign
         alternates (noise) and halves after ``run`` corrections in a row with the same sign (lag);
-        capped where α reaches its floor."""
+        capped at ``cap``, where α reaches its floor."""
         same = (e > 0.0) == (self._sgn[i] > 0.0)
         self._sgn[i] = e
         self._run[i] = self._run[i] + 1 if same else 0
@@ -275,7 +280,7 @@ class SPSAStereoEstimator(Estimator):
             self._mem[i] = max(1.0, 0.5 * self._mem[i])
             self._run[i] = 0
         else:
-            self._mem[i] = min(self._mem[i] + 1.0, self._nmax[i])
+            self._mem[i] = min(self._mem[i] + 1.0, cap)
         return self._mem[i]
 
     def _update(self, yn: tuple, use_l: bool, use_r: bool) -> tuple[bool, float, float]:
@@ -300,10 +305,9 @@ class SPSAStereoEstimator(Estimator):
             return True, cost, math.nan
         e0, e1, ed = h0 - q[0], h1 - q[1], (h0 - h2) - (q[0] - q[2])
         dd = q[0] - q[2]  # the predicted disparity b/z sets the disparity's floor
-        self._nmax[2] = max_memory(min(1.0, max(self._amin_d, self._kd * dd)))
-        a0, r0 = self._gains(self._memory(0, e0))
-        a1, r1 = self._gains(self._memory(1, e1))
-        ad, rad = self._gains(self._memory(2, ed))
+        a0, r0 = self._gains(self._memory(0, e0, self._nmax_image))
+        a1, r1 = self._gains(self._memory(1, e1, self._nmax_image))
+        ad, rad = self._gains(self._memory(2, ed, self.disparity_memory_cap(dd)))
         # the correction in (x/z, y/z, b/z): image coordinates and disparity have their own gains
         d_new = dd + ad * ed
         if d_new <= 1e-12:  # a correction beyond infinity: keep the predicted disparity
