@@ -73,7 +73,7 @@ class CameraReader:
             ok, first = self.cap.read()
             if not ok or first is None:
                 raise ClipError("video has no decodable frames (corrupt or empty)", self.source)
-            self.cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
+            self._first: np.ndarray | None = first  # kept, not re-read: seeking back fails on a 1-frame video
             self.size = (first.shape[1], first.shape[0])
             self.count = int(self.cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
             self.fps = float(self.cap.get(cv2.CAP_PROP_FPS) or 0.0)
@@ -102,6 +102,9 @@ class CameraReader:
                 yield img
         else:
             assert self.cap is not None
+            if self._first is not None:
+                first, self._first = self._first, None
+                yield first
             while True:
                 ok, img = self.cap.read()
                 if not ok:

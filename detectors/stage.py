@@ -87,6 +87,12 @@ def markers_for_clip(clip: Clip, specs: list[str] | None, left_frame: Callable[[
             colors.append(mk)
             if learned is not None:
                 learned[mk.name] = mk.spec()
+        names = [c.name for c in colors]
+        for name in names:
+            if names.count(name) > 1:
+                given = [s for s, n in zip(specs, names, strict=True) if n == name]
+                raise StereotrackError(f"marker name {name!r} is given twice ({', '.join(given)}): one name per marker, "
+                                       "or two colours would merge into one track", clip.path)
         return colors, {}
     if not clip.markers:
         raise StereotrackError(f"no marker colours: give --markers NAME:HLO-HHI, NAME=#RRGGBB or NAME@x,y,w,h, "

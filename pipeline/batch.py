@@ -23,11 +23,12 @@ from typing import Any
 
 from pipeline.camera import has_calibration
 from pipeline.errors import StereotrackError
-from pipeline.io import ensure_dir, write_csv, write_text
-from pipeline.lifeline import OutputLock, die_with_parent, still_parented
-from pipeline.manifest import verify_manifest, write_manifest
+from pipeline.io import check_replaceable, ensure_dir, write_csv, write_json, write_text
+from pipeline.lifeline import OutputLock, die_with_parent, ignore_sigint, still_parented
+from pipeline.manifest import MANIFEST, verify_manifest, write_manifest
 
-SUMMARY_COLUMNS = ["clip", "status", "method", "rmse_m", "final_m", "reprojection_rmse_px", "steps_per_second", "error"]
+SUMMARY_COLUMNS = ["clip", "status", "method", "rmse_m", "final_m", "reprojection_rmse_px", "steps_per_second",
+                   "attempts", "error"]
 
 
 @dataclass
@@ -37,69 +38,108 @@ class ClipOutcome:
     metrics: dict = field(default_factory=dict)
     error: str = ""
     warnings: list[str] = field(default_factory=list)
+    #: attempts made: 1, more when a worker died under an attempt and Dask ran the clip again; an
+    #: outcome that no attempt finished starts at 0 and counts the attempts whose worker died
+    attempts: int = 1
 
 
-def find_clips(input_dir: str | Path) -> list[Path]:
-    """Clip folders under ``input_dir``: folders holding a calibration and left/right footage."""
+def find_clips(input_dir: str | Path, skip: Path | None = None) -> list[Path]:
+    """Clip folders under ``input_dir``: folders holding a calibration and left/right footage. A
+    clip's own sub-folders are its own (frames, outputs), never further clips; ``skip`` (the batch's
+    output folder, when it lies inside the input) is not searched."""
     input_dir = Path(input_dir)
     if not input_dir.is_dir():
         raise StereotrackError("no such input folder", input_dir)
     clips = []
-    for d in sorted(p for p in [input_dir, *input_dir.rglob("*")] if p.is_dir()):
-        if d.name.startswith(".") or d.name in ("out", "left", "right", "estimates", "figures"):
-            continue
-        names = {p.name for p in d.iterdir()}
-        has_calib = has_calibration(d)
-        has_left = any(n.startswith("left") for n in names)
-        if has_calib or (has_left and any(n.startswith("right") for n in names)):
+    for top, dirs, files in os.walk(input_dir):
+        d = Path(top)
+        dirs[:] = sorted(n for n in dirs if not n.startswith(".") and n not in ("out", "left", "right", "estimates",
+                                                                                    "figures")
+                         and (skip is None or (d / n).resolve() != skip))
+        has_left = any(n.startswith("left") for n in (*files, *dirs))
+        if has_calibration(d) or (has_left and any(n.startswith("right") for n in (*files, *dirs))):
             clips.append(d)
-    return clips
+            dirs[:] = []
+    return sorted(clips)
+
+
+def clip_key(clip: Path, input_dir: Path) -> str:
+    """A clip's name in a batch: its path relative to the input folder (``a/clip``), so that two
+    clips of one name in different sub-folders never share an output folder."""
+    rel = clip.relative_to(input_dir).as_posix()
+    return input_dir.resolve().name if rel == "." else rel
 
 
 def _worker_init(parent_pid: int, single_thread: bool) -> None:
-    """Pool-worker initializer: die with the batch process; one OpenCV thread per worker when
-    several workers share the cores."""
+    """Pool-worker initializer: die with the batch process; leave Ctrl-C to it (the batch ends its
+    workers itself); one OpenCV thread per worker when several workers share the cores."""
     die_with_parent(parent_pid)
+    ignore_sigint()
     if single_thread:
         import cv2
 
         cv2.setNumThreads(1)
 
 
-def _process_one(clip: str, out_root: str, settings: dict[str, Any], parent_pid: int | None = None) -> ClipOutcome:
+ATTEMPT = ".attempt.json"
+#: Files that only stereotrack writes into a clip's output folder: a folder holding none of them
+#: (and not empty) is someone else's and is never replaced, ``--force`` included.
+OURS = (MANIFEST, "detect.json")
+
+
+def _attempt_info() -> dict[str, Any]:
+    """Where this attempt runs: the Dask worker's address, or this process."""
+    import socket
+
+    info: dict[str, Any] = {"pid": os.getpid(), "host": socket.gethostname()}
+    try:
+        from distributed import get_worker
+
+        info["worker"] = get_worker().address
+    except (ImportError, ValueError):
+        info["worker"] = f"pid {os.getpid()} on {info['host']}"
+    return info
+
+
+def _process_one(clip: str, key: str, out_root: str, settings: dict[str, Any],
+                 parent_pid: int | None = None) -> ClipOutcome:
     """Process one clip into a temporary folder unique to this attempt, write its manifest last,
-    and swap it into ``OUT/<name>``. Runs in a pool worker (``parent_pid``: the batch process; a
+    and swap it into ``OUT/<key>``. Runs in a pool worker (``parent_pid``: the batch process; a
     worker whose batch has died never commits) or on a Dask worker."""
     import uuid
     import warnings
 
-    from pipeline.clip import resolve_marker_specs
+    from pipeline.clip import input_files, resolve_marker_specs
     from pipeline.run import process_clip
 
-    clip_p, name = Path(clip), Path(clip).name
-    final = Path(out_root) / name
-    partial = Path(out_root) / f".{name}.partial-{uuid.uuid4().hex[:12]}"
+    clip_p, final = Path(clip), Path(out_root) / key
+    partial = final.parent / f".{final.name}.partial-{uuid.uuid4().hex[:12]}"
     try:
-        specs = resolve_marker_specs(clip_p, None, settings.get("markers"))
+        check_replaceable(final, OURS, "clip's outputs")
+        ensure_dir(partial)
+        write_json(partial / ATTEMPT, _attempt_info())
+        inputs = input_files(clip_p)
+        specs = resolve_marker_specs(clip_p, settings.get("markers"), settings.get("root_markers"))
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             process_clip(clip_p, partial, detector=settings["detector"], methods=settings.get("methods"),
                          images_in_recording=settings.get("images", True), marker_specs=specs,
                          calib_units=settings.get("calib_units"), lock=False, configs=settings.get("configs"))
-        write_manifest(partial, settings)
+        (partial / ATTEMPT).unlink()
+        write_manifest(partial, settings, inputs)
         if parent_pid is not None and not still_parented(parent_pid):
             shutil.rmtree(partial, ignore_errors=True)
             os._exit(1)  # the batch is gone: never commit for a batch that no longer exists
         _swap_in(partial, final)
         notes = sorted({str(w.message) for w in caught})
-        return ClipOutcome(name, "ok", json.loads((final / "metrics.json").read_text()), warnings=notes)
+        return ClipOutcome(key, "ok", json.loads((final / "metrics.json").read_text()), warnings=notes)
     except StereotrackError as exc:
         shutil.rmtree(partial, ignore_errors=True)
-        return ClipOutcome(name, "failed", error=str(exc))
+        return ClipOutcome(key, "failed", error=str(exc))
     except Exception as exc:
         shutil.rmtree(partial, ignore_errors=True)
         last = traceback.extract_tb(exc.__traceback__)[-1]
-        return ClipOutcome(name, "failed", error=f"{type(exc).__name__}: {exc} ({Path(last.filename).name}:{last.lineno})")
+        return ClipOutcome(key, "failed", error=f"{type(exc).__name__}: {exc} ({Path(last.filename).name}:{last.lineno})")
 
 
 def _swap_in(partial: Path, final: Path) -> None:
@@ -133,112 +173,204 @@ def run_batch(
 ) -> list[ClipOutcome]:
     """Process every clip under ``input_dir``; write ``summary.csv`` and ``summary.md``.
 
+    Each clip's outputs go to ``OUT/<its path under input_dir>`` (``in/a/clip`` → ``OUT/a/clip``).
+
     ``scheduler``: None for a local process pool; ``"local"`` for a Dask ``LocalCluster`` of
     ``workers`` processes; a ``tcp://host:port`` address (or ``scheduler_file``) for an existing
     Dask scheduler, whose workers must see ``input_dir`` and ``output_dir`` at the same paths.
 
     ``configs`` (``--config``) are the methods' settings, part of what a complete clip must match.
     ``images``: whether each clip's recording holds its frames (``--no-images`` leaves them out).
-    ``marker_specs`` (``--markers``) apply to every clip; else a clip's own ``markers.yaml``, else
-    ``INPUT/markers.yaml``, else a rendered clip's description (clip.json) gives its markers.
+    Markers: ``marker_specs`` (``--markers``) apply to every clip; else a clip's own
+    ``markers.yaml``; else ``INPUT/markers.yaml``; else a rendered clip's description (clip.json).
 
     The output folder is locked for the whole batch (a second batch on it fails at once, naming
-    the holder). A clip counts as done only if its manifest verifies and was made with the same
-    settings; anything else (including leftovers of a killed batch) is redone.
+    the holder). A clip counts as done only if its manifest verifies, was made with the same
+    settings and from the same inputs; anything else (including leftovers of a killed batch) is
+    redone, with a warning saying why when it had complete outputs.
     """
     from pipeline.clip import MARKERS_FILE, read_markers_file
 
-    clips = find_clips(input_dir)
+    input_dir = Path(input_dir)
+    out_root = Path(output_dir)
+    clips = find_clips(input_dir, skip=out_root.resolve())
     if not clips:
         raise StereotrackError("no clip folders here (a clip holds left/right videos or frame folders and a calibration)",
                                input_dir)
-    if not marker_specs and (Path(input_dir) / MARKERS_FILE).is_file():
-        marker_specs = read_markers_file(Path(input_dir) / MARKERS_FILE)
-    settings = {"detector": detector, "methods": methods, "markers": marker_specs, "calib_units": calib_units,
-                "configs": configs, "images": images}
-    out_root = ensure_dir(output_dir)
+    root_markers = read_markers_file(input_dir / MARKERS_FILE) if (input_dir / MARKERS_FILE).is_file() else None
+    settings = {"detector": detector, "methods": methods, "markers": marker_specs, "root_markers": root_markers,
+                "calib_units": calib_units, "configs": configs, "images": images}
+    keys = {c: clip_key(c, input_dir) for c in clips}
+    ensure_dir(out_root)
     with OutputLock(out_root, f"stereotrack batch {input_dir}"):
-        for stale in [*out_root.glob(".*.partial*"), *out_root.glob(".*.old-*")]:
-            shutil.rmtree(stale, ignore_errors=True) if stale.is_dir() else stale.unlink(missing_ok=True)
+        _remove_leftovers(out_root)
         outcomes: dict[str, ClipOutcome] = {}
         todo = []
         for c in clips:
-            final = out_root / c.name
-            if not force and final.is_dir() and verify_manifest(final, settings) is None:
-                outcomes[c.name] = ClipOutcome(c.name, "skipped", json.loads((final / "metrics.json").read_text()))
+            done = None if force else _complete(keys[c], out_root / keys[c], settings, c)
+            if done is not None:
+                outcomes[keys[c]] = done
             else:
                 todo.append(c)
-        done = len(outcomes)
-        if progress is not None:
-            progress(done, len(clips))
+        counter = _Counter(len(outcomes), len(clips), progress)
 
         def record(o: ClipOutcome) -> None:
-            nonlocal done
             outcomes[o.clip] = o
-            done += 1
-            if progress is not None:
-                progress(done, len(clips))
+            counter.tick()
 
-        if todo and scheduler is None and scheduler_file is None:
-            _run_local(todo, out_root, settings, workers, record)
-        elif todo:
-            _run_dask(todo, out_root, settings, workers, scheduler, scheduler_file, record)
-        ordered = [outcomes[c.name] for c in clips]
+        try:
+            if todo and scheduler is None and scheduler_file is None:
+                _run_local(todo, keys, out_root, settings, workers, record)
+            elif todo:
+                _run_dask(todo, keys, out_root, settings, workers, scheduler, scheduler_file, record)
+        finally:
+            dead = _remove_leftovers(out_root)  # attempts whose worker died, and anything an interrupt left
+        for key, worker in dead:
+            if key in outcomes:  # every attempt counts: those that died, and the one that finished
+                o = outcomes[key]
+                o.attempts += 1
+                o.warnings.append(f"{key}: the worker running an attempt at it ({worker}) died")
+        ordered = [outcomes[keys[c]] for c in clips]
         write_summary(out_root, ordered)
     return ordered
 
 
-def _run_local(todo: list[Path], out_root: Path, settings: dict, workers: int,
+class _Counter:
+    """Clips done, for a progress callback."""
+
+    def __init__(self, done: int, total: int, progress: Callable[[int, int], None] | None) -> None:
+        self.done, self.total, self.progress = done, total, progress
+        if progress is not None:
+            progress(done, total)
+
+    def tick(self) -> None:
+        self.done += 1
+        if self.progress is not None:
+            self.progress(self.done, self.total)
+
+
+def _complete(key: str, final: Path, settings: dict, clip: Path) -> ClipOutcome | None:
+    """The outcome of a clip whose outputs are complete and current, else None (redo it), with a
+    warning saying why when outputs were there but no longer count."""
+    import warnings
+
+    from pipeline.clip import input_files
+
+    if not final.is_dir():
+        return None
+    why = verify_manifest(final, settings, input_files(clip))
+    if why is None:
+        try:
+            return ClipOutcome(key, "skipped", json.loads((final / "metrics.json").read_text()))
+        except (OSError, ValueError):
+            why = "unreadable metrics.json"
+    if why != "no manifest":
+        warnings.warn(f"{final}: redoing this clip: {why}", stacklevel=3)
+    return None
+
+
+def _remove_leftovers(out_root: Path) -> list[tuple[str, str]]:
+    """Remove the temporary folders of attempts that did not finish (``.X.partial-*``, ``.X.old-*``)
+    anywhere under the output folder; returns (clip, worker) for each attempt that had started."""
+    dead = []
+    for stale in sorted([*out_root.rglob(".*.partial-*"), *out_root.rglob(".*.old-*")]):
+        if stale.is_dir() and ".partial-" in stale.name:
+            key = (stale.parent / stale.name[1:].rsplit(".partial-", 1)[0]).relative_to(out_root).as_posix()
+            try:
+                info = json.loads((stale / ATTEMPT).read_text())
+                dead.append((key, str(info.get("worker", "?"))))
+            except (OSError, ValueError, AttributeError):
+                pass
+        shutil.rmtree(stale, ignore_errors=True) if stale.is_dir() else stale.unlink(missing_ok=True)
+    return dead
+
+
+def _run_local(todo: list[Path], keys: dict[Path, str], out_root: Path, settings: dict, workers: int,
                record: Callable[[ClipOutcome], None]) -> None:
-    """A spawn-context process pool whose workers die with this process."""
+    """A spawn-context process pool whose workers die with this process, and are ended at once
+    when the batch is interrupted (Ctrl-C, SIGTERM) instead of finishing their clips."""
     from concurrent.futures.process import BrokenProcessPool
 
+    from pipeline.lifeline import end_pool
+
     init = (os.getpid(), workers > 1)
-    with cf.ProcessPoolExecutor(max_workers=max(1, workers), mp_context=mp.get_context("spawn"),
-                                initializer=_worker_init, initargs=init) as pool:
-        futs = {pool.submit(_process_one, str(c), str(out_root), settings, os.getpid()): c.name for c in todo}
+    pool = cf.ProcessPoolExecutor(max_workers=max(1, workers), mp_context=mp.get_context("spawn"),
+                                  initializer=_worker_init, initargs=init)
+    try:
+        futs = {pool.submit(_process_one, str(c), keys[c], str(out_root), settings, os.getpid()): keys[c] for c in todo}
         for f in cf.as_completed(futs):
             try:
                 record(f.result())
             except BrokenProcessPool:
-                record(ClipOutcome(futs[f], "failed", error="its worker process died (killed, or out of memory)"))
+                record(ClipOutcome(futs[f], "failed", error="its worker process died (killed, or out of memory)",
+                                   attempts=0))
+    except BaseException:
+        end_pool(pool)
+        raise
+    pool.shutdown()
 
 
-def _run_dask(todo: list[Path], out_root: Path, settings: dict, workers: int, scheduler: str | None,
-              scheduler_file: str | Path | None, record: Callable[[ClipOutcome], None]) -> None:
+def _run_dask(todo: list[Path], keys: dict[Path, str], out_root: Path, settings: dict, workers: int,
+              scheduler: str | None, scheduler_file: str | Path | None, record: Callable[[ClipOutcome], None]) -> None:
     """On a Dask LocalCluster (``scheduler == "local"``) or an existing scheduler."""
+    from dask.distributed import as_completed
+
+    cluster, client = _dask_client(workers, scheduler, scheduler_file)
+    try:
+        with client:
+            futs = {client.submit(_process_one, str(c), keys[c], str(out_root), settings, pure=False): keys[c]
+                    for c in todo}
+            try:
+                for f in as_completed(futs):
+                    try:
+                        o = f.result()
+                    except Exception as exc:  # a worker died too often, or the cluster lost the task
+                        o = ClipOutcome(futs[f], "failed", error=f"Dask: {type(exc).__name__}: {_first_line(exc)}",
+                                        attempts=0)
+                    record(o)
+            except BaseException:
+                client.cancel(list(futs), force=True)
+                raise
+    finally:
+        if cluster is not None:
+            cluster.close()
+
+
+def _dask_client(workers: int, scheduler: str | None, scheduler_file: str | Path | None):
+    """(LocalCluster or None, Client); an unreachable or unreadable scheduler is one error."""
     import logging
 
-    from dask.distributed import Client, LocalCluster, as_completed
+    from dask.distributed import Client, LocalCluster
 
     cluster = LocalCluster(n_workers=max(1, workers), threads_per_worker=1, processes=True,
                            dashboard_address=None, silence_logs=logging.WARNING) if scheduler == "local" else None
     where = scheduler_file if scheduler_file is not None else scheduler
+    # Dask's own setting (DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT) wins; 10 s otherwise
+    timeout = os.environ.get("DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT", "10s")
     try:
-        try:
-            # Dask's own setting (DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT) wins; 10 s otherwise
-            timeout = os.environ.get("DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT", "10s")
-            if cluster is not None:
-                client = Client(cluster, timeout=timeout)
-            elif scheduler_file is not None:
-                if not Path(scheduler_file).is_file():
-                    raise StereotrackError("no such Dask scheduler file", scheduler_file)
-                client = Client(scheduler_file=str(scheduler_file), timeout=timeout)
-            else:
-                client = Client(scheduler, timeout=timeout)
-        except (OSError, TimeoutError, ValueError) as exc:
-            raise StereotrackError(f"cannot reach the Dask scheduler at {where} ({_first_line(exc)})") from None
-        with client:
-            futs = {client.submit(_process_one, str(c), str(out_root), settings, pure=False): c.name for c in todo}
-            for f in as_completed(futs):
-                try:
-                    o = f.result()
-                except Exception as exc:  # a worker died, or the cluster lost the task
-                    o = ClipOutcome(futs[f], "failed", error=f"Dask: {type(exc).__name__}: {_first_line(exc)}")
-                record(o)
-    finally:
+        if cluster is not None:
+            return cluster, Client(cluster, timeout=timeout)
+        if scheduler_file is not None:
+            return None, Client(scheduler_file=str(_checked_scheduler_file(Path(scheduler_file))), timeout=timeout)
+        return None, Client(scheduler, timeout=timeout)
+    except (OSError, TimeoutError, ValueError) as exc:
         if cluster is not None:
             cluster.close()
+        raise StereotrackError(f"cannot reach the Dask scheduler at {where} ({_first_line(exc)})") from None
+
+
+def _checked_scheduler_file(path: Path) -> Path:
+    """A Dask scheduler file: JSON holding the scheduler's ``address``; else one error naming it."""
+    if not path.is_file():
+        raise StereotrackError("no such Dask scheduler file", path)
+    try:
+        data = json.loads(path.read_bytes())
+    except (OSError, ValueError):
+        raise StereotrackError("not a Dask scheduler file (not JSON; written by `dask scheduler --scheduler-file`)",
+                               path) from None
+    if not isinstance(data, dict) or not isinstance(data.get("address"), str) or "://" not in data["address"]:
+        raise StereotrackError("not a Dask scheduler file (no scheduler 'address')", path)
+    return path
 
 
 def _first_line(exc: BaseException) -> str:
@@ -252,17 +384,17 @@ def write_summary(out_root: Path, outcomes: list[ClipOutcome]) -> None:
     for o in outcomes:
         methods = o.metrics.get("methods", {}) if o.metrics else {}
         if not methods:
-            rows.append((o.clip, o.status, "", "", "", "", "", o.error))
+            rows.append((o.clip, o.status, "", "", "", "", "", o.attempts, o.error))
         for m, e in methods.items():
             rows.append((o.clip, o.status, m, e.get("rmse", ""), e.get("final", ""), e.get("reprojection_rmse_px", ""),
-                         e.get("steps_per_second", ""), o.error))
+                         e.get("steps_per_second", ""), o.attempts, o.error))
     write_csv(out_root / "summary.csv", SUMMARY_COLUMNS, rows)
     n_fail = sum(o.status == "failed" for o in outcomes)
     lines = ["# stereotrack batch summary", "", f"{len(outcomes)} clips, {n_fail} failed.", "",
              "| clip | status | method | 3-D RMSE (m) | final (m) | reproj. RMSE (px) | error |", "|---|---|---|---|---|---|---|"]
     for r in rows:
         fmt = [f"{v:.4g}" if isinstance(v, float) else str(v) for v in r]
-        lines.append(f"| {fmt[0]} | {fmt[1]} | {fmt[2]} | {fmt[3]} | {fmt[4]} | {fmt[5]} | {fmt[7]} |")
+        lines.append(f"| {fmt[0]} | {fmt[1]} | {fmt[2]} | {fmt[3]} | {fmt[4]} | {fmt[5]} | {fmt[8]} |")
     notes = [(o.clip, w) for o in outcomes for w in clip_warnings(o)]
     if notes:
         lines += ["", "## Warnings", "", *[f"- **{c}**: {w}" for c, w in notes]]

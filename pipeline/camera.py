@@ -420,7 +420,9 @@ def _read_size(fs: cv2.FileStorage, path: Path) -> tuple[int, int]:
     size = fs.getNode("image_size")
     if not size.empty():
         m = size.mat()
-        vals = np.asarray(m).ravel() if m is not None else [size.at(i).real() for i in range(size.size())]
+        vals = np.asarray(m, dtype=float).ravel() if m is not None else [size.at(i).real() for i in range(size.size())]
+        if len(vals) != 2 or not np.all(np.isfinite(vals)):
+            raise CalibrationError(f"field 'image_size' must be [width, height], found {len(vals)} value(s)", path)
         return int(vals[0]), int(vals[1])
     return (0, 0)
 
@@ -435,9 +437,9 @@ def load_calibration(path: str | Path, units: str | None = None) -> StereoRig:
     load. Distortion may have 4, 5, 8, 12 or 14 coefficients.
 
     Lengths (``T``) come out in metres: the file may declare its unit (``units: mm|cm|m``), and
-    ``units`` (the CLI's ``--calib-units``) overrides it. With no declared unit and a baseline
-    longer than 5, a warning names the likely unit (OpenCV's chessboard tools use whatever
-    unit the square size was typed in, very often millimetres).
+    ``units`` (the CLI's ``--calib-units``) overrides it, with a warning naming both when they
+    differ. With no declared unit and a baseline longer than 5, a warning names the likely unit
+    (OpenCV's chessboard tools use whatever unit the square size was typed in, very often millimetres).
     """
     path = Path(path)
     if units is not None and units not in LENGTH_UNITS:
@@ -495,6 +497,9 @@ def _load_stereo_calib_layout(intr: Path, extr: Path, units: str | None = None) 
         _check_intrinsics(K, key, intr)
     if size != (0, 0) and (size[0] <= 0 or size[1] <= 0):
         raise CalibrationError(f"image size {size[0]}×{size[1]} is not positive", intr)
+    if units is not None and declared is not None and units != declared:
+        warnings.warn(f"{extr}: --calib-units {units} overrides the unit the file declares (units: {declared}); "
+                      f"T is read in {units}", stacklevel=2)
     unit = units or declared
     baseline = float(np.linalg.norm(R.T @ T))
     if unit is None and baseline > SUSPICIOUS_BASELINE:

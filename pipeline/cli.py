@@ -122,8 +122,8 @@ MarkersOption = Annotated[list[str] | None, typer.Option(
     "the range from that window of the first left frame; repeatable or comma-separated. Default: the clip's "
     "markers.yaml, else the colours of a rendered clip (clip.json).")]
 CalibUnitsOption = Annotated[str | None, typer.Option(
-    "--calib-units", help="Length unit of the calibration's T (m, cm or mm) when calib.yaml does not declare "
-    "'units'; outputs are in metres.")]
+    "--calib-units", help="Length unit of the calibration's T (m, cm or mm). It overrides a 'units' the file "
+    "declares, with a warning naming both when they differ; outputs are in metres.")]
 ConfigOption = Annotated[Path | None, typer.Option(
     "--config", help="YAML file mapping a method name to its settings, e.g. 'ekf: {process_noise: 2.0}' "
     "(see `stereotrack methods`); the resolved settings are recorded in metrics.json.")]
@@ -257,6 +257,13 @@ def run_cmd(
     configs = _configs(config)
     target = target or DEFAULT_SCENARIO
     clip = Path(target)
+    if clip.is_file() and clip.suffix.lower() not in (".yaml", ".yml"):
+        from pipeline.clip import VIDEO_EXTS
+
+        why = ("is a single video: a one-camera clip, which `stereotrack detect` reads; `run` needs a stereo clip folder "
+               "(left/right videos and a calibration)") if clip.suffix.lower() in VIDEO_EXTS else \
+            "is neither a clip folder nor a scenario (.yaml)"
+        raise StereotrackError(why, clip)
     if not (clip.is_dir() and any(clip.iterdir())):
         from renderers.render import render_clip
         from renderers.scenario import load_scenario
@@ -384,28 +391,80 @@ _shown: set[str] = set()
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    """Warnings as one line ``warning: FILE: problem`` (no source line, no category), each once."""
-    if str(message) in _shown:
+    """Warnings as one line ``warning: FILE: problem`` (no source line, no category), each once; a
+    library's warning (numpy's, say) names the library and the stereotrack line that caused it."""
+    text = str(message)
+    ours = issubclass(category, UserWarning) and bool({"pipeline", "detectors", "renderers"} & set(Path(filename).parts))
+    if not ours:
+        text = f"{Path(filename).name}:{lineno}: {category.__name__}: {text}"
+    if text in _shown:
         return
-    _shown.add(str(message))
-    console.print(f"[yellow]warning:[/] {escape(str(message))}", highlight=False, soft_wrap=True)
+    _shown.add(text)
+    console.print(f"[yellow]warning:[/] {escape(text)}", highlight=False, soft_wrap=True)
+
+
+#: The signal that ended the command (SIGINT, SIGTERM), if one did.
+_signal: int | None = None
+
+
+def _on_signal(signum: int, frame: object) -> None:
+    """SIGINT and SIGTERM raise KeyboardInterrupt, so that every lock, temporary file and worker
+    is released on the way out; a second signal during that clean-up is ignored."""
+    import signal
+
+    global _signal
+    _signal = signum
+    for s in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(s, signal.SIG_IGN)
+    raise KeyboardInterrupt
+
+
+def _error(text: str) -> None:
+    console.print(f"[bold red]error:[/] {escape(text)}", highlight=False, soft_wrap=True)
 
 
 def main() -> None:
-    """Console-script entry point: user errors become one line on stderr and exit code 2."""
+    """Console-script entry point: user errors become one line on stderr and exit code 2; SIGINT and
+    SIGTERM one line and exit 130/143, with locks released and temporary files and workers gone."""
+    import os
+    import signal
+
     warnings.showwarning = _show_warning
+    for s in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(s, _on_signal)
     try:
         app()
     except StereotrackError as exc:
-        console.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
+        _error(str(exc))
         sys.exit(2)
     except OSError as exc:  # an output path that cannot be written, a disk that filled up
         where = f"{exc.filename}: " if exc.filename else ""
-        console.print(f"[bold red]error:[/] {escape(where + str(exc.strerror or exc))}", highlight=False, soft_wrap=True)
+        _error(where + str(exc.strerror or exc))
         sys.exit(2)
     except KeyboardInterrupt:
-        console.print("[bold red]interrupted[/]")
-        sys.exit(130)
+        _interrupted()
+    except SystemExit as exc:
+        if exc.code == 130 and _signal is not None:  # typer turns KeyboardInterrupt into Exit(130)
+            _interrupted()
+        raise
+    except Exception as exc:  # a bug, not a bad input: still one line, the traceback on request
+        if os.environ.get("STEREOTRACK_DEBUG"):
+            raise
+        import traceback
+
+        last = traceback.extract_tb(exc.__traceback__)[-1]
+        _error(f"internal error: {type(exc).__name__}: {str(exc).strip().splitlines()[0] if str(exc).strip() else ''} "
+               f"({Path(last.filename).name}:{last.lineno}); rerun with STEREOTRACK_DEBUG=1 for the traceback")
+        sys.exit(1)
+
+
+def _interrupted() -> None:
+    import signal
+
+    sig = _signal or signal.SIGINT
+    console.print(f"[bold red]interrupted[/] ({signal.Signals(sig).name}): stopped; nothing half-written was kept",
+                  highlight=False)
+    sys.exit(128 + sig)
 
 
 if __name__ == "__main__":

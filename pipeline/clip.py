@@ -22,10 +22,10 @@ from typing import Any
 import numpy as np
 import yaml
 
-from pipeline.camera import CALIB_NAMES, EXTRINSICS_NAMES, StereoRig, has_calibration, load_calibration
+from pipeline.camera import CALIB_NAMES, EXTRINSICS_NAMES, INTRINSICS_NAMES, StereoRig, has_calibration, load_calibration
 from pipeline.checks import Check
 from pipeline.errors import ClipError, StereotrackError
-from pipeline.io import check_frame_column, read_csv
+from pipeline.io import check_frame_column, read_csv, read_json_mapping
 
 VIDEO_EXTS = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm")
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -103,10 +103,13 @@ class Clip:
         clip's ``scenario.yaml``, else ``{}`` (real footage)."""
         path = self.folder / CLIP_INFO
         if path.is_file():
+            info = read_json_mapping(path, "clip description")
             try:
-                return json.loads(path.read_text())
-            except (OSError, ValueError) as exc:
-                raise ClipError(f"unreadable clip description ({exc})", path) from None
+                _ = [(str(m["name"]), tuple(int(c) for c in m["rgb"])) for m in info.get("markers", [])]
+                float(info.get("fps", 30.0))
+            except (KeyError, TypeError, ValueError):
+                raise ClipError("unreadable clip description (markers need 'name' and 'rgb'; fps a number)", path) from None
+            return info
         if (self.folder / "scenario.yaml").is_file() and self.path.is_dir():
             from renderers.scenario import clip_description, load_scenario  # clips rendered before clip.json
 
@@ -214,6 +217,30 @@ def find_camera_source(clip_dir: Path, name: str) -> Path:
 
 
 
+#: Files of a clip folder that a run reads besides the footage (each only where present).
+INPUT_FILES = (*CALIB_NAMES, *INTRINSICS_NAMES, *EXTRINSICS_NAMES, MARKERS_FILE, CLIP_INFO, "scenario.yaml",
+               "timestamps.csv", "truth.csv", "target_truth.csv")
+
+
+def input_files(clip: str | Path) -> dict[str, Path]:
+    """Every file a run of ``clip`` reads, by its name relative to the clip folder: both cameras'
+    videos or frame files, the calibration, ``markers.yaml``, ``clip.json``, timestamps and truth
+    (what a batch's manifest records, so that a changed input makes the clip be redone)."""
+    clip = Path(clip)
+    if clip.is_file():  # a single video
+        return {clip.name: clip}
+    found: dict[str, Path] = {}
+    for cam in ("left", "right"):
+        try:
+            src = find_camera_source(clip, cam)
+        except ClipError:
+            continue
+        files = sorted(p for p in src.rglob("*") if p.is_file() and not p.name.startswith(".")) if src.is_dir() else [src]
+        found.update({str(p.relative_to(clip)): p for p in files})
+    found.update({n: clip / n for n in INPUT_FILES if (clip / n).is_file()})
+    return found
+
+
 def read_positions(path: Path, n_frames: int | None = None) -> tuple[dict[str, np.ndarray], int]:
     """A long-format table (``frame, marker, x, y, z``: truth.csv, estimates/*.csv) → marker →
     positions (frames × 3, NaN where absent), and the frame count. A row whose frame lies
@@ -308,8 +335,8 @@ def read_markers_file(path: str | Path) -> list[str]:
     """``markers.yaml``: a list of ``--markers`` specs, or a mapping with key ``markers`` holding one."""
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError, UnicodeDecodeError) as exc:
         raise StereotrackError(f"cannot read marker list ({str(exc).splitlines()[0]})", path) from None
     if isinstance(data, dict):
         if set(data) != {"markers"}:
@@ -330,11 +357,17 @@ def read_markers_file(path: str | Path) -> list[str]:
 
 
 def resolve_marker_specs(clip: Path, specs: list[str] | None, default: list[str] | None = None) -> list[str] | None:
-    """The marker specs that apply to ``clip``: ``--markers``, else the clip's own ``markers.yaml``,
-    else ``default`` (a batch root's ``markers.yaml``); None leaves the colours to a rendered clip's description."""
-    if specs:
-        return specs
+    """The marker specs that apply to ``clip``, by one precedence: ``--markers`` (``specs``), else the
+    clip's own ``markers.yaml``, else ``default`` (a batch root's ``markers.yaml``); None leaves the
+    colours to a rendered clip's description. ``--markers`` that differ from the clip's own file are
+    used with a warning naming both."""
     folder = clip if clip.is_dir() else clip.parent
-    if (folder / MARKERS_FILE).is_file():
-        return read_markers_file(folder / MARKERS_FILE)
+    own = folder / MARKERS_FILE
+    if specs:
+        if own.is_file() and read_markers_file(own) != list(specs):
+            warnings.warn(f"{own}: --markers {','.join(specs)} used instead of this file's "
+                          f"{','.join(read_markers_file(own))}", stacklevel=2)
+        return specs
+    if own.is_file():
+        return read_markers_file(own)
     return default

@@ -25,8 +25,9 @@ from pipeline.clip import (
     load_detections,
 )
 from pipeline.errors import StereotrackError
-from pipeline.estimators import Track, create, registry
+from pipeline.estimators import Estimator, Track, create, registry
 from pipeline.estimators import methods as registered_methods
+from pipeline.estimators.base import is_builtin, origin
 from pipeline.io import write_csv, write_json
 from pipeline.manifest import stereotrack_version
 from pipeline.metrics import compute_metrics
@@ -144,7 +145,7 @@ def estimate_clip(
         cfg = {"radius": target.radius, **(target.config if m != "four_point" else {}), **configs.get(m, {})}
         est = create(m, rig, dt, cfg)
         resolved[m] = est.config.model_dump(mode="json")
-        target_tracks[m] = est.run(Yt)
+        target_tracks[m] = _run_method(est, Yt, target.name)
         _write_target_estimates(out_dir / "estimates" / f"{m}.csv", target.name, target_tracks[m], dt)
         done += 1
         if progress is not None:
@@ -154,7 +155,7 @@ def estimate_clip(
         est = create(m, rig, dt, configs.get(m))
         resolved[m] = est.config.model_dump(mode="json")
         for marker, Y in obs.items():
-            tracks[m][marker] = est.run(Y)
+            tracks[m][marker] = _run_method(est, Y, marker)
             done += 1
             if progress is not None:
                 progress(done, total)
@@ -169,6 +170,21 @@ def estimate_clip(
         result.metrics["methods"][m]["config"] = cfg
     write_json(out_dir / "metrics.json", result.metrics)
     return result
+
+
+def _run_method(est: Estimator, Y: np.ndarray, marker: str) -> Track:
+    """``est.run(Y)``; a method that raises (a plugin's bug, say) is one error naming the method,
+    where it comes from, the marker and the frame it was on."""
+    try:
+        return est.run(Y)
+    except StereotrackError:
+        raise
+    except Exception as exc:
+        cls = type(est)
+        who = "built-in method" if is_builtin(cls) else f"plugin method ({origin(cls)})"
+        text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+        raise StereotrackError(f"{who} {est.name!r} raised {type(exc).__name__}: {text} "
+                               f"(marker {marker!r}, frame {est.frame})") from None
 
 
 def _consistency_columns(tr: Track, truth_position: np.ndarray | None) -> np.ndarray:

@@ -53,6 +53,21 @@ def ensure_dir(path: str | Path) -> Path:
     return path
 
 
+def check_replaceable(folder: str | Path, ours: tuple[str, ...], what: str = "output") -> None:
+    """Refuse to replace ``folder`` unless stereotrack made it: it is absent, empty, or holds one of
+    the files only stereotrack writes there (``ours``: ``clip.json`` for a rendered clip,
+    ``manifest.json`` for a batch's clip output). Otherwise one error naming the folder, so that no
+    command, ``--force`` included, ever deletes a user's files."""
+    folder = Path(folder)
+    if not folder.exists():
+        return
+    if not folder.is_dir():
+        raise StereotrackError(f"cannot write the {what} here: a file of that name is in the way", folder)
+    if any(True for _ in folder.iterdir()) and not any((folder / n).exists() for n in ours):
+        raise StereotrackError(f"folder exists, is not empty and was not written by stereotrack (no {' or '.join(ours)}); "
+                               f"choose an empty or new folder for the {what}", folder)
+
+
 def _mkstemp_beside(path: Path) -> tuple[int, str]:
     ensure_dir(path.parent)
     if path.is_dir():
@@ -179,6 +194,20 @@ def check_frame_column(frames: np.ndarray, n_frames: int | None, path: str | Pat
         raise StereotrackError(f"line {i + 2}: frame {frames[i]:g} is {where}", path)
 
 
+def read_json_mapping(path: str | Path, what: str = "JSON file") -> dict:
+    """A JSON file whose top level is an object; otherwise a one-line error naming the file."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_bytes())
+    except OSError as exc:
+        raise StereotrackError(f"cannot read the {what} ({exc.strerror})", path) from None
+    except ValueError as exc:
+        raise StereotrackError(f"unreadable {what} (not JSON: {str(exc).splitlines()[0]})", path) from None
+    if not isinstance(data, dict):
+        raise StereotrackError(f"unreadable {what} (expected a JSON object, found {type(data).__name__})", path)
+    return data
+
+
 def read_yaml_mapping(path: str | Path, error: type[StereotrackError] = StereotrackError) -> dict:
     """A YAML file whose top level is a mapping (empty file: ``{}``); otherwise a one-line
     ``error`` naming the file and the problem."""
@@ -186,9 +215,11 @@ def read_yaml_mapping(path: str | Path, error: type[StereotrackError] = Stereotr
 
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text())
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
     except yaml.YAMLError as exc:
         raise error(f"not valid YAML ({str(exc).splitlines()[0]})", path) from None
+    except UnicodeDecodeError:
+        raise error("not a text file (not UTF-8): expected YAML", path) from None
     except OSError as exc:
         raise error(f"cannot read ({exc.strerror})", path) from None
     if data is None:

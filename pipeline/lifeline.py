@@ -43,6 +43,27 @@ def die_with_parent(parent_pid: int) -> None:
     threading.Thread(target=watch, name="stereotrack-lifeline", daemon=True).start()
 
 
+def end_pool(pool) -> None:
+    """End a ``ProcessPoolExecutor`` now (an interrupted command): kill its workers instead of
+    waiting for their jobs, cancel what is queued, and reap them."""
+    procs = list((getattr(pool, "_processes", None) or {}).values())
+    for p in procs:
+        with contextlib.suppress(OSError, ValueError):
+            p.kill()
+    pool.shutdown(wait=False, cancel_futures=True)
+    for p in procs:
+        with contextlib.suppress(OSError, ValueError, AssertionError):
+            p.join(timeout=5)
+
+
+def ignore_sigint() -> None:
+    """In a worker process: leave Ctrl-C (sent to the whole process group) to the parent command,
+    which ends its workers itself and prints the one ``interrupted`` line."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def still_parented(parent_pid: int) -> bool:
     """Whether the process that started this one is still alive (checked before committing work)."""
     return os.getppid() == parent_pid

@@ -40,6 +40,15 @@ def rmse(a: np.ndarray, b: np.ndarray) -> float | None:
 
 
 
+def _note_too_short(entry: dict[str, Any], method: str, n_frames: int) -> None:
+    """A method that needs more frames than the clip has: say so (``note``), not an error."""
+    from pipeline.estimators import registry
+
+    need = getattr(registry().get(method), "min_frames", 1)
+    if n_frames < need:
+        entry["note"] = f"needs at least {need} frames; this clip has {n_frames}: no estimate"
+
+
 def compute_metrics(res: EstimateResult) -> dict[str, Any]:
     """Per method: error statistics against truth (all markers pooled, and per marker),
     reprojection RMSE (px), time per step, and for filters the consistency of their covariance
@@ -72,10 +81,12 @@ def compute_metrics(res: EstimateResult) -> dict[str, Any]:
                     nees.append(consistency.nees(t, T))
             if est:
                 entry.update(error_stats(np.vstack(est), np.vstack(tru)))
-                entry["final"] = float(np.nanmean([v["final"] for v in markers.values()]))
+                finals = [v["final"] for v in markers.values() if np.isfinite(v["final"])]
+                entry["final"] = float(np.mean(finals)) if finals else float("nan")
                 entry["markers"] = markers
             if nees:
                 entry["nees_position"] = consistency.summary(np.concatenate(nees), 3)
+        _note_too_short(entry, m, res.n_frames)
         out["methods"][m] = entry
     for m, t in res.target_tracks.items():
         entry = {"target": True, "seconds_per_step": t.seconds_per_step,

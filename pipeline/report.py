@@ -4,7 +4,6 @@ person who never opens rerun can read a run."""
 
 from __future__ import annotations
 
-import json
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -13,7 +12,7 @@ import numpy as np
 
 from pipeline.clip import Clip, load_detections, read_positions
 from pipeline.errors import StereotrackError
-from pipeline.io import atomic_path, read_csv, write_text
+from pipeline.io import atomic_path, read_csv, read_json_mapping, write_text
 from pipeline.metrics import errors_per_frame
 from pipeline.style import marker_rgb, method_colour, method_linestyle
 
@@ -152,7 +151,8 @@ def metrics_table(metrics: dict) -> str:
         lines.append(f"| {m} | {_fmt(e.get('rmse'))} | {_fmt(e.get('mean'))} | {_fmt(e.get('median'))} | "
                      f"{_fmt(e.get('final'))} | {_fmt(e.get('reprojection_rmse_px'))} | {_fmt(e.get('alpha_rmse_rad'))} | "
                      f"{_fmt(e.get('distance_rmse_m'))} | {_fmt(e.get('steps_per_second'))} |")
-    return "\n".join(lines)
+    notes = [f"- **{m}**: {e['note']}" for m, e in metrics.get("methods", {}).items() if e.get("note")]
+    return "\n".join(lines + (["", *notes] if notes else []))
 
 
 def _legend_outside(fig, axes) -> None:
@@ -182,13 +182,13 @@ def write_report(clip: str | Path | Clip, out_dir: str | Path | None = None,
     mpath = src / "metrics.json"
     if not mpath.is_file():
         raise StereotrackError("no metrics.json: run `stereotrack estimate` first", mpath)
-    metrics = json.loads(mpath.read_text())
+    metrics = read_json_mapping(mpath, "metrics")
     est = load_estimates(src)
     truth = clip_.truth()
     est = _hide_behind_camera(clip, est, metrics.get("calibration_units"))
     obs = load_detections(src / "detections.csv") if (src / "detections.csv").is_file() else {}
     info = src / "detect.json"
-    mcolours = json.loads(info.read_text()).get("marker_colours", {}) if info.is_file() else {}
+    mcolours = read_json_mapping(info, "detect record").get("marker_colours", {}) if info.is_file() else {}
     total_figs = 5
 
     def done(k: int) -> None:

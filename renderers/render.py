@@ -168,9 +168,10 @@ _PROGRESS: mp.Queue | None = None
 
 def _worker_init(parent_pid: int, progress: mp.Queue | None) -> None:
     """Die with the parent; one OpenCV thread (blur, encoding) per worker, as llvmpipe has one."""
-    from pipeline.lifeline import die_with_parent
+    from pipeline.lifeline import die_with_parent, ignore_sigint
 
     die_with_parent(parent_pid)
+    ignore_sigint()
     cv2.setNumThreads(1)
     global _PROGRESS
     _PROGRESS = progress
@@ -207,6 +208,9 @@ def _staging_dir(clip_dir: Path) -> Path:
     return staging
 
 
+#: The files that say a folder is a clip stereotrack rendered (clips made before clip.json have
+#: scenario.yaml): only such a folder, or an empty one, is ever re-rendered.
+RENDERED_MARK = (CLIP_INFO, "scenario.yaml")
 #: What a render puts in a clip folder; a re-render replaces exactly these (and the stale ``out/``).
 RENDERED = ("calib.yaml", CLIP_INFO, "scenario.yaml", "truth.csv", "target_truth.csv", "left", "right", "left.mp4",
             "right.mp4", "out")
@@ -268,11 +272,12 @@ def render_clips(
     """
     import concurrent.futures as cf
 
-    from pipeline.io import ensure_dir
+    from pipeline.io import check_replaceable, ensure_dir
 
     total = sum(s.frames for s, _ in jobs)
     dirs = [Path(d) for _, d in jobs]
-    for d in dirs:
+    for d in dirs:  # before any work: a folder stereotrack did not render is never replaced
+        check_replaceable(d, RENDERED_MARK, "clip")
         ensure_dir(d.parent)
     stagings = [_staging_dir(d) for d in dirs]
     results: list[RenderResult | None] = [None] * len(jobs)
@@ -316,7 +321,7 @@ def render_clips(
         frames_done: dict[tuple[int, int], int] = {}
         cams_done = [0] * len(jobs)
         notes: list[list[str]] = [[] for _ in jobs]
-        with pool:
+        try:
             futs = {pool.submit(_render_job, scen.model_dump_json(), c, str(stagings[j]), fmt, j): (j, c)
                     for j, (scen, _) in enumerate(jobs) for c in range(2)}
             pending = set(futs)
@@ -341,6 +346,12 @@ def render_clips(
                         results[j] = _finish_clip(jobs[j][0], stagings[j], dirs[j], notes[j])
                 if progress is not None:
                     progress(sum(frames_done.values()) // 2, total)
+        except BaseException:
+            from pipeline.lifeline import end_pool
+
+            end_pool(pool)
+            raise
+        pool.shutdown()
         return results  # type: ignore[return-value]
     except BaseException:
         for st in stagings:

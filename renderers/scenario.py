@@ -205,7 +205,7 @@ class Scenario(_Model):
             upd["frames"] = frames
         if seed is not None:
             upd["seed"] = seed
-        return Scenario.model_validate({**self.model_dump(), **upd}) if upd else self
+        return parse_scenario({**self.model_dump(), **upd}, "--frames/--seed") if upd else self
 
     def to_yaml(self) -> str:
         return yaml.safe_dump(_plain(self.model_dump(mode="json")), sort_keys=False)

@@ -57,7 +57,7 @@ def white_noise_acceleration(dt: float, q: float, dim: int = 3) -> np.ndarray:
 class InitConfig(BaseModel):
     """How a track starts (:class:`Initiator`): from triangulations or from a given state."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     mode: Literal["triangulation", "given"] = "triangulation"
     #: the given state [x, y, z, vx, vy, vz] at frame 0 (mode "given")
     state: tuple[float, float, float, float, float, float] | None = None
@@ -77,9 +77,9 @@ class InitConfig(BaseModel):
 
 
 class EstimatorConfig(BaseModel):
-    """Settings every estimator accepts."""
+    """Settings every estimator accepts (numbers must be finite: ``.inf`` is no setting)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     init: InitConfig = InitConfig()
     seed: int = 0
 
@@ -251,6 +251,9 @@ class Estimator(ABC):
     #: frames stepped (then forgotten) before the timed loop of :meth:`run`, so that one-off
     #: start-up (imports, first allocations) is not counted as time per step
     warmup_frames: ClassVar[int] = 3
+    #: the fewest frames of a clip on which the method gives an estimate (SPSA pairs consecutive
+    #: frames); on a shorter clip ``metrics.json`` and the report say so instead of an error
+    min_frames: ClassVar[int] = 1
 
     def __init__(self, rig: StereoRig, dt: float, config: EstimatorConfig | dict[str, Any] | None = None) -> None:
         rig.check()
@@ -386,8 +389,24 @@ def register(cls: type[Estimator]) -> type[Estimator]:
         raise StereotrackError(f"{cls!r} is not an Estimator subclass")
     if not getattr(cls, "name", None):
         raise StereotrackError(f"estimator class {cls.__name__} has no name")
+    prev = REGISTRY.get(cls.name)
+    if prev is not None and origin(prev) != origin(cls):
+        kept = "the built-in" if is_builtin(prev) else f"the first ({origin(prev)})"
+        warnings.warn(f"estimator {origin(cls)} is named {cls.name!r}, which {origin(prev)} already is: {kept} is kept; "
+                      "rename the plugin's method", stacklevel=2)
+        return cls
     REGISTRY[cls.name] = cls
     return cls
+
+
+def origin(cls: type) -> str:
+    """Where an estimator class comes from, for messages: ``module.Class``."""
+    return f"{cls.__module__}.{cls.__qualname__}"
+
+
+def is_builtin(cls: type) -> bool:
+    """Whether an estimator is one of stereotrack's own (not a plugin's)."""
+    return cls.__module__.startswith("pipeline.estimators.")
 
 
 def registry() -> dict[str, type[Estimator]]:

@@ -110,6 +110,7 @@ class SPSAEstimator(Estimator):
     """Algorithm 1 (SPSA with linear prediction and the projection rule)."""
 
     name = "spsa"
+    min_frames = 2
     Config = SPSAConfig
     state_dim = 6
 

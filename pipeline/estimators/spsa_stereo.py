@@ -139,6 +139,7 @@ class SPSAStereoEstimator(Estimator):
     """SPSA on each frame's cost in image/disparity coordinates, decreasing gains (tracks)."""
 
     name = "spsa_stereo"
+    min_frames = 2
     Config = SPSAStereoConfig
 
     def reset(self) -> None:
