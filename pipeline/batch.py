@@ -119,9 +119,9 @@ def _process_one(clip: str, key: str, out_root: str, settings: dict[str, Any],
         ensure_dir(partial)
         write_json(partial / ATTEMPT, _attempt_info())
         inputs = input_files(clip_p)
-        specs = resolve_marker_specs(clip_p, settings.get("markers"), settings.get("root_markers"))
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
+            specs = resolve_marker_specs(clip_p, settings.get("markers"), settings.get("root_markers"))
             process_clip(clip_p, partial, detector=settings["detector"], methods=settings.get("methods"),
                          images_in_recording=settings.get("images", True), marker_specs=specs,
                          calib_units=settings.get("calib_units"), lock=False, configs=settings.get("configs"))

@@ -353,16 +353,100 @@ def has_calibration(folder: str | Path) -> bool:
     return folder.is_dir() and any((folder / n).is_file() for n in names)
 
 
-def _open_storage(path: Path) -> cv2.FileStorage:
+class _Matrix:
+    """An ``!!opencv-matrix`` node (rows, cols, row-major data) or an ``!!opencv-nd-matrix`` one
+    (sizes, data; read as a column)."""
+
+    def __init__(self, node: dict) -> None:
+        self.rows, self.cols, self.data = node.get("rows"), node.get("cols"), node.get("data")
+        sizes = node.get("sizes")
+        if self.rows is None and isinstance(sizes, list) and all(isinstance(n, int) and n >= 0 for n in sizes):
+            self.rows, self.cols = int(np.prod(sizes)), 1
+
+
+def _yaml_loader():
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        """PyYAML with OpenCV's ``!!opencv-matrix`` tag."""
+
+    def matrix(loader, node):
+        return _Matrix(loader.construct_mapping(node, deep=True))
+
+    Loader.add_constructor("tag:yaml.org,2002:opencv-matrix", matrix)
+    Loader.add_constructor("tag:yaml.org,2002:opencv-nd-matrix", matrix)
+    return Loader
+
+
+def _read_storage(path: Path) -> dict:
+    """The top-level entries of an OpenCV FileStorage file. YAML and JSON are parsed in Python, so
+    that a malformed file is an error naming it (OpenCV's own YAML reader can corrupt its heap on
+    some malformed files and abort the process later); XML goes through ``cv2.FileStorage``."""
     if not path.is_file():
         raise CalibrationError("calibration file not found", path)
+    if path.suffix.lower() == ".xml":
+        return _read_xml_storage(path)
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError:
+        raise CalibrationError("not a readable calibration file (not text)", path) from None
+    except OSError as exc:
+        raise CalibrationError(f"cannot read ({exc.strerror})", path) from None
+    if text.lstrip().startswith("{"):
+        import json
+
+        try:
+            data = json.loads(text, object_hook=lambda d: _Matrix(d) if str(d.get("type_id", "")).startswith("opencv-")
+                              else d)
+        except ValueError as exc:
+            raise CalibrationError(f"not a readable calibration file (JSON: {exc})", path) from None
+    else:
+        import yaml
+
+        body = "\n".join("" if line.startswith("%") else line for line in text.splitlines())  # %YAML:1.0 / %YAML 1.2
+        try:
+            data = yaml.load(body, Loader=_yaml_loader())
+        except yaml.YAMLError as exc:
+            mark = getattr(exc, "problem_mark", None)
+            where = f" at line {mark.line + 1}" if mark is not None else ""
+            raise CalibrationError(f"not a readable calibration file (YAML: {getattr(exc, 'problem', None) or exc}{where})",
+                                   path) from None
+    if not isinstance(data, dict):
+        raise CalibrationError("not a readable calibration file (expected a mapping of named entries)", path)
+    return data
+
+
+_STORAGE_KEYS = ("K1", "K2", "M1", "M2", "D1", "D2", "R", "T", "image_width", "image_height", "image_size", "units")
+
+
+def _read_xml_storage(path: Path) -> dict:
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except (cv2.error, SystemError) as exc:
         raise CalibrationError(f"not a readable OpenCV FileStorage file ({_first_line(exc)})", path) from None
     if not fs.isOpened():
         raise CalibrationError("not a readable OpenCV FileStorage file", path)
-    return fs
+    try:
+        out: dict = {}
+        for key in _STORAGE_KEYS:
+            node = fs.getNode(key)
+            if node.empty():
+                continue
+            if node.isString():
+                out[key] = node.string()
+            elif node.isSeq():
+                out[key] = [node.at(i).real() for i in range(node.size())]
+            elif node.isMap():
+                m = node.mat()
+                out[key] = _Matrix({"rows": m.shape[0], "cols": m.shape[1] if m.ndim > 1 else 1,
+                                    "data": m.ravel().tolist()}) if m is not None else {}
+            else:
+                out[key] = node.real()
+        return out
+    except (cv2.error, SystemError) as exc:
+        raise CalibrationError(f"not a readable OpenCV FileStorage file ({_first_line(exc)})", path) from None
+    finally:
+        fs.release()
 
 
 def _first_line(exc: BaseException) -> str:
@@ -380,14 +464,31 @@ def _first_line(exc: BaseException) -> str:
     return lines[-1].strip() if lines else type(exc).__name__
 
 
-def _read_mat(fs: cv2.FileStorage, key: str, path: Path, shape: tuple[int, ...] | None) -> np.ndarray:
-    node = fs.getNode(key)
-    if node.empty():
+def _number(v: object, key: str, path: Path) -> float:
+    """A FileStorage number (OpenCV writes ``.Nan``, ``.Inf``, ``1.``)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float, str)):
+        raise CalibrationError(f"key '{key}' holds {type(v).__name__}, not numbers", path)
+    try:
+        return float(str(v).strip().lower().replace(".nan", "nan").replace(".inf", "inf"))
+    except ValueError:
+        raise CalibrationError(f"key '{key}' holds {v!r}, not a number", path) from None
+
+
+def _read_mat(fs: dict, key: str, path: Path, shape: tuple[int, ...] | None) -> np.ndarray:
+    node = fs.get(key)
+    if node is None:
         raise CalibrationError(f"missing key '{key}'", path)
-    mat = node.mat()
-    if mat is None:
+    if isinstance(node, _Matrix):
+        if not isinstance(node.data, list) or not all(isinstance(n, int) and n >= 0 for n in (node.rows, node.cols)):
+            raise CalibrationError(f"key '{key}' is not a well-formed matrix (rows, cols, data)", path)
+        if node.rows * node.cols != len(node.data):
+            raise CalibrationError(f"key '{key}' declares {node.rows}×{node.cols} but holds {len(node.data)} values", path)
+        vals, dims = node.data, (node.rows, node.cols)
+    elif isinstance(node, list):
+        vals, dims = node, (len(node),)
+    else:
         raise CalibrationError(f"key '{key}' is not a matrix", path)
-    mat = np.asarray(mat, dtype=float)
+    mat = np.array([_number(v, key, path) for v in vals], dtype=float).reshape(dims)
     if shape is not None and mat.size != int(np.prod(shape)):
         raise CalibrationError(f"key '{key}' has shape {mat.shape}, expected {shape}", path)
     if not np.all(np.isfinite(mat)):
@@ -395,17 +496,16 @@ def _read_mat(fs: cv2.FileStorage, key: str, path: Path, shape: tuple[int, ...] 
     return mat.reshape(shape) if shape is not None else mat
 
 
-def _read_intrinsics(fs: cv2.FileStorage, i: int, path: Path) -> np.ndarray:
+def _read_intrinsics(fs: dict, i: int, path: Path) -> np.ndarray:
     """``K1``/``K2`` (or the ``M1``/``M2`` of OpenCV's samples)."""
     for key in (f"K{i}", f"M{i}"):
-        if not fs.getNode(key).empty():
+        if key in fs:
             return _read_mat(fs, key, path, (3, 3))
     raise CalibrationError(f"missing key 'K{i}' (or 'M{i}')", path)
 
 
-def _read_dist(fs: cv2.FileStorage, key: str, path: Path) -> np.ndarray:
-    node = fs.getNode(key)
-    if node.empty():
+def _read_dist(fs: dict, key: str, path: Path) -> np.ndarray:
+    if fs.get(key) is None:
         return np.zeros(5)
     d = _read_mat(fs, key, path, None).ravel()
     if d.size not in _DIST_LENGTHS:
@@ -413,18 +513,20 @@ def _read_dist(fs: cv2.FileStorage, key: str, path: Path) -> np.ndarray:
     return d
 
 
-def _read_size(fs: cv2.FileStorage, path: Path) -> tuple[int, int]:
-    w, h = fs.getNode("image_width"), fs.getNode("image_height")
-    if not w.empty() and not h.empty():
-        return int(w.real()), int(h.real())
-    size = fs.getNode("image_size")
-    if not size.empty():
-        m = size.mat()
-        vals = np.asarray(m, dtype=float).ravel() if m is not None else [size.at(i).real() for i in range(size.size())]
-        if len(vals) != 2 or not np.all(np.isfinite(vals)):
+def _read_size(fs: dict, path: Path) -> tuple[int, int]:
+    if fs.get("image_width") is not None and fs.get("image_height") is not None:
+        w, h = (_number(fs[k], k, path) for k in ("image_width", "image_height"))
+        vals = [w, h]
+    elif fs.get("image_size") is not None:
+        node = fs["image_size"]
+        vals = list(_read_mat(fs, "image_size", path, None).ravel()) if isinstance(node, (_Matrix, list)) else [node]
+        if len(vals) != 2:
             raise CalibrationError(f"field 'image_size' must be [width, height], found {len(vals)} value(s)", path)
-        return int(vals[0]), int(vals[1])
-    return (0, 0)
+    else:
+        return (0, 0)
+    if not all(np.isfinite(v) and v == int(v) for v in vals):
+        raise CalibrationError(f"image size {vals} is not two whole numbers", path)
+    return int(vals[0]), int(vals[1])
 
 
 def load_calibration(path: str | Path, units: str | None = None) -> StereoRig:
@@ -456,14 +558,14 @@ def load_calibration(path: str | Path, units: str | None = None) -> StereoRig:
     return _load_stereo_calib_layout(path, path, units)
 
 
-def _read_units(fs: cv2.FileStorage, path: Path) -> str | None:
-    node = fs.getNode("units")
-    if node.empty():
+def _read_units(fs: dict, path: Path) -> str | None:
+    unit = fs.get("units")
+    if unit is None:
         return None
-    unit = node.string().strip().lower() if node.isString() else ""
-    if unit not in LENGTH_UNITS:
-        raise CalibrationError(f"field 'units' must be m, cm or mm, not {unit or node.real()!r}", path)
-    return unit
+    text = unit.strip().lower() if isinstance(unit, str) else ""
+    if text not in LENGTH_UNITS:
+        raise CalibrationError(f"field 'units' must be m, cm or mm, not {unit!r}", path)
+    return text
 
 
 def _check_intrinsics(K: np.ndarray, key: str, path: Path) -> None:
@@ -477,22 +579,16 @@ def _check_intrinsics(K: np.ndarray, key: str, path: Path) -> None:
 def _load_stereo_calib_layout(intr: Path, extr: Path, units: str | None = None) -> StereoRig:
     """Intrinsics (``K1/M1 D1 K2/M2 D2``, image size) from ``intr``, ``R T`` from ``extr`` (the same
     file for ``calib.yaml``)."""
-    fs = _open_storage(intr)
-    try:
-        K1, K2 = (_read_intrinsics(fs, i, intr) for i in (1, 2))
-        D1, D2 = _read_dist(fs, "D1", intr), _read_dist(fs, "D2", intr)
-        size = _read_size(fs, intr)
-        declared = _read_units(fs, intr)
-    finally:
-        fs.release()
-    fs = _open_storage(extr)
-    try:
-        R, T = _read_mat(fs, "R", extr, (3, 3)), _read_mat(fs, "T", extr, (3,))
-        if size == (0, 0):
-            size = _read_size(fs, extr)
-        declared = declared or _read_units(fs, extr)
-    finally:
-        fs.release()
+    fs = _read_storage(intr)
+    K1, K2 = (_read_intrinsics(fs, i, intr) for i in (1, 2))
+    D1, D2 = _read_dist(fs, "D1", intr), _read_dist(fs, "D2", intr)
+    size = _read_size(fs, intr)
+    declared = _read_units(fs, intr)
+    fs = _read_storage(extr) if extr != intr else fs
+    R, T = _read_mat(fs, "R", extr, (3, 3)), _read_mat(fs, "T", extr, (3,))
+    if size == (0, 0):
+        size = _read_size(fs, extr)
+    declared = declared or _read_units(fs, extr)
     for key, K in (("K1", K1), ("K2", K2)):
         _check_intrinsics(K, key, intr)
     if size != (0, 0) and (size[0] <= 0 or size[1] <= 0):

@@ -345,9 +345,9 @@ def batch_cmd(
                              configs=configs, images=not no_images)
     from pipeline.batch import clip_warnings
 
-    table = Table("clip", "status", "warnings", "error", title=str(output / "summary.csv"))
+    table = Table("clip", "status", "attempts", "warnings", "error", title=str(output / "summary.csv"))
     for o in outcomes:
-        table.add_row(o.clip, o.status, str(len(clip_warnings(o))) or "", o.error)
+        table.add_row(o.clip, o.status, str(o.attempts), str(len(clip_warnings(o))) or "", o.error)
     out.print(table)
     if any(o.status == "failed" for o in outcomes):
         raise typer.Exit(1)

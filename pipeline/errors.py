@@ -10,6 +10,7 @@ class StereotrackError(Exception):
 
     def __init__(self, message: str, path: str | Path | None = None) -> None:
         self.path = Path(path) if path is not None else None
+        message = " ".join(line.strip() for line in str(message).splitlines() if line.strip())  # always one line
         super().__init__(f"{path}: {message}" if path is not None else message)
 
 

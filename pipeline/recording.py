@@ -70,8 +70,13 @@ class Recorder:
         os.close(fd)
         self.tmp = Path(tmp)
         self.quality, self.image_every = int(jpeg_quality), max(1, int(image_every))
-        self.rec = rr.RecordingStream("stereotrack")
-        self.rec.save(str(self.tmp), default_blueprint=blueprint())
+        self.rec = None
+        try:
+            self.rec = rr.RecordingStream("stereotrack")
+            self.rec.save(str(self.tmp), default_blueprint=blueprint())
+        except BaseException:  # interrupted while opening: leave nothing behind
+            self.abort()
+            raise
         self.images = 0
 
     def __enter__(self) -> Recorder:
@@ -187,9 +192,11 @@ class Recorder:
         return self.path
 
     def abort(self) -> None:
-        """Stop recording and remove the partial file."""
+        """Stop recording and remove the partial file (after the file sink has closed it, so that
+        no late write recreates it)."""
         try:
-            self.rec.disconnect()
+            if self.rec is not None:
+                self.rec.disconnect()
         finally:
             self.tmp.unlink(missing_ok=True)
 

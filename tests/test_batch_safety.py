@@ -117,6 +117,7 @@ def _kill_point(out: Path, point: str) -> bool:
             "second commit": committed >= 2}[point]
 
 
+@pytest.mark.slow
 def test_killed_at_five_points_then_restarted(reference, tmp_path):
     """SIGKILL to the batch's main process only, at five points (start-up, lock taken, clips in
     progress, after the first and after the second commit), each followed at once by a restart:
@@ -192,23 +193,71 @@ def test_stale_lock_is_taken_over_with_a_warning(tmp_path):
         assert json.loads((tmp_path / LOCK_NAME).read_text())["pid"] == os.getpid()
 
 
-def test_batch_on_a_real_dask_scheduler_and_worker(reference, tmp_path):
-    """`dask scheduler` and `dask worker` in processes of their own on 127.0.0.1; one corrupt clip
-    among good ones. The good clips' outputs equal the local pool's; the corrupt one fails alone."""
-    _, ref_out = reference
-    inp = make_input(tmp_path / "in", corrupt=True)
+def _dask_cluster(tmp_path: Path) -> tuple[Path, list[subprocess.Popen]]:
+    """`dask scheduler` and one `dask worker` (with its nanny) in processes of their own on 127.0.0.1."""
     sched_file = tmp_path / "scheduler.json"
     common = ["--no-dashboard"]
     procs = [subprocess.Popen([sys.executable, "-m", "dask", "scheduler", "--host", "127.0.0.1", "--port", "0",
                                "--scheduler-file", str(sched_file), *common],
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=REPO)]
+    deadline = time.time() + 60
+    while time.time() < deadline and not sched_file.is_file():
+        time.sleep(0.1)
+    procs.append(subprocess.Popen([sys.executable, "-m", "dask", "worker", "--scheduler-file", str(sched_file),
+                                   "--nthreads", "1", "--nworkers", "1", *common],
+                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=REPO))
+    return sched_file, procs
+
+
+def _stop(procs: list[subprocess.Popen]) -> None:
+    for p in reversed(procs):
+        p.terminate()
+    for p in procs:
+        try:
+            p.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            p.kill()
+
+
+@pytest.mark.slow
+def test_dask_worker_killed_mid_batch(reference, tmp_path):
+    """SIGKILL to the Dask worker process (not its nanny) while it holds a clip: Dask runs the clip
+    again on the restarted worker; the summary records two attempts and the dead worker, every clip
+    equals the local pool's, and the dead attempt's temporary folder is gone at the end."""
+    _, ref_out = reference
+    inp = make_input(tmp_path / "in")
+    sched_file, procs = _dask_cluster(tmp_path)
     try:
-        deadline = time.time() + 60
-        while time.time() < deadline and not sched_file.is_file():
-            time.sleep(0.1)
-        procs.append(subprocess.Popen([sys.executable, "-m", "dask", "worker", "--scheduler-file", str(sched_file),
-                                       "--nthreads", "1", "--nworkers", "1", *common],
-                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=REPO))
+        out = tmp_path / "out"
+        batch = subprocess.Popen(batch_cmd(inp, out, "--scheduler-file", str(sched_file)), stdout=subprocess.PIPE,
+                                 stderr=subprocess.PIPE, text=True, cwd=REPO)
+        deadline = time.time() + 120
+        while time.time() < deadline and not (out.is_dir() and any(".partial-" in p.name for p in out.iterdir())):
+            time.sleep(0.02)
+        holder = next(p for p in out.iterdir() if ".partial-" in p.name).name[1:].split(".partial-")[0]
+        worker = max(psutil.Process(procs[1].pid).children(recursive=True), key=lambda p: p.create_time())
+        worker.kill()
+        _, err = batch.communicate(timeout=300)
+        assert batch.returncode == 0, err
+        summary = read_csv(out / "summary.csv")
+        attempts = dict(zip(summary["clip"], summary["attempts"], strict=True))
+        assert attempts[holder] == 2 and all(a == 1 for c, a in attempts.items() if c != holder), attempts
+        assert "the worker running an attempt at it (tcp://127.0.0.1:" in (out / "summary.md").read_text()
+        assert not [p for p in out.iterdir() if p.name.startswith(".")]
+        for i in range(3):
+            assert clip_outputs(out / f"clip{i}") == clip_outputs(ref_out / f"clip{i}"), i
+    finally:
+        _stop(procs)
+
+
+@pytest.mark.slow
+def test_batch_on_a_real_dask_scheduler_and_worker(reference, tmp_path):
+    """`dask scheduler` and `dask worker` in processes of their own on 127.0.0.1; one corrupt clip
+    among good ones. The good clips' outputs equal the local pool's; the corrupt one fails alone."""
+    _, ref_out = reference
+    inp = make_input(tmp_path / "in", corrupt=True)
+    sched_file, procs = _dask_cluster(tmp_path)
+    try:
         out = tmp_path / "out"
         res = subprocess.run(batch_cmd(inp, out, "--scheduler-file", str(sched_file)), capture_output=True, text=True,
                              timeout=300, cwd=REPO)
@@ -221,10 +270,4 @@ def test_batch_on_a_real_dask_scheduler_and_worker(reference, tmp_path):
         for i in range(3):
             assert clip_outputs(out / f"clip{i}") == clip_outputs(ref_out / f"clip{i}"), i
     finally:
-        for p in reversed(procs):
-            p.terminate()
-        for p in procs:
-            try:
-                p.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                p.kill()
+        _stop(procs)

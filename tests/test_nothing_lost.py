@@ -1,0 +1,537 @@
+"""Nothing lost, nothing stale: no command deletes what stereotrack did not write, batch outputs never
+collide, a restart redoes a clip whose inputs changed, one precedence for command line and files,
+no traceback on any input (table-driven and property-based), plugins that cannot shadow built-ins,
+signals that end every long command cleanly, and clips of one or two frames."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import psutil
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from pipeline.batch import run_batch
+from pipeline.errors import StereotrackError
+from pipeline.io import read_csv
+from pipeline.manifest import MANIFEST, verify_manifest
+from tests.conftest import REPO
+from tests.test_inputs import RED, cli, real_copy, snapshot
+
+SAMPLE = REPO / "data" / "clips" / "sample_small"
+FUZZ = settings(max_examples=200, deadline=None, derandomize=True,
+                suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+
+
+def _quiet_batch(*args, **kw):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        res = run_batch(*args, workers=1, methods=["triangulation"], images=False, **kw)
+    return {o.clip: o.status for o in res}, [str(w.message) for w in caught] + [w for o in res for w in o.warnings]
+
+
+# ---------------------------------------------------------------------------------------------
+# 1. Never delete what stereotrack did not write
+# ---------------------------------------------------------------------------------------------
+
+
+def test_render_refuses_a_folder_it_did_not_make(tmp_path, monkeypatch, capsys):
+    mine = tmp_path / "mydir"
+    (mine / "out").mkdir(parents=True)
+    (mine / "left").mkdir()
+    (mine / "out" / "notes.txt").write_text("precious")
+    before = snapshot(mine)
+    rc, _, err = cli(monkeypatch, capsys, "render", "default", "-o", mine, "--frames", "2")
+    assert rc == 2 and "was not written by stereotrack" in err and str(mine) in err
+    assert snapshot(mine) == before
+    # an empty folder is fine, and so is re-rendering a clip stereotrack made (other files kept)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    rc, _, err = cli(monkeypatch, capsys, "render", "default", "-o", empty, "--frames", "2", "--format", "png")
+    assert rc == 0, err
+    (empty / "my_notes.txt").write_text("mine")
+    rc, _, err = cli(monkeypatch, capsys, "render", "default", "-o", empty, "--frames", "3", "--format", "png")
+    assert rc == 0, err
+    assert (empty / "my_notes.txt").read_text() == "mine" and len(list((empty / "left").iterdir())) == 3
+
+
+def test_batch_force_never_replaces_a_foreign_folder(tmp_path):
+    inp = tmp_path / "in"
+    real_copy(inp / "clip")
+    (inp / "markers.yaml").write_text(f"- {RED}\n")
+    out = tmp_path / "out"
+    (out / "clip").mkdir(parents=True)
+    (out / "clip" / "thesis.tex").write_text("a user's file")
+    status, _ = _quiet_batch(inp, out, force=True)
+    assert status == {"clip": "failed"}
+    assert (out / "clip" / "thesis.tex").read_text() == "a user's file"
+    err = read_csv(out / "summary.csv")["error"][0]
+    assert "was not written by stereotrack" in err
+
+
+# ---------------------------------------------------------------------------------------------
+# 2. Output names that cannot collide; 3. a manifest that covers inputs
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def two_same_names(tmp_path) -> tuple[Path, Path]:
+    inp = tmp_path / "in"
+    real_copy(inp / "a" / "clip")
+    real_copy(inp / "b" / "clip")
+    (inp / "a" / "clip" / "markers.yaml").write_text(f"- {RED}\n")
+    (inp / "b" / "clip" / "markers.yaml").write_text("- blue=#2840e6\n")
+    return inp, tmp_path / "out"
+
+
+def test_batch_outputs_mirror_the_input_tree(two_same_names):
+    inp, out = two_same_names
+    status, _ = _quiet_batch(inp, out)
+    assert status == {"a/clip": "ok", "b/clip": "ok"}
+    assert set(read_csv(out / "a" / "clip" / "detections.csv")["marker"]) == {"red"}
+    assert set(read_csv(out / "b" / "clip" / "detections.csv")["marker"]) == {"blue"}
+    assert verify_manifest(out / "a" / "clip") is None and verify_manifest(out / "b" / "clip") is None
+    assert sorted(read_csv(out / "summary.csv")["clip"]) == ["a/clip", "b/clip"]
+
+
+def test_restart_redoes_what_changed_and_says_why(two_same_names):
+    inp, out = two_same_names
+    _quiet_batch(inp, out)
+    assert _quiet_batch(inp, out)[0] == {"a/clip": "skipped", "b/clip": "skipped"}
+    # an edited markers.yaml, a replaced video
+    (inp / "a" / "clip" / "markers.yaml").write_text(f"markers: [{RED}]\n")
+    shutil.copy(SAMPLE / "right.mp4", inp / "b" / "clip" / "left.mp4")
+    status, said = _quiet_batch(inp, out)
+    assert status == {"a/clip": "ok", "b/clip": "ok"}
+    assert any("a/clip: redoing this clip: input markers.yaml changed" in w for w in said), said
+    assert any("b/clip: redoing this clip: input left.mp4 changed" in w for w in said), said
+    # a root markers.yaml is a setting of every clip without one of its own
+    (inp / "markers.yaml").write_text(f"- {RED}\n")
+    status, said = _quiet_batch(inp, out)
+    assert any("other settings (root_markers)" in w for w in said), said
+
+
+@pytest.mark.parametrize("content", ["", "{}", '{"stereotrack": "0.1", "files": {}}', '{"stereotrack": "0.1", "files": []}',
+                                     '{"stereotrack": "0.1", "files": {"metrics.json": 3}}', "[1, 2]", "\x00\xff garbage",
+                                     '{"files": {"metrics.json": {"size": 1}}}'])
+def test_broken_manifest_means_redo_with_a_warning(tmp_path, content):
+    inp = tmp_path / "in"
+    real_copy(inp / "clip")
+    (inp / "markers.yaml").write_text(f"- {RED}\n")
+    out = tmp_path / "out"
+    _quiet_batch(inp, out)
+    (out / "clip" / MANIFEST).write_bytes(content.encode("utf-8", "surrogateescape"))
+    status, said = _quiet_batch(inp, out)
+    assert status == {"clip": "ok"}
+    assert any("redoing this clip" in w and ("manifest" in w) for w in said), said
+    assert verify_manifest(out / "clip") is None
+
+
+# ---------------------------------------------------------------------------------------------
+# 4. One precedence: command line > clip's own file > input root's file > rendered clip's description
+# ---------------------------------------------------------------------------------------------
+
+
+def test_markers_precedence_in_a_batch(tmp_path):
+    inp = tmp_path / "in"
+    for name in ("own", "rooted"):
+        real_copy(inp / name)
+    (inp / "own" / "markers.yaml").write_text("- blue=#2840e6\n")  # the clip's own file
+    (inp / "markers.yaml").write_text(f"- {RED}\n")  # the input root's file
+    out = tmp_path / "out"
+    _quiet_batch(inp, out)
+    assert set(read_csv(out / "own" / "detections.csv")["marker"]) == {"blue"}  # own file > root file
+    assert set(read_csv(out / "rooted" / "detections.csv")["marker"]) == {"red"}
+    # --markers beats both, with a warning naming the clip's own file and both values
+    ball = RED.replace("red", "ball")
+    _status, said = _quiet_batch(inp, tmp_path / "out2", marker_specs=[ball])
+    for name in ("own", "rooted"):
+        assert set(read_csv(tmp_path / "out2" / name / "detections.csv")["marker"]) == {"ball"}
+    assert any(f"own/markers.yaml: --markers {ball} used instead of this file's blue=#2840e6" in w for w in said), said
+
+
+def test_calib_units_flag_over_a_declared_unit_warns_naming_both(tmp_path):
+    from pipeline.camera import load_calibration, save_calibration
+
+    rig = load_calibration(SAMPLE)
+    save_calibration(rig, tmp_path / "calib.yaml", units="mm")
+    with pytest.warns(UserWarning, match=r"--calib-units m overrides the unit the file declares \(units: mm\)"):
+        forced = load_calibration(tmp_path / "calib.yaml", "m")
+    np.testing.assert_allclose(forced.T, rig.T * 1000.0)  # the command line wins, as documented
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        np.testing.assert_allclose(load_calibration(tmp_path / "calib.yaml", "mm").T, rig.T)  # agreeing: silent
+
+
+def test_clip_description_is_last(tmp_path, png_clip):
+    """A rendered clip's own colours apply only when nothing else names the markers."""
+    from detectors.stage import detect_clip
+
+    clip = tmp_path / "clip"
+    shutil.copytree(png_clip, clip, ignore=shutil.ignore_patterns("out"))
+    res = detect_clip(clip, out_dir=tmp_path / "o1")
+    assert set(res.marker_colours) == {"red", "green", "blue"}
+    (clip / "markers.yaml").write_text("- green=#1ec828\n")
+    assert set(detect_clip(clip, out_dir=tmp_path / "o2").marker_colours) == {"green"}
+
+
+# ---------------------------------------------------------------------------------------------
+# 5. No traceback on any input: the eleven of the report, then every parser fuzzed
+# ---------------------------------------------------------------------------------------------
+
+
+def _calib_image_size(clip: Path) -> None:
+    text = (clip / "calib.yaml").read_text()
+    (clip / "calib.yaml").write_text(text.replace("image_width: 320\nimage_height: 240\n", "image_size: [ 320 ]\n"))
+
+
+def _raising_plugin(monkeypatch) -> None:
+    from pipeline.estimators import base
+    from pipeline.estimators.triangulation import TriangulationEstimator
+
+    class Boom(TriangulationEstimator):
+        name = "boom"
+
+        def _step(self, obs):
+            if self.frame == 7:
+                raise ValueError("the plugin's own bug")
+            return super()._step(obs)
+
+    Boom.__module__, Boom.__qualname__ = "my_plugin.boom", "Boom"
+    monkeypatch.setitem(base.REGISTRY, "boom", Boom)
+
+
+TRACEBACKS = {
+    # name: (setup(tmp, clip, monkeypatch) or None, argv (formatted with {clip}, {tmp}), exit code, text on stderr)
+    "run --frames -5": (None, ["run", "default", "--frames", "-5", "-o", "{tmp}/r"], 2,
+                        "frames: Input should be greater than 0"),
+    "run --seed -1": (None, ["run", "default", "--seed", "-1", "-o", "{tmp}/r"], 2, "seed: Input should be greater"),
+    "run on a single video": (None, ["run", "{clip}/left.mp4"], 2, "left.mp4: is a single video"),
+    "--config with .inf": (lambda t, c, m: (t / "cfg.yaml").write_text("ekf: {process_noise: .inf}\n"),
+                           ["estimate", "{clip}", "--config", "{tmp}/cfg.yaml"], 2,
+                           "ekf.process_noise: Input should be a finite"),
+    "--config binary": (lambda t, c, m: (t / "cfg.yaml").write_bytes(bytes(range(256))),
+                        ["estimate", "{clip}", "--config", "{tmp}/cfg.yaml"], 2, "cfg.yaml: not a text file"),
+    "one-element image_size": (lambda t, c, m: _calib_image_size(c), ["estimate", "{clip}"], 2,
+                               "field 'image_size' must be [width, height]"),
+    "garbage --scheduler-file": (lambda t, c, m: (t / "s.json").write_text("garbage"),
+                                 ["batch", "{clip}", "-o", "{tmp}/b", "--scheduler-file", "{tmp}/s.json", "--markers", RED],
+                                 2, "s.json: not a Dask scheduler file"),
+    "scheduler file without address": (lambda t, c, m: (t / "s.json").write_text('{"id": 1}'),
+                                       ["batch", "{clip}", "-o", "{tmp}/b", "--scheduler-file", "{tmp}/s.json"],
+                                       2, "no scheduler 'address'"),
+    "plugin whose step raises": (lambda t, c, m: _raising_plugin(m), ["estimate", "{clip}", "--methods", "boom"], 2,
+                                 "plugin method (my_plugin.boom.Boom) 'boom' raised ValueError: the plugin's own bug "
+                                 "(marker 'red', frame 7)"),
+    "duplicate marker names": (None, ["detect", "{clip}", "--markers", f"{RED},red=#2840e6"], 2,
+                               "marker name 'red' is given twice"),
+    "corrupt metrics.json for report": (lambda t, c, m: (c / "out" / "metrics.json").write_text("{nope"),
+                                        ["report", "{clip}"], 2, "metrics.json: unreadable metrics (not JSON"),
+    "clip.json that is a list": (lambda t, c, m: (c / "clip.json").write_text("[]"), ["estimate", "{clip}"], 2,
+                                 "clip.json: unreadable clip description"),
+}
+
+
+@pytest.fixture(scope="module")
+def detected(tmp_path_factory) -> Path:
+    from detectors.stage import detect_clip
+    from pipeline.estimate import estimate_clip
+
+    clip = real_copy(tmp_path_factory.mktemp("tb") / "clip")
+    detect_clip(clip, "blob", [RED])
+    estimate_clip(clip, ["triangulation"])
+    return clip
+
+
+@pytest.mark.parametrize("case", list(TRACEBACKS))
+def test_former_tracebacks_are_one_line(case, detected, tmp_path, monkeypatch, capsys):
+    setup, argv, code, text = TRACEBACKS[case]
+    clip = tmp_path / "clip"
+    shutil.copytree(detected, clip)
+    if setup is not None:
+        setup(tmp_path, clip, monkeypatch)
+    before = snapshot(clip)
+    rc, out, err = cli(monkeypatch, capsys, *[a.format(clip=clip, tmp=tmp_path) for a in argv])
+    errors = [line for line in err.splitlines() if line.startswith("error:")]
+    assert rc == code and len(errors) == 1 and text in errors[0], (case, err)
+    assert "Traceback" not in out + err
+    assert snapshot(clip) == before, case
+
+
+def _fails_cleanly(fn, path: Path | None = None) -> None:
+    """``fn()`` succeeds, or raises a StereotrackError naming ``path`` in one line."""
+    try:
+        fn()
+    except StereotrackError as exc:
+        assert "\n" not in str(exc)
+        if path is not None:
+            assert str(path) in str(exc), str(exc)
+
+
+TEXT = st.text(st.characters(codec="utf-8"), max_size=60)
+SPEC_CHARS = st.text(st.sampled_from("abcRED_-@:=#,0123456789fF"), max_size=25)
+
+
+@FUZZ
+@given(spec=st.one_of(TEXT, SPEC_CHARS))
+def test_fuzz_marker_specs(spec):
+    from detectors.blob import MarkerColor
+
+    _fails_cleanly(lambda: MarkerColor.parse(spec))
+    _fails_cleanly(lambda: MarkerColor.parse_window(spec))
+
+
+def _containers(kids: st.SearchStrategy) -> st.SearchStrategy:
+    return st.one_of(st.lists(kids, max_size=4), st.dictionaries(TEXT, kids, max_size=4))
+
+
+YAMLISH = st.recursive(st.none() | st.booleans() | st.integers(-10**6, 10**6) | st.floats(allow_nan=True) | TEXT,
+                       _containers, max_leaves=12)
+
+
+def _write_yaml_or_bytes(path: Path, data, raw: bytes | None) -> None:
+    import yaml
+
+    if raw is not None:
+        path.write_bytes(raw)
+    else:
+        path.write_text(yaml.safe_dump(data, allow_unicode=True))
+
+
+@FUZZ
+@given(data=st.one_of(YAMLISH, st.lists(SPEC_CHARS, max_size=4), st.fixed_dictionaries({"markers": YAMLISH})),
+       raw=st.none() | st.binary(max_size=80))
+def test_fuzz_markers_yaml(tmp_path, data, raw):
+    from pipeline.clip import read_markers_file
+
+    path = tmp_path / "markers.yaml"
+    _write_yaml_or_bytes(path, data, raw)
+    _fails_cleanly(lambda: read_markers_file(path), path)
+
+
+METHOD_FIELDS = st.dictionaries(st.sampled_from(["process_noise", "pixel_sigma", "init", "seed", "alpha", "beta", "x"]),
+                                YAMLISH, max_size=3)
+
+
+@FUZZ
+@given(data=st.one_of(YAMLISH, st.dictionaries(st.sampled_from(["ekf", "spsa", "kf3d", "nope"]), METHOD_FIELDS | YAMLISH,
+                                               max_size=3)),
+       raw=st.none() | st.binary(max_size=80))
+def test_fuzz_method_config(tmp_path, data, raw):
+    from pipeline.settings import load_method_configs
+
+    path = tmp_path / "cfg.yaml"
+    _write_yaml_or_bytes(path, data, raw)
+    _fails_cleanly(lambda: load_method_configs(path), path)
+
+
+SCENARIO_KEYS = ["name", "frames", "fps", "seed", "rig", "render", "objects", "distractors", "width", "baseline", "motion",
+                 "type", "start", "velocity", "color", "radius", "focal"]
+SCENARIO_ISH = st.recursive(st.none() | st.integers(-5, 10**5) | st.floats(allow_nan=True) | TEXT | st.sampled_from(
+    ["constant_velocity", "sinusoid", "four_point_target"]),
+    lambda kids: st.lists(kids, max_size=4) | st.dictionaries(st.sampled_from(SCENARIO_KEYS), kids, max_size=5),
+    max_leaves=20)
+
+
+@FUZZ
+@given(data=st.dictionaries(st.sampled_from(SCENARIO_KEYS), SCENARIO_ISH, max_size=6), raw=st.none() | st.binary(max_size=80))
+def test_fuzz_scenario_yaml(tmp_path, data, raw):
+    from renderers.scenario import load_scenario
+
+    path = tmp_path / "scen.yaml"
+    _write_yaml_or_bytes(path, data, raw)
+    _fails_cleanly(lambda: load_scenario(path), path)
+
+
+CALIB_TEXT = (SAMPLE / "calib.yaml").read_text()
+
+
+@FUZZ
+@given(cut=st.integers(0, len(CALIB_TEXT)), length=st.integers(0, 40), insert=st.text(st.sampled_from(" :[],.-0123456789"
+                                                                                                   "\nabcKDRTnimage_size"),
+                                                                                   max_size=20),
+       raw=st.none() | st.binary(max_size=200))
+def test_fuzz_calibration(tmp_path, cut, length, insert, raw):
+    from pipeline.camera import load_calibration
+
+    path = tmp_path / "calib.yaml"
+    if raw is not None:
+        path.write_bytes(raw)
+    else:
+        path.write_text(CALIB_TEXT[:cut] + insert + CALIB_TEXT[cut + length:])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _fails_cleanly(lambda: load_calibration(path), path)
+
+
+CSV_CELL = st.one_of(st.sampled_from(["", "nan", "inf", "-1", "0", "3", "1e400", "left", "right", "red", "x"]),
+                     st.floats(allow_nan=True).map(str), TEXT.filter(lambda s: "\n" not in s and "\r" not in s))
+
+
+@FUZZ
+@given(rows=st.lists(st.lists(CSV_CELL, max_size=8), max_size=6), header=st.booleans(), raw=st.none() | st.binary(max_size=80))
+def test_fuzz_detection_csv(tmp_path, rows, header, raw):
+    import csv
+
+    from pipeline.clip import DETECTION_COLUMNS, load_detections
+
+    path = tmp_path / "detections.csv"
+    if raw is not None:
+        path.write_bytes(raw)
+    else:
+        with open(path, "w", newline="") as fh:
+            w = csv.writer(fh)
+            if header:
+                w.writerow(DETECTION_COLUMNS)
+            w.writerows(rows)
+    _fails_cleanly(lambda: load_detections(path, 40), path)
+
+
+@FUZZ
+@given(data=st.one_of(YAMLISH, st.fixed_dictionaries({"stereotrack": TEXT, "files": YAMLISH, "inputs": YAMLISH,
+                                                      "settings": YAMLISH})),
+       raw=st.none() | st.binary(max_size=80))
+def test_fuzz_manifest(tmp_path, data, raw):
+    folder = tmp_path / "clipout"
+    folder.mkdir(exist_ok=True)
+    (folder / "metrics.json").write_text("{}")
+    (folder / MANIFEST).write_bytes(raw if raw is not None else json.dumps(data).encode())
+    why = verify_manifest(folder, {"detector": "blob"}, {"left.mp4": SAMPLE / "left.mp4"})
+    assert why is None or isinstance(why, str)
+
+
+@FUZZ
+@given(data=st.one_of(YAMLISH, st.fixed_dictionaries({"address": TEXT})), raw=st.none() | st.binary(max_size=80))
+def test_fuzz_scheduler_file(tmp_path, data, raw):
+    from pipeline.batch import _checked_scheduler_file
+
+    path = tmp_path / "scheduler.json"
+    path.write_bytes(raw if raw is not None else json.dumps(data).encode())
+    _fails_cleanly(lambda: _checked_scheduler_file(path), path)
+
+
+# ---------------------------------------------------------------------------------------------
+# 6. Plugins and names
+# ---------------------------------------------------------------------------------------------
+
+
+def test_plugin_cannot_shadow_a_builtin(monkeypatch):
+    from pipeline.estimators import base, register
+    from pipeline.estimators.ekf import EKFEstimator
+    from pipeline.estimators.triangulation import TriangulationEstimator
+
+    monkeypatch.setattr(base, "REGISTRY", dict(base.REGISTRY))
+
+    class FakeEKF(TriangulationEstimator):
+        name = "ekf"
+
+    FakeEKF.__module__, FakeEKF.__qualname__ = "someone_else.plugin", "FakeEKF"
+    with pytest.warns(UserWarning, match=r"someone_else.plugin.FakeEKF is named 'ekf'.*the built-in is kept"):
+        register(FakeEKF)
+    assert base.REGISTRY["ekf"] is EKFEstimator
+
+
+# ---------------------------------------------------------------------------------------------
+# 7. Signals: SIGTERM and SIGINT end run, batch and render-batch cleanly
+# ---------------------------------------------------------------------------------------------
+
+
+def _until(cond, timeout: float = 90.0) -> bool:
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        if cond():
+            return True
+        time.sleep(0.02)
+    return False
+
+
+def _partials(folder: Path) -> list[Path]:
+    return [p for p in folder.rglob("*") if ".partial" in p.name] if folder.exists() else []
+
+
+SIGNAL_CASES = {
+    "batch": (lambda t: ["batch", str(_batch_input(t)), "-o", str(t / "out"), "--workers", "2", "--methods",
+                         "triangulation,ekf", "--no-images"], lambda t: t / "out"),
+    "run": (lambda t: ["run", str(shutil.copytree(SAMPLE, t / "clip")), "--methods", "triangulation,ekf"],
+            lambda t: t / "clip" / "out"),
+    "render-batch": (lambda t: ["render-batch", "default", "--seeds", "0..2", "--frames", "60", "-o", str(t / "rb"),
+                                "--workers", "2"], lambda t: t / "rb"),
+}
+
+
+def _batch_input(t: Path) -> Path:
+    for i in range(3):
+        real_copy(t / "in" / f"c{i}")
+    (t / "in" / "markers.yaml").write_text(f"- {RED}\n")
+    return t / "in"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+@pytest.mark.parametrize("command", list(SIGNAL_CASES))
+def test_signal_ends_cleanly(command, sig, tmp_path):
+    argv, watched = SIGNAL_CASES[command]
+    args, out = argv(tmp_path), watched(tmp_path)
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, cwd=tmp_path)
+    busy = (lambda: bool(_partials(out))) if command != "run" else (lambda: (out / "detections.csv").exists()
+                                                                        or bool(_partials(out)))
+    assert _until(lambda: proc.poll() is not None or busy()), "never got busy"
+    assert proc.poll() is None, proc.communicate()[1]
+    family = psutil.Process(proc.pid).children(recursive=True)
+    proc.send_signal(sig)
+    _out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 128 + sig, err
+    lines = [line for line in err.splitlines() if line.startswith("interrupted")]
+    assert lines == [f"interrupted ({sig.name}): stopped; nothing half-written was kept"], err
+    assert "Traceback" not in err
+    _gone, alive = psutil.wait_procs(family, timeout=3)
+    assert not [p for p in alive if p.is_running() and p.status() != psutil.STATUS_ZOMBIE]
+    assert not _partials(out), _partials(out)
+    assert not (out / ".stereotrack.lock").exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# 8. Edge clips
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("frames", "fmt"), [(1, "mp4"), (1, "png"), (2, "mp4")])
+def test_one_and_two_frame_clips_run_end_to_end(frames, fmt, tmp_path):
+    clip = tmp_path / "edge"
+    env = {**os.environ, "COLUMNS": "200"}
+    res = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", "default", "--frames", str(frames), "--format", fmt,
+                          "-o", str(clip)], capture_output=True, text=True, cwd=tmp_path, env=env, timeout=300)
+    assert res.returncode == 0, res.stderr
+    assert "warning" not in res.stderr.lower(), res.stderr  # no numpy noise ("Mean of empty slice")
+    metrics = json.loads((clip / "out" / "metrics.json").read_text())
+    assert metrics["frames"] == frames
+    tri = metrics["methods"]["triangulation"]
+    assert tri["frames"] >= frames and tri["rmse"] < 0.01
+    spsa = metrics["methods"]["spsa_stereo"]
+    if frames == 1:
+        assert spsa["note"] == "needs at least 2 frames; this clip has 1: no estimate"
+        assert "**spsa_stereo**: needs at least 2 frames" in (clip / "out" / "report.md").read_text()
+    else:
+        assert "note" not in spsa and spsa["rmse"] is not None
+
+
+def test_library_warnings_name_their_source(capsys):
+    from pipeline.cli import _show_warning
+
+    _show_warning(RuntimeWarning("Mean of empty slice"), RuntimeWarning, "/x/numpy/lib/_nanfunctions_impl.py", 1215)
+    _show_warning(UserWarning("clip/calib.yaml: something"), UserWarning, str(REPO / "pipeline" / "camera.py"), 10)
+    err = capsys.readouterr().err.splitlines()
+    assert err == ["warning: _nanfunctions_impl.py:1215: RuntimeWarning: Mean of empty slice",
+                   "warning: clip/calib.yaml: something"]
