@@ -302,8 +302,9 @@ def summarize(rows: list[tuple], clip: Clip, n_frames: int, n_cams: int) -> list
         if truth is not None:
             det = {(int(r[0]), r[2]): (r[3], r[4]) for r in mine}
             errs, misses, false = [], 0, 0
-            for k, name, u, v, vis in zip(truth["frame"], truth["marker"], truth[f"u_{cam}"], truth[f"v_{cam}"],
-                                          truth[f"visible_{cam}"], strict=True):
+            # detections are undistorted: compare with the pinhole truth where the clip has it
+            us, vs = (truth.get(f"{a}_{cam}_pinhole", truth[f"{a}_{cam}"]) for a in ("u", "v"))
+            for k, name, u, v, vis in zip(truth["frame"], truth["marker"], us, vs, truth[f"visible_{cam}"], strict=True):
                 key = (int(k), name)
                 if vis and key in det:
                     errs.append(np.hypot(det[key][0] - u, det[key][1] - v))

@@ -38,6 +38,12 @@ TRUTH_COLUMNS = [
     "frame", "t", "marker", "x", "y", "z", "vx", "vy", "vz",
     "u_left", "v_left", "u_right", "v_right", "visible_left", "visible_right",
 ]
+#: written by the renderer after :data:`TRUTH_COLUMNS`: each camera's pixels without lens
+#: distortion (what undistorted detections are compared with) and the time each camera saw the
+#: marker (its frame time plus, with a rolling shutter, the delay of the row that imaged it)
+TRUTH_EXTRA_COLUMNS = ["u_left_pinhole", "v_left_pinhole", "u_right_pinhole", "v_right_pinhole", "t_left", "t_right"]
+TIMESTAMPS = "timestamps.csv"
+TIMESTAMP_COLUMNS = ["frame", "camera", "t"]
 TARGET_TRUTH_COLUMNS = ["frame", "t", "alpha", "alpha_dot", "distance", "distance_dot", "axis_angle"] + [
     f"{c}{i}_{cam}" for cam in ("left", "right") for i in range(1, 5) for c in ("u", "v")
 ]
@@ -219,7 +225,7 @@ def find_camera_source(clip_dir: Path, name: str) -> Path:
 
 #: Files of a clip folder that a run reads besides the footage (each only where present).
 INPUT_FILES = (*CALIB_NAMES, *INTRINSICS_NAMES, *EXTRINSICS_NAMES, MARKERS_FILE, CLIP_INFO, "scenario.yaml",
-               "timestamps.csv", "truth.csv", "target_truth.csv")
+               TIMESTAMPS, "truth.csv", "target_truth.csv")
 
 
 def input_files(clip: str | Path) -> dict[str, Path]:

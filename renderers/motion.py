@@ -38,9 +38,81 @@ class TargetTruth:
     center: np.ndarray
 
 
+class PointPath:
+    """One point motion at any time: exact for the analytic motions; for a constant velocity with
+    process noise, the simulated piecewise-constant acceleration between frames (so the frame
+    samples are the recursion's own values and in between is exact for that model)."""
+
+    def __init__(self, motion, dt: float, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray | None = None) -> None:
+        self.motion, self.dt, self.pos, self.vel, self.acc = motion, dt, pos, vel, acc
+
+    def at(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        m = self.motion
+        if self.acc is not None:  # noisy constant velocity: quadratic between frames
+            k = np.clip(np.floor(t / self.dt).astype(int), 0, len(self.pos) - 1)
+            tau = (t - k * self.dt)[:, None]
+            return self.pos[k] + self.vel[k] * tau + 0.5 * self.acc[k] * tau**2, self.vel[k] + self.acc[k] * tau
+        return _analytic(m, t)
+
+
+def _analytic(m, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    if isinstance(m, ConstantVelocity):
+        p0, v0 = np.array(m.start, float), np.array(m.velocity, float)
+        return p0 + np.outer(t, v0), np.tile(v0, (len(t), 1))
+    if isinstance(m, ConstantAcceleration):
+        p0, v0, a0 = (np.array(x, float) for x in (m.start, m.velocity, m.acceleration))
+        return p0 + np.outer(t, v0) + 0.5 * np.outer(t * t, a0), v0 + np.outer(t, a0)
+    if isinstance(m, Sinusoid):
+        c, amp, ph = (np.array(x, float) for x in (m.center, m.amplitude, m.phase))
+        w = 2 * math.pi * np.broadcast_to(np.array(m.frequency_hz, float), (3,))
+        arg = np.outer(t, w) + ph
+        return c + amp * np.sin(arg), amp * w * np.cos(arg)
+    raise TypeError(f"not a point motion: {type(m).__name__}")
+
+
+class TargetPath:
+    """The four-point target at any time: between frames the state ``[α, α̇]`` (and ``[z, ż]``)
+    evolves by ``expm(A τ)`` from the frame's state, exactly as the simulation integrates it."""
+
+    def __init__(self, motion: FourPointTarget, dt: float, al: np.ndarray, zz: np.ndarray) -> None:
+        self.m, self.dt, self.al, self.zz = motion, dt, al, zz
+        self.A_alpha = np.array(motion.alpha_matrix, float)
+        self.A_z = np.array([[0.0, 1.0], [0.0, motion.a_z]])
+
+    def state_at(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(α, α̇) and (z, ż) at times ``t`` (each N×2)."""
+        from scipy.linalg import expm
+
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        k = np.clip(np.floor(t / self.dt).astype(int), 0, len(self.al) - 1)
+        tau = t - k * self.dt
+        al, zz = np.empty((len(t), 2)), np.empty((len(t), 2))
+        for i, (kk, tt) in enumerate(zip(k, tau, strict=True)):
+            al[i] = expm(self.A_alpha * tt) @ self.al[kk] if tt else self.al[kk]
+            zz[i] = expm(self.A_z * tt) @ self.zz[kk] if tt else self.zz[kk]
+        return al, zz
+
+    def center(self, zz: np.ndarray) -> np.ndarray:
+        m = self.m
+        return np.column_stack([np.full(len(zz), m.center_offset[0]), np.full(len(zz), m.center_offset[1]), zz[:, 0]])
+
+    def points_at(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Points (N×4×3), their velocities, the plate normal (N×3), centre (N×3) and α (N)."""
+        al, zz = self.state_at(t)
+        center = self.center(zz)
+        phi = math.radians(self.m.axis_angle_deg)
+        pts, normal = target_points(center, al[:, 0], self.m.radius, phi)
+        eps = 1e-6
+        pts_a, _ = target_points(center, al[:, 0] + eps, self.m.radius, phi)
+        vel = (pts_a - pts) / eps * al[:, 1, None, None] + np.array([0.0, 0.0, 1.0]) * zz[:, 1, None, None]
+        return pts, vel, normal, center, al[:, 0]
+
+
 @dataclass
 class Truth:
-    """Per-frame truth of all markers: ``positions``/``velocities`` are frames × markers × 3."""
+    """Per-frame truth of all markers: ``positions``/``velocities`` are frames × markers × 3;
+    :meth:`at` gives the same at any times (sub-frame exposures, sync offsets, rolling shutter)."""
 
     t: np.ndarray
     names: list[str]
@@ -50,10 +122,32 @@ class Truth:
     #: per marker: unit normal of a flat (disc) marker per frame, or NaN for spheres (frames×markers×3)
     normals: np.ndarray
     targets: list[TargetTruth]
+    #: per marker: a PointPath, or (TargetPath, point index 0..3)
+    paths: list = None  # type: ignore[assignment]
+    target_paths: list = None  # type: ignore[assignment]
 
     @property
     def n_frames(self) -> int:
         return len(self.t)
+
+    def at(self, t: np.ndarray, markers: list[int] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Positions, velocities and normals (NaN for spheres) of ``markers`` (default all) at
+        times ``t``: each N×M×3."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        idx = range(len(self.names)) if markers is None else markers
+        pos, vel, nrm = (np.full((len(t), len(idx), 3), np.nan) for _ in range(3))
+        cache: dict[int, tuple] = {}
+        for j, i in enumerate(idx):
+            path = self.paths[i]
+            if isinstance(path, PointPath):
+                pos[:, j], vel[:, j] = path.at(t)
+            else:
+                tp, q = path
+                if id(tp) not in cache:
+                    cache[id(tp)] = tp.points_at(t)
+                pts, v, n, _, _ = cache[id(tp)]
+                pos[:, j], vel[:, j], nrm[:, j] = pts[:, q], v[:, q], n
+        return pos, vel, nrm
 
 
 def target_rotation(axis_angle: float) -> np.ndarray:
@@ -96,13 +190,13 @@ def _second_order(A: np.ndarray, x0: np.ndarray, noise: float, n: int, dt: float
     return out
 
 
-def _point_motion(obj: ObjectSpec, t: np.ndarray, dt: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def _point_motion(obj: ObjectSpec, t: np.ndarray, dt: float, rng: np.random.Generator) -> tuple[np.ndarray, ...]:
+    """Per-frame position and velocity (and, for a noisy constant velocity, each frame's
+    acceleration)."""
     m = obj.motion
     n = len(t)
-    if isinstance(m, ConstantVelocity):
+    if isinstance(m, ConstantVelocity) and m.process_noise > 0:
         p0, v0 = np.array(m.start, float), np.array(m.velocity, float)
-        if m.process_noise == 0:
-            return p0 + np.outer(t, v0), np.tile(v0, (n, 1))
         pos, vel = np.empty((n, 3)), np.empty((n, 3))
         p, v = p0, v0
         acc = rng.standard_normal((n, 3)) * m.process_noise
@@ -110,16 +204,8 @@ def _point_motion(obj: ObjectSpec, t: np.ndarray, dt: float, rng: np.random.Gene
             pos[k], vel[k] = p, v
             p = p + v * dt + 0.5 * acc[k] * dt * dt
             v = v + acc[k] * dt
-        return pos, vel
-    if isinstance(m, ConstantAcceleration):
-        p0, v0, a0 = (np.array(x, float) for x in (m.start, m.velocity, m.acceleration))
-        return p0 + np.outer(t, v0) + 0.5 * np.outer(t * t, a0), v0 + np.outer(t, a0)
-    if isinstance(m, Sinusoid):
-        c, amp, ph = (np.array(x, float) for x in (m.center, m.amplitude, m.phase))
-        w = 2 * math.pi * np.broadcast_to(np.array(m.frequency_hz, float), (3,))
-        arg = np.outer(t, w) + ph
-        return c + amp * np.sin(arg), amp * w * np.cos(arg)
-    raise TypeError(f"not a point motion: {type(m).__name__}")
+        return pos, vel, acc
+    return _analytic(m, t)
 
 
 def simulate_truth(scenario: Scenario) -> Truth:
@@ -129,6 +215,8 @@ def simulate_truth(scenario: Scenario) -> Truth:
     names: list[str] = []
     pos_list, vel_list, rad_list, nrm_list = [], [], [], []
     targets: list[TargetTruth] = []
+    paths: list = []
+    target_paths: list[TargetPath] = []
     for idx, obj in enumerate(scenario.objects):
         rng = np.random.default_rng([scenario.seed, idx])
         m = obj.motion
@@ -153,8 +241,12 @@ def simulate_truth(scenario: Scenario) -> Truth:
             targets.append(
                 TargetTruth(obj.name, al[:, 0], al[:, 1], zz[:, 0], zz[:, 1], phi, m.radius, normal, center)
             )
+            tp = TargetPath(m, dt, al, zz)
+            target_paths.append(tp)
+            paths += [(tp, j) for j in range(4)]
         else:
-            p, v = _point_motion(obj, t, dt, rng)
+            p, v, *acc = _point_motion(obj, t, dt, rng)
+            paths.append(PointPath(obj.motion, dt, p, v, acc[0] if acc else None))
             names.append(obj.name)
             pos_list.append(p)
             vel_list.append(v)
@@ -168,12 +260,17 @@ def simulate_truth(scenario: Scenario) -> Truth:
         radii=np.array(rad_list),
         normals=np.stack(nrm_list, axis=1),
         targets=targets,
+        paths=paths,
+        target_paths=target_paths,
     )
 
 
-def distractor_positions(scenario: Scenario) -> np.ndarray:
-    """Distractor centres per frame (frames × distractors × 3)."""
-    t = np.arange(scenario.frames) * scenario.dt
+def distractor_positions(scenario: Scenario, t: np.ndarray | None = None) -> np.ndarray:
+    """Distractor centres at times ``t`` (default every frame): len(t) × distractors × 3."""
+    if t is None:
+        t = np.arange(scenario.frames) * scenario.dt
+    t = np.atleast_1d(np.asarray(t, dtype=float))
     if not scenario.distractors:
-        return np.zeros((scenario.frames, 0, 3))
-    return np.stack([np.array(d.position) + np.outer(t, d.velocity) for d in scenario.distractors], axis=1)
+        return np.zeros((len(t), 0, 3))
+    return np.stack([_analytic(d.motion, t)[0] if d.motion is not None else np.array(d.position) + np.outer(t, d.velocity)
+                     for d in scenario.distractors], axis=1)

@@ -21,13 +21,13 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from pipeline.camera import save_calibration
-from pipeline.clip import CLIP_INFO
+from pipeline.camera import StereoRig, save_calibration
+from pipeline.clip import CLIP_INFO, TIMESTAMPS
 from pipeline.errors import ClipError, StereotrackError
 from pipeline.io import write_json, write_text
 from renderers.motion import Truth, simulate_truth
-from renderers.scenario import Scenario, clip_description
-from renderers.truth import project_truth, write_target_truth, write_truth
+from renderers.scenario import CalibrationErrorSpec, Scenario, clip_description
+from renderers.truth import frame_times, project_truth, write_target_truth, write_timestamps, write_truth
 
 CAMERA_NAMES = ("left", "right")
 Format = Literal["mp4", "png"]
@@ -96,12 +96,15 @@ class FrameWriter:
         else:
             self.tmp.mkdir(parents=True)
 
-    def write(self, rgb: np.ndarray) -> None:
+    def write(self, rgb: np.ndarray, index: int | None = None) -> None:
+        """Append a frame; a PNG is named by ``index`` (default: the next number), so a dropped
+        frame leaves a gap in the numbering, as real frame dumps do."""
         bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
         if self.fmt == "mp4":
             self.writer.write(bgr)
         else:
-            cv2.imwrite(str(self.tmp / f"{self.count:06d}.png"), bgr, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+            name = f"{self.count if index is None else index:06d}.png"
+            cv2.imwrite(str(self.tmp / name), bgr, [cv2.IMWRITE_PNG_COMPRESSION, 1])
         self.count += 1
 
     def close(self) -> None:
@@ -123,28 +126,35 @@ class FrameWriter:
 
 def render_camera(
     scenario: Scenario, cam_index: int, clip_dir: Path, fmt: Format, tick: Callable[[int], None] | None = None,
-    renderer=None,  # a pyrender.OffscreenRenderer of the rig's size to reuse (a persistent worker's)
+    renderer=None,  # a pyrender.OffscreenRenderer of this camera's render size to reuse (a persistent worker's)
     truth: Truth | None = None,
-) -> int:
-    """Render every frame of one camera into ``clip_dir``; returns the number of frames."""
+) -> np.ndarray | None:
+    """Render every frame of one camera into ``clip_dir`` at that camera's own times (sync offset,
+    jitter, rolling shutter, exposure), skipping the frames it drops. Returns, for scenes with
+    objects that can hide a marker (distractors, occluders), each frame's visible pixel count per
+    marker (frames × markers, from a segmentation render); else None."""
     from renderers.scene import StereoScene, create_offscreen_renderer
 
     rig = scenario.rig.build()
     truth = truth if truth is not None else simulate_truth(scenario)
+    times = frame_times(scenario)
+    scene = StereoScene(scenario, rig, truth)
     own = renderer is None
     if own:
-        renderer = create_offscreen_renderer(*rig.image_size)
+        renderer = create_offscreen_renderer(*scene.views[cam_index].size)
+    counts = np.zeros((scenario.frames, len(truth.names)), dtype=np.int64) if scenario.distractors else None
     try:
-        scene = StereoScene(scenario, rig, truth)
         writer = FrameWriter(clip_dir, CAMERA_NAMES[cam_index], fmt, scenario.fps, rig.image_size)
         try:
             rs = scenario.render
             w, h = rig.image_size
             noise = SensorNoise((h, w, 3), rs.noise_std, scenario.seed, cam_index)
             for k in range(scenario.frames):
-                scene.set_frame(k)
-                img = scene.render(renderer, cam_index)
-                writer.write(postprocess(img, rs.blur_sigma, noise, k))
+                if times.present[cam_index, k]:
+                    img = _render_frame(scene, renderer, cam_index, k, float(times.t[cam_index, k]))
+                    if counts is not None:  # the pose at the frame's mid-exposure time
+                        counts[k] = scene.marker_pixels(renderer, cam_index)
+                    writer.write(postprocess(img, rs.blur_sigma, noise, k), index=k)
                 if tick is not None:
                     tick(k)
             writer.close()
@@ -154,7 +164,49 @@ def render_camera(
     finally:
         if own:
             renderer.delete()
-    return scenario.frames
+    return counts
+
+
+def exposure_offsets(scenario: Scenario) -> np.ndarray:
+    """Sub-frame render times relative to the frame's mid-exposure (``[0]`` without exposure)."""
+    e, n = scenario.render.exposure_s, scenario.render.exposure_samples
+    return (np.arange(n) + 0.5) / n * e - e / 2 if e > 0 else np.zeros(1)
+
+
+def ideal_timing(scenario: Scenario, cam_index: int) -> bool:
+    """Whether camera ``cam_index`` exposes frame k at exactly ``k/fps``, all at once, instantly."""
+    r = scenario.rig
+    return (scenario.render.exposure_s == 0 and r.line_delay_s == 0 and r.jitter_s == 0
+            and (cam_index == 0 or r.sync_offset_s == 0))
+
+
+def _render_frame(scene, renderer, cam_index: int, k: int, t0: float) -> np.ndarray:
+    """One camera's frame k: the scene at the frame's time (the mean of the sub-frame renders over
+    the exposure), as the camera's lens records it; the pose is left at mid-exposure."""
+    scenario = scene.scenario
+    view = scene.views[cam_index]
+    if ideal_timing(scenario, cam_index):
+        scene.set_frame(k)
+        return view.finish(scene.render(renderer, cam_index))
+    offsets = exposure_offsets(scenario)
+    acc = None
+    for dt in offsets:
+        scene.set_time(cam_index, t0 + dt)
+        img = scene.render(renderer, cam_index)
+        acc = img.astype(np.float32) if acc is None else acc + img
+    if len(offsets) > 1:
+        scene.set_time(cam_index, t0)
+    img = np.clip(acc / len(offsets) + 0.5, 0, 255).astype(np.uint8)  # type: ignore[operator]
+    return view.finish(img)
+
+
+def render_size(scenario: Scenario, cam_index: int) -> tuple[int, int]:
+    """The size of camera ``cam_index``'s pinhole render (its image size, plus a margin when its
+    lens distorts): the size of the OpenGL context that renders it."""
+    from renderers.scene import render_view
+
+    rig = scenario.rig.build()
+    return render_view(rig.cameras[cam_index], rig.image_size).size
 
 
 # -- persistent render workers ------------------------------------------------------------------
@@ -177,13 +229,13 @@ def _worker_init(parent_pid: int, progress: mp.Queue | None) -> None:
     _PROGRESS = progress
 
 
-def _render_job(scenario_json: str, cam_index: int, staging: str, fmt: Format, job: int) -> list[str]:
-    """Worker entry point: one camera of one clip into ``staging``, reusing this process's renderer;
-    the left camera's job also writes the clip's truth and calibration (the parent only commits)."""
+def _render_job(scenario_json: str, cam_index: int, staging: str, fmt: Format, job: int) -> np.ndarray | None:
+    """Worker entry point: one camera of one clip into ``staging``, reusing this process's renderer
+    of that size; returns the camera's marker pixel counts (see :func:`render_camera`)."""
     from renderers.scene import create_offscreen_renderer
 
     scenario = Scenario.model_validate_json(scenario_json)
-    size = (scenario.rig.width, scenario.rig.height)
+    size = render_size(scenario, cam_index)
     if size not in _RENDERERS:
         _RENDERERS[size] = create_offscreen_renderer(*size)
 
@@ -191,9 +243,7 @@ def _render_job(scenario_json: str, cam_index: int, staging: str, fmt: Format, j
         if _PROGRESS is not None and (k % 5 == 4 or k == scenario.frames - 1):
             _PROGRESS.put((job, cam_index, k + 1))
 
-    truth = simulate_truth(scenario)
-    render_camera(scenario, cam_index, Path(staging), fmt, tick, _RENDERERS[size], truth)
-    return _write_clip_files(scenario, Path(staging), truth) if cam_index == 0 else []
+    return render_camera(scenario, cam_index, Path(staging), fmt, tick, _RENDERERS[size], simulate_truth(scenario))
 
 
 def _staging_dir(clip_dir: Path) -> Path:
@@ -212,8 +262,10 @@ def _staging_dir(clip_dir: Path) -> Path:
 #: scenario.yaml): only such a folder, or an empty one, is ever re-rendered.
 RENDERED_MARK = (CLIP_INFO, "scenario.yaml")
 #: What a render puts in a clip folder; a re-render replaces exactly these (and the stale ``out/``).
-RENDERED = ("calib.yaml", CLIP_INFO, "scenario.yaml", "truth.csv", "target_truth.csv", "left", "right", "left.mp4",
-            "right.mp4", "out")
+RENDERED = ("calib.yaml", "calib_true.yaml", CLIP_INFO, "scenario.yaml", "truth.csv", "target_truth.csv", TIMESTAMPS,
+            "left", "right", "left.mp4", "right.mp4", "out")
+#: A marker counts as visible when at least this share of its unoccluded image area shows.
+VISIBLE_SHARE = 0.4
 
 
 def _commit(staging: Path, clip_dir: Path) -> None:
@@ -234,23 +286,81 @@ def _commit(staging: Path, clip_dir: Path) -> None:
     staging.rmdir()
 
 
-def _write_clip_files(scenario: Scenario, staging: Path, truth: Truth) -> list[str]:
-    """Truth, scenario and calibration beside the frames; returns notes (markers never in view)."""
+def _write_clip_files(scenario: Scenario, staging: Path, truth: Truth, fmt: Format,
+                      counts: list[np.ndarray | None]) -> list[str]:
+    """Truth, timestamps, scenario, description and calibration beside the frames (the user's
+    calibration, perturbed when a calibration error is asked for, with the true one beside it);
+    returns notes (markers never in view)."""
     rig = scenario.rig.build()
-    proj = project_truth(rig, scenario, truth)
+    proj = project_truth(rig, scenario, truth, distractors=all(c is None for c in counts))
+    for c, cnt in enumerate(counts):
+        if cnt is not None:  # the rendered image decides: occluded or cut by the frame ⇒ not visible
+            proj.visible[:, :, c] &= cnt >= VISIBLE_SHARE * expected_areas(rig.cameras[c], truth, proj, c)
     notes = [f"marker '{name}' is never visible in either camera" for i, name in enumerate(truth.names)
              if not proj.visible[:, i, :].any()]
     write_text(staging / "scenario.yaml", scenario.to_yaml())
     write_json(staging / CLIP_INFO, clip_description(scenario))
     write_truth(staging / "truth.csv", truth, proj)
+    write_timestamps(staging / TIMESTAMPS, proj.times, fmt)
     if truth.targets:
         write_target_truth(staging / "target_truth.csv", truth, proj)
+    if scenario.calibration_error is not None:
+        save_calibration(rig, staging / "calib_true.yaml")
+        rig = perturbed_rig(rig, scenario.calibration_error, scenario.seed)
     save_calibration(rig, staging / "calib.yaml")
     return notes
 
 
-def _finish_clip(scenario: Scenario, staging: Path, clip_dir: Path, notes: list[str]) -> RenderResult:
-    """Commit a clip whose frames and truth are all in ``staging``; warn about its notes."""
+def expected_areas(cam, truth: Truth, proj, c: int) -> np.ndarray:
+    """Each marker's unoccluded image area (px², frames × markers): a sphere's disc, a flat disc
+    foreshortened by its tilt."""
+    n, m = truth.positions.shape[:2]
+    out = np.zeros((n, m))
+    f = float(np.sqrt(cam.K[0, 0] * cam.K[1, 1]))
+    for i in range(m):
+        p, _, nrm = truth.at(proj.t_seen[:, i, c], [i])
+        p, nrm = p[:, 0], nrm[:, 0]
+        z = np.maximum(cam.depth(p), 1e-6)
+        area = np.pi * (f * truth.radii[i] / z) ** 2
+        if np.all(np.isfinite(nrm)):
+            ray = cam.center - p
+            area *= np.abs(np.einsum("ij,ij->i", nrm, ray)) / np.linalg.norm(ray, axis=1)
+        out[:, i] = area
+    return out
+
+
+def perturbed_rig(rig: StereoRig, err: CalibrationErrorSpec, seed: int) -> StereoRig:
+    """The calibration a user would have: focal lengths, principal points, baseline length, the
+    second camera's rotation and k1, k2 perturbed by the spec's standard deviations, drawn from
+    ``[err.seed or seed, 50000]``."""
+    from pipeline.camera import Camera
+
+    rng = np.random.default_rng([err.seed if err.seed is not None else seed, 50_000])
+
+    def camera_K(K: np.ndarray) -> np.ndarray:
+        K = K.copy()
+        K[0, 0] *= 1 + err.focal * rng.standard_normal()
+        K[1, 1] *= 1 + err.focal * rng.standard_normal()
+        K[:2, 2] += err.principal_point * rng.standard_normal(2)
+        return K
+
+    def dist(D: np.ndarray) -> np.ndarray:
+        D = D.copy()
+        D[:2] += err.distortion * rng.standard_normal(2)
+        return D
+
+    K1, K2, D1, D2 = camera_K(rig.left.K), camera_K(rig.right.K), dist(rig.left.D), dist(rig.right.D)
+    rvec = np.radians(err.rotation_deg) * rng.standard_normal(3)
+    R = cv2.Rodrigues(rvec)[0] @ rig.R
+    C = rig.right.center * (1 + err.baseline * rng.standard_normal())
+    return StereoRig(Camera(K1, D=D1), Camera(K2, R, -R @ C, D2), rig.image_size)
+
+
+def _finish_clip(scenario: Scenario, staging: Path, clip_dir: Path, fmt: Format,
+                 counts: list[np.ndarray | None]) -> RenderResult:
+    """Write the truth and calibration of a clip whose frames are all in ``staging``, commit it,
+    and warn about its notes."""
+    notes = _write_clip_files(scenario, staging, simulate_truth(scenario), fmt, counts)
     _commit(staging, clip_dir)
     for msg in notes:
         warnings.warn(f"{clip_dir}: {msg}", stacklevel=3)
@@ -268,95 +378,114 @@ def render_clips(
     Every camera of every clip is one job; a worker keeps its EGL context across jobs. Each clip
     is rendered into a hidden staging folder and committed only when both cameras and its truth
     are written; workers die with this process. ``progress(done, total)`` counts stereo pairs.
-    ``workers=1`` renders here, in this process, one camera after the other.
+    ``workers=1`` renders here, in this process, one camera after the other. A folder that
+    stereotrack did not render (and is not empty) is refused before any work starts.
     """
-    import concurrent.futures as cf
-
     from pipeline.io import check_replaceable, ensure_dir
 
-    total = sum(s.frames for s, _ in jobs)
     dirs = [Path(d) for _, d in jobs]
     for d in dirs:  # before any work: a folder stereotrack did not render is never replaced
         check_replaceable(d, RENDERED_MARK, "clip")
         ensure_dir(d.parent)
     stagings = [_staging_dir(d) for d in dirs]
-    results: list[RenderResult | None] = [None] * len(jobs)
     try:
         if workers <= 1:
-            from renderers.scene import create_offscreen_renderer
-
-            renderers: dict[tuple[int, int], object] = {}
-            done = 0
-            try:
-                for j, (scen, _) in enumerate(jobs):
-                    size = (scen.rig.width, scen.rig.height)
-                    if size not in renderers:
-                        renderers[size] = create_offscreen_renderer(*size)
-                    truth = simulate_truth(scen)
-                    for c in range(2):
-
-                        def tick(k: int, c: int = c, base: int = done, n: int = scen.frames) -> None:
-                            if progress is not None:
-                                progress(base + (k + 1 + c * n) // 2, total)
-
-                        render_camera(scen, c, stagings[j], fmt, tick, renderers[size], truth)
-                    done += scen.frames
-                    results[j] = _finish_clip(scen, stagings[j], dirs[j], _write_clip_files(scen, stagings[j], truth))
-            finally:
-                for r in renderers.values():
-                    r.delete()  # type: ignore[attr-defined]
-            return results  # type: ignore[return-value]
-        ctx = mp.get_context("spawn")
-        q: mp.Queue = ctx.Queue()
-        # one llvmpipe thread per worker: each worker is one core's worth of rendering (a user's
-        # own LP_NUM_THREADS wins)
-        saved = os.environ.get("LP_NUM_THREADS")
-        os.environ["LP_NUM_THREADS"] = saved or "1"
-        try:
-            pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
-                                          initargs=(os.getpid(), q))
-        finally:
-            if saved is None:
-                del os.environ["LP_NUM_THREADS"]
-        frames_done: dict[tuple[int, int], int] = {}
-        cams_done = [0] * len(jobs)
-        notes: list[list[str]] = [[] for _ in jobs]
-        try:
-            futs = {pool.submit(_render_job, scen.model_dump_json(), c, str(stagings[j]), fmt, j): (j, c)
-                    for j, (scen, _) in enumerate(jobs) for c in range(2)}
-            pending = set(futs)
-            while pending:
-                finished, pending = cf.wait(pending, timeout=0.2, return_when=cf.FIRST_COMPLETED)
-                while True:
-                    try:
-                        j, c, k = q.get_nowait()
-                    except queue.Empty:
-                        break
-                    frames_done[(j, c)] = k
-                for f in finished:
-                    j, c = futs[f]
-                    try:
-                        notes[j] += f.result()
-                    except cf.process.BrokenProcessPool:
-                        raise StereotrackError(f"the render worker for the {CAMERA_NAMES[c]} camera of {dirs[j]} died "
-                                               "(killed, or out of memory)") from None
-                    frames_done[(j, c)] = jobs[j][0].frames
-                    cams_done[j] += 1
-                    if cams_done[j] == 2:
-                        results[j] = _finish_clip(jobs[j][0], stagings[j], dirs[j], notes[j])
-                if progress is not None:
-                    progress(sum(frames_done.values()) // 2, total)
-        except BaseException:
-            from pipeline.lifeline import end_pool
-
-            end_pool(pool)
-            raise
-        pool.shutdown()
-        return results  # type: ignore[return-value]
+            return _render_here(jobs, stagings, dirs, fmt, progress)
+        return _render_pool(jobs, stagings, dirs, fmt, workers, progress)
     except BaseException:
         for st in stagings:
             shutil.rmtree(st, ignore_errors=True)
         raise
+
+
+def _render_here(jobs: list[tuple[Scenario, str | Path]], stagings: list[Path], dirs: list[Path], fmt: Format,
+                 progress: Callable[[int, int], None] | None) -> list[RenderResult]:
+    """Every camera of every clip in this process, one renderer per render size."""
+    from renderers.scene import create_offscreen_renderer
+
+    total = sum(s.frames for s, _ in jobs)
+    renderers: dict[tuple[int, int], object] = {}
+    results, done = [], 0
+    try:
+        for j, (scen, _) in enumerate(jobs):
+            truth = simulate_truth(scen)
+            counts = []
+            for c in range(2):
+                size = render_size(scen, c)
+                if size not in renderers:
+                    renderers[size] = create_offscreen_renderer(*size)
+
+                def tick(k: int, c: int = c, base: int = done, n: int = scen.frames) -> None:
+                    if progress is not None:
+                        progress(base + (k + 1 + c * n) // 2, total)
+
+                counts.append(render_camera(scen, c, stagings[j], fmt, tick, renderers[size], truth))
+            done += scen.frames
+            results.append(_finish_clip(scen, stagings[j], dirs[j], fmt, counts))
+    finally:
+        for r in renderers.values():
+            r.delete()  # type: ignore[attr-defined]
+    return results
+
+
+def _render_pool(jobs: list[tuple[Scenario, str | Path]], stagings: list[Path], dirs: list[Path], fmt: Format,
+                 workers: int, progress: Callable[[int, int], None] | None) -> list[RenderResult]:
+    """Every camera of every clip as a job of a pool of persistent render workers (one llvmpipe
+    thread each, a user's own LP_NUM_THREADS aside); a clip is finished when both its cameras are."""
+    import concurrent.futures as cf
+
+    from pipeline.lifeline import end_pool
+
+    total = sum(s.frames for s, _ in jobs)
+    ctx = mp.get_context("spawn")
+    q: mp.Queue = ctx.Queue()
+    saved = os.environ.get("LP_NUM_THREADS")
+    os.environ["LP_NUM_THREADS"] = saved or "1"
+    try:
+        pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
+                                      initargs=(os.getpid(), q))
+    finally:
+        if saved is None:
+            del os.environ["LP_NUM_THREADS"]
+    frames_done: dict[tuple[int, int], int] = {}
+    counts: list[list] = [[None, None] for _ in jobs]
+    cams_done = [0] * len(jobs)
+    results: list[RenderResult | None] = [None] * len(jobs)
+    try:
+        futs = {pool.submit(_render_job, scen.model_dump_json(), c, str(stagings[j]), fmt, j): (j, c)
+                for j, (scen, _) in enumerate(jobs) for c in range(2)}
+        pending = set(futs)
+        while pending:
+            finished, pending = cf.wait(pending, timeout=0.2, return_when=cf.FIRST_COMPLETED)
+            _drain(q, frames_done)
+            for f in finished:
+                j, c = futs[f]
+                try:
+                    counts[j][c] = f.result()
+                except cf.process.BrokenProcessPool:
+                    raise StereotrackError(f"the render worker for the {CAMERA_NAMES[c]} camera of {dirs[j]} died "
+                                           "(killed, or out of memory)") from None
+                frames_done[(j, c)] = jobs[j][0].frames
+                cams_done[j] += 1
+                if cams_done[j] == 2:
+                    results[j] = _finish_clip(jobs[j][0], stagings[j], dirs[j], fmt, counts[j])
+            if progress is not None:
+                progress(sum(frames_done.values()) // 2, total)
+    except BaseException:
+        end_pool(pool)
+        raise
+    pool.shutdown()
+    return results  # type: ignore[return-value]
+
+
+def _drain(q: mp.Queue, frames_done: dict[tuple[int, int], int]) -> None:
+    """Take the workers' progress messages (job, camera, frames done) off the queue."""
+    while True:
+        try:
+            j, c, k = q.get_nowait()
+        except queue.Empty:
+            return
+        frames_done[(j, c)] = k
 
 
 def render_clip(

@@ -29,8 +29,41 @@ class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+class CameraPose(_Model):
+    """Where the second camera sits relative to the first: its centre (m) in the first camera's frame
+    (x right, y down, z forward) and its orientation, as rotations of its axes about the first
+    camera's x, y and z axes (degrees, applied in that order). ``[0.3, 0, 0]`` with no rotation is the
+    usual side-by-side rig; ``[-0.3, 0, 0]`` has the second camera on the left, ``[0, -0.3, 0]`` above."""
+
+    position: Vec3
+    rotation_deg: Vec3 = (0.0, 0.0, 0.0)
+
+    @field_validator("position")
+    @classmethod
+    def _apart(cls, v: Vec3) -> Vec3:
+        if math.hypot(*v) < 1e-6:
+            raise ValueError("the two cameras coincide: give the second camera a position away from the first")
+        return v
+
+
+class RigMatrices(_Model):
+    """A rig spelled out (what ``rig.calibration`` is read into, so a clip's scenario.yaml stands alone)."""
+
+    K1: tuple[Vec3, Vec3, Vec3]
+    D1: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    K2: tuple[Vec3, Vec3, Vec3]
+    D2: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    R: tuple[Vec3, Vec3, Vec3]
+    T: Vec3
+
+
 class RigSpec(_Model):
-    """Stereo rig: resolution, focal length(s) in px, principal point, baseline (m), toe-in (deg)."""
+    """Stereo rig: resolution, focal length(s) in px, principal point, baseline (m), toe-in (deg);
+    or a calibration file (``calibration``, relative to the scenario file); or a free layout of the
+    second camera (``right``). Lens distortion (OpenCV's 4–14 coefficients) and the rig's timing:
+    ``sync_offset_s`` (the right camera's frame k is exposed at ``k/fps + offset``), rolling shutter
+    (``line_delay_s`` per image row), frame-time ``jitter_s`` (std, per camera and frame) and dropped
+    frames (``drop_rate``, one value or [left, right])."""
 
     width: int = Field(640, gt=0, le=8192)
     height: int = Field(480, gt=0, le=8192)
@@ -38,6 +71,15 @@ class RigSpec(_Model):
     principal_point: tuple[float, float] | None = None
     baseline: float = Field(0.3, gt=0)
     toe_in_deg: float = Field(0.0, ge=-45, le=45)
+    calibration: str | None = None
+    matrices: RigMatrices | None = None
+    right: CameraPose | None = None
+    distortion: tuple[float, ...] | None = None
+    distortion_right: tuple[float, ...] | None = None
+    sync_offset_s: float = 0.0
+    line_delay_s: float = Field(0.0, ge=0)
+    jitter_s: float = Field(0.0, ge=0)
+    drop_rate: float | tuple[float, float] = 0.0
 
     @field_validator("focal")
     @classmethod
@@ -47,10 +89,60 @@ class RigSpec(_Model):
             raise ValueError("focal length must be positive")
         return v
 
+    @field_validator("distortion", "distortion_right")
+    @classmethod
+    def _dist_length(cls, v: tuple[float, ...] | None) -> tuple[float, ...] | None:
+        if v is not None and len(v) not in (4, 5, 8, 12, 14):
+            raise ValueError(f"OpenCV distortion has 4, 5, 8, 12 or 14 coefficients, not {len(v)}")
+        return v
+
+    @field_validator("drop_rate")
+    @classmethod
+    def _rate(cls, v: float | tuple[float, float]) -> float | tuple[float, float]:
+        if any(not 0 <= r < 1 for r in ((v,) if isinstance(v, (int, float)) else v)):
+            raise ValueError("a drop rate lies in [0, 1)")
+        return v
+
+    @model_validator(mode="after")
+    def _one_layout(self) -> RigSpec:
+        if self.calibration is not None and self.right is not None:
+            raise ValueError("give either 'calibration' or 'right', not both")
+        if self.line_delay_s * self.height > 1.0:
+            raise ValueError("line_delay_s × height exceeds one second: a rolling shutter reads a frame within its period")
+        return self
+
+    @property
+    def drop_rates(self) -> tuple[float, float]:
+        r = self.drop_rate
+        return (float(r), float(r)) if isinstance(r, (int, float)) else (float(r[0]), float(r[1]))
+
     def build(self) -> StereoRig:
-        return StereoRig.from_parameters(
-            self.width, self.height, self.focal, self.principal_point, self.baseline, self.toe_in_deg
-        )
+        """The rig that renders the clip (``calib_true.yaml`` when a calibration error is asked for)."""
+        from pipeline.camera import Camera
+
+        if self.matrices is not None:
+            m = self.matrices
+            return StereoRig(Camera(np.array(m.K1), D=np.array(m.D1)),
+                             Camera(np.array(m.K2), np.array(m.R), np.array(m.T), np.array(m.D2)),
+                             (self.width, self.height))
+        rig = StereoRig.from_parameters(self.width, self.height, self.focal, self.principal_point, self.baseline,
+                                        self.toe_in_deg)
+        K = rig.left.K
+        R, T = rig.R, rig.T
+        if self.right is not None:
+            R_wc = _rotation_xyz(self.right.rotation_deg)  # second camera → first camera's frame
+            R = R_wc.T
+            T = -R @ np.array(self.right.position, float)
+        D1 = np.array(self.distortion if self.distortion is not None else (0.0,) * 5, float)
+        D2 = np.array(self.distortion_right if self.distortion_right is not None else D1, float)
+        return StereoRig(Camera(K.copy(), D=D1), Camera(K.copy(), R, T, D2), rig.image_size)
+
+
+def _rotation_xyz(deg: Vec3) -> np.ndarray:
+    """Rotation about x, then y, then z (degrees): ``Rz @ Ry @ Rx``."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_euler("xyz", deg, degrees=True).as_matrix()
 
 
 class ConstantVelocity(_Model):
@@ -123,6 +215,8 @@ class ObjectSpec(_Model):
     #: four-point target only: the four markers' colours (default: all ``color``) and plate colour.
     point_colors: tuple[Color, Color, Color, Color] | None = None
     plate_color: Color = (235, 235, 235)
+    #: surface roughness under lit shading: low values give specular highlights
+    roughness: float = Field(0.9, ge=0.0, le=1.0)
 
     @field_validator("color", "plate_color")
     @classmethod
@@ -146,13 +240,33 @@ class ObjectSpec(_Model):
 
 
 class Distractor(_Model):
-    """A static or moving object of another colour that no detector may report."""
+    """An object that is no marker: of another colour (no detector may report it), of a marker's own
+    colour (a look-alike), skin-toned, or a neutral occluder passing between a marker and a camera.
+    It sits at ``position`` moving at ``velocity``, or follows ``motion`` (any point motion)."""
 
-    shape: Literal["cube", "sphere"] = "cube"
+    shape: Literal["cube", "sphere", "box"] = "cube"
     color: Color = (200, 40, 200)
     size: float = Field(0.08, gt=0)
-    position: Vec3
+    #: a box's extents (m), x y z; ``size`` is its largest
+    extents: Vec3 | None = None
+    position: Vec3 = (0.0, 0.0, 3.0)
     velocity: Vec3 = (0.0, 0.0, 0.0)
+    motion: Annotated[ConstantVelocity | ConstantAcceleration | Sinusoid, Field(discriminator="type")] | None = None
+    roughness: float = Field(0.9, ge=0.0, le=1.0)
+
+
+class CalibrationErrorSpec(_Model):
+    """What the user's calibration gets wrong (std devs, drawn once per clip from ``seed``): focal
+    lengths (relative), principal points (px), baseline length (relative), the second camera's
+    rotation (deg, per axis) and distortion (absolute, on k1 and k2). The clip's calib.yaml is the
+    perturbed rig; calib_true.yaml the one that rendered it."""
+
+    focal: float = Field(0.0, ge=0, le=0.5)
+    principal_point: float = Field(0.0, ge=0, le=100)
+    baseline: float = Field(0.0, ge=0, le=0.5)
+    rotation_deg: float = Field(0.0, ge=0, le=10)
+    distortion: float = Field(0.0, ge=0, le=1)
+    seed: int | None = Field(None, ge=0)
 
 
 class RenderSpec(_Model):
@@ -164,6 +278,10 @@ class RenderSpec(_Model):
     background: Literal["textured", "plain"] = "textured"
     background_distance: float = Field(8.0, gt=0)
     background_color: Color = (110, 110, 105)
+    #: motion blur: the scene integrated over this exposure (s), centred on each frame time, from
+    #: ``exposure_samples`` sub-frame renders (not a Gaussian)
+    exposure_s: float = Field(0.0, ge=0)
+    exposure_samples: int = Field(8, ge=2, le=64)
 
 
 class Scenario(_Model):
@@ -178,6 +296,7 @@ class Scenario(_Model):
     render: RenderSpec = RenderSpec()
     objects: list[ObjectSpec] = Field(min_length=1)
     distractors: list[Distractor] = []
+    calibration_error: CalibrationErrorSpec | None = None
 
     @model_validator(mode="after")
     def _unique_names(self) -> Scenario:
@@ -187,7 +306,37 @@ class Scenario(_Model):
             raise ValueError(f"duplicate object/marker names: {sorted(dup)}")
         if sum(o.is_target for o in self.objects) > 1:
             raise ValueError("at most one four_point_target object per scenario")
+        if self.render.exposure_s > 1.0 / self.fps:
+            raise ValueError(f"render.exposure_s {self.render.exposure_s:g} s is longer than the frame period "
+                             f"{1.0 / self.fps:g} s")
+        if self.rig.line_delay_s * self.rig.height > 1.0 / self.fps:
+            raise ValueError("rig.line_delay_s × height is longer than the frame period: the sensor could not read a frame")
         return self
+
+    @property
+    def imperfections(self) -> dict[str, object]:
+        """What this clip's rig and scene do that an ideal rig does not (recorded in clip.json)."""
+        r = self.rig
+        out: dict[str, object] = {}
+        rig = r.build()
+        if r.calibration is not None:
+            out["calibration"] = r.calibration
+        if r.right is not None:
+            out["layout"] = {"right_center_m": rig.right.center.round(6).tolist(),
+                             "right_rotation_deg": list(r.right.rotation_deg)}
+        if np.any(rig.left.D) or np.any(rig.right.D):
+            out["distortion"] = {"D1": rig.left.D.tolist(), "D2": rig.right.D.tolist()}
+        for key in ("sync_offset_s", "line_delay_s", "jitter_s"):
+            if getattr(r, key):
+                out[key] = getattr(r, key)
+        if any(r.drop_rates):
+            out["drop_rate"] = list(r.drop_rates)
+        if self.render.exposure_s > 0:
+            out["exposure_s"] = self.render.exposure_s
+            out["exposure_samples"] = self.render.exposure_samples
+        if self.calibration_error is not None:
+            out["calibration_error"] = self.calibration_error.model_dump()
+        return out
 
     @property
     def dt(self) -> float:
@@ -248,8 +397,38 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
     return parse_scenario(data, path)
 
 
+def _resolve_calibration(data: dict, source: str | Path) -> dict:
+    """``rig.calibration: FILE`` (relative to the scenario file) read into ``rig.matrices`` and the
+    image size, so that the rig is spelled out wherever the scenario travels (render workers, the
+    clip's own scenario.yaml). A file that does not load is an error naming the scenario and field."""
+    rig = data.get("rig") if isinstance(data, dict) else None
+    if not isinstance(rig, dict) or not isinstance(rig.get("calibration"), str) or rig.get("matrices") is not None:
+        return data
+    from pipeline.camera import load_calibration
+    from pipeline.errors import StereotrackError
+
+    base = Path(source).parent if Path(str(source)).is_file() else Path(".")
+    path = base / rig["calibration"]
+    try:
+        import warnings
+
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            cal = load_calibration(path)
+    except StereotrackError as exc:
+        raise ScenarioError(f"rig.calibration: {exc}", source) from None
+    if caught:
+        raise ScenarioError(f"rig.calibration: {caught[0].message}", source)
+    if cal.image_size == (0, 0):
+        raise ScenarioError(f"rig.calibration: {path} records no image size; add image_width/image_height", source)
+    mats = {"K1": cal.left.K.tolist(), "D1": cal.left.D.tolist(), "K2": cal.right.K.tolist(), "D2": cal.right.D.tolist(),
+            "R": cal.R.tolist(), "T": cal.T.tolist()}
+    return {**data, "rig": {**rig, "matrices": mats, "width": cal.image_size[0], "height": cal.image_size[1]}}
+
+
 def parse_scenario(data: dict, source: str | Path = "<scenario>") -> Scenario:
     """Validate a scenario mapping; pydantic errors become one-line ``ScenarioError``s."""
+    data = _resolve_calibration(data, source)
     try:
         return Scenario.model_validate(data)
     except ValidationError as exc:
@@ -276,4 +455,7 @@ def clip_description(scenario: Scenario) -> dict:
             target = {"name": obj.name, "radius": m.radius,
                       "config": {"a_alpha": m.alpha_matrix[1][1], "alpha_feedback": [-m.alpha_matrix[1][0], 0.0],
                                  "a_z": m.a_z}}
-    return {"fps": scenario.fps, "frames": scenario.frames, "markers": markers, "target": target}
+    out = {"fps": scenario.fps, "frames": scenario.frames, "markers": markers, "target": target}
+    if scenario.imperfections:
+        out["imperfections"] = scenario.imperfections
+    return out

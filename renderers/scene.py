@@ -4,10 +4,11 @@ distractors, and one camera node per rig camera. Poses come from the one camera 
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.camera import StereoRig
+from pipeline.camera import Camera, StereoRig
 from pipeline.errors import RenderBackendError
 from renderers.motion import Truth, distractor_positions
 from renderers.scenario import Scenario
@@ -37,6 +38,49 @@ def create_offscreen_renderer(width: int, height: int):  # -> pyrender.Offscreen
         ) from None
 
 
+@dataclass
+class RenderView:
+    """How one camera is rendered: a pinhole camera ``K`` of ``size`` (the camera's own, or with a
+    margin when its lens distorts), and the remap (``cv2.remap`` maps) that bends that pinhole image
+    into the distorted one the camera records."""
+
+    K: np.ndarray
+    size: tuple[int, int]
+    maps: tuple[np.ndarray, np.ndarray] | None = None
+
+    def finish(self, img: np.ndarray, nearest: bool = False) -> np.ndarray:
+        """The pinhole render as the camera records it (the identity without distortion)."""
+        if self.maps is None:
+            return img
+        import cv2
+
+        return cv2.remap(img, *self.maps, cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+#: The largest render, per side, that a distorted camera's margin may grow to (× its image size).
+MAX_MARGIN = 2.0
+
+
+def render_view(cam: Camera, image_size: tuple[int, int]) -> RenderView:
+    """The view of ``cam``: every pixel of its distorted image, undistorted onto the pinhole image
+    plane (``cv2.undistortPoints`` with ``P = K``), sets the margin the pinhole render needs and the
+    remap from it; a lens without distortion renders as it is."""
+    if not np.any(cam.D):
+        return RenderView(cam.K, image_size)
+    w, h = image_size
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    und = cam.undistort(np.stack([u.ravel(), v.ravel()], -1)).reshape(h, w, 2)
+    lim = np.array([w, h]) * MAX_MARGIN
+    und = np.clip(np.nan_to_num(und, nan=-1e9), -lim, np.array([w, h]) + lim)
+    lo = np.floor(und.reshape(-1, 2).min(axis=0)) - 2
+    hi = np.ceil(und.reshape(-1, 2).max(axis=0)) + 2
+    K = cam.K.copy()
+    K[0, 2] -= lo[0]
+    K[1, 2] -= lo[1]
+    maps = ((und[..., 0] - lo[0]).astype(np.float32), (und[..., 1] - lo[1]).astype(np.float32))
+    return RenderView(K, (int(hi[0] - lo[0]) + 1, int(hi[1] - lo[1]) + 1), maps)
+
+
 def _frame_from_normal(n: np.ndarray, b: np.ndarray | None = None) -> np.ndarray:
     """Rotation whose z column is ``n`` (and x column ``b`` when given and orthogonal)."""
     n = n / np.linalg.norm(n)
@@ -54,16 +98,17 @@ def _pose(R: np.ndarray, p: np.ndarray) -> np.ndarray:
     return T
 
 
-def _material(rgb: tuple[int, int, int]):
+def _material(rgb: tuple[int, int, int], roughness: float = 0.9):
     import pyrender
 
     return pyrender.MetallicRoughnessMaterial(
-        baseColorFactor=[c / 255.0 for c in rgb] + [1.0], metallicFactor=0.0, roughnessFactor=0.9
+        baseColorFactor=[c / 255.0 for c in rgb] + [1.0], metallicFactor=0.0, roughnessFactor=roughness
     )
 
 
 class StereoScene:
-    """All geometry of a scenario, posed per frame; renders either camera of the rig."""
+    """All geometry of a scenario, posed per frame (or at any time, per camera); renders either
+    camera of the rig through its :class:`RenderView`."""
 
     def __init__(self, scenario: Scenario, rig: StereoRig, truth: Truth) -> None:
         ensure_gl_platform()
@@ -76,6 +121,7 @@ class StereoScene:
         self.scene = pyrender.Scene(bg_color=[*(c / 255 for c in rs.background_color), 1.0], ambient_light=[0.35] * 3)
         self._marker_nodes = []
         names = scenario.marker_colors()
+        rough = {n: o.roughness for o in scenario.objects for n in o.marker_names()}
         for i, name in enumerate(truth.names):
             color = names[name]
             r = float(truth.radii[i])
@@ -83,7 +129,7 @@ class StereoScene:
                 tm = trimesh.creation.cylinder(radius=r, height=0.001, sections=48)
             else:
                 tm = trimesh.creation.icosphere(subdivisions=3, radius=r)
-            mesh = pyrender.Mesh.from_trimesh(tm, material=_material(color), smooth=not self.flat)
+            mesh = pyrender.Mesh.from_trimesh(tm, material=_material(color, rough[name]), smooth=not self.flat)
             self._marker_nodes.append(self.scene.add(mesh, name=name))
         self._plates = []
         for obj, tgt in zip([o for o in scenario.objects if o.is_target], truth.targets, strict=True):
@@ -94,14 +140,20 @@ class StereoScene:
         self._distractors = []
         dpos = distractor_positions(scenario)
         for j, d in enumerate(scenario.distractors):
-            tm = trimesh.creation.box(extents=[d.size] * 3) if d.shape == "cube" else trimesh.creation.icosphere(3, d.size / 2)
-            node = self.scene.add(pyrender.Mesh.from_trimesh(tm, material=_material(d.color)))
+            if d.shape == "sphere":
+                tm = trimesh.creation.icosphere(3, d.size / 2)
+            else:
+                tm = trimesh.creation.box(extents=list(d.extents) if d.extents is not None else [d.size] * 3)
+            node = self.scene.add(pyrender.Mesh.from_trimesh(tm, material=_material(d.color, d.roughness),
+                                                             smooth=d.shape == "sphere" and not self.flat))
             self._distractors.append((node, dpos[:, j]))
+        self._background = None
         if rs.background == "textured":
-            self.scene.add(self._background_mesh(), pose=np.eye(4))
+            self._background = self.scene.add(self._background_mesh(), pose=np.eye(4))
+        self.views = [render_view(cam, rig.image_size) for cam in rig.cameras]
         self._camera_nodes = []
-        for cam in rig.cameras:
-            fx, fy, cx, cy = cam.gl_intrinsics()
+        for cam, view in zip(rig.cameras, self.views, strict=True):
+            fx, fy, cx, cy = Camera(view.K, cam.R, cam.t).gl_intrinsics()
             node = self.scene.add(
                 pyrender.IntrinsicsCamera(fx, fy, cx, cy, znear=0.01, zfar=rs.background_distance * 4),
                 pose=cam.gl_pose(),
@@ -111,6 +163,9 @@ class StereoScene:
             light = pyrender.DirectionalLight(color=np.ones(3), intensity=2.5)
             light_pose = _pose(_frame_from_normal(np.array([0.3, 0.5, 1.0])), np.zeros(3)) @ np.diag([1, -1, -1, 1])
             self.scene.add(light, pose=light_pose)
+        # segmentation: marker i drawn in colour i + 1, everything else black (and still occluding)
+        self._seg_map = {n: [0, 0, 0] for n in self.scene.mesh_nodes}
+        self._seg_map.update({n: [i + 1, 0, 0] for i, n in enumerate(self._marker_nodes)})
 
     def _background_mesh(self):
         """A large plane at ``background_distance`` with a smooth low-saturation grey texture
@@ -140,25 +195,69 @@ class StereoScene:
         return pyrender.Mesh.from_trimesh(tm, smooth=True)
 
     def set_frame(self, k: int) -> None:
-        """Pose every object for frame ``k``."""
-        pos, nrm = self.truth.positions[k], self.truth.normals[k]
+        """Pose every object for frame ``k`` (an ideal rig: every camera at ``k/fps``)."""
+        self._pose(self.truth.positions[k], self.truth.normals[k],
+                   [(tgt.center[k], tgt.normal[k]) for _, tgt in self._plates], [p[k] for _, p in self._distractors])
+
+    def set_time(self, camera: int, t0: float) -> None:
+        """Pose every object as ``camera`` sees it in a frame whose row 0 is exposed at ``t0``: with
+        a rolling shutter each moving object at the time of the row that images its centre (the
+        skew across one small object is left out)."""
+        from renderers.truth import seen_at
+
+        cam, ld, h = self.rig.cameras[camera], self.scenario.rig.line_delay_s, self.rig.image_size[1]
+        n = len(self._marker_nodes)
+        pos, nrm = np.empty((n, 3)), np.empty((n, 3))
+        for i in range(n):
+            t = seen_at(cam, self.truth, i, np.array([t0]), ld, h)
+            p, _, nn = self.truth.at(t, [i])
+            pos[i], nrm[i] = p[0, 0], nn[0, 0]
+        plates = []
+        for tp in self.truth.target_paths:
+            t = self._row_time(cam, lambda t, tp=tp: tp.points_at(t)[3], t0)
+            _, _, normal, center, _ = tp.points_at(t)
+            plates.append((center[0], normal[0]))
+        dist = [distractor_positions(self.scenario, self._row_time(
+            cam, lambda t, j=j: distractor_positions(self.scenario, t)[:, j], t0))[0, j] for j in range(len(self._distractors))]
+        self._pose(pos, nrm, plates, dist)
+
+    def _row_time(self, cam: Camera, where, t0: float) -> np.ndarray:
+        """When the row imaging ``where(t)`` (a centre) is exposed, from ``t0`` (fixed point)."""
+        ld, h = self.scenario.rig.line_delay_s, self.rig.image_size[1]
+        t = np.array([t0])
+        for _ in range(4 if ld > 0 else 0):
+            v = cam.project_distorted(where(t))[:, 1]
+            t = t0 + np.clip(np.nan_to_num(v, nan=0.0), 0.0, h - 1.0) * ld
+        return t
+
+    def _pose(self, pos: np.ndarray, nrm: np.ndarray, plates: list, distractors: list) -> None:
         for i, node in enumerate(self._marker_nodes):
             if np.all(np.isfinite(nrm[i])):
                 self.scene.set_pose(node, _pose(_frame_from_normal(nrm[i]), pos[i] + 0.0005 * nrm[i]))
             else:
                 self.scene.set_pose(node, _pose(np.eye(3), pos[i]))
-        for node, tgt in self._plates:
-            n = tgt.normal[k]
+        for (node, tgt), (center, n) in zip(self._plates, plates, strict=True):
             b = np.array([np.cos(tgt.axis_angle), np.sin(tgt.axis_angle), 0.0])
-            self.scene.set_pose(node, _pose(_frame_from_normal(n, b), tgt.center[k] - 0.0025 * n))
-        for node, p in self._distractors:
-            self.scene.set_pose(node, _pose(np.eye(3), p[k]))
+            self.scene.set_pose(node, _pose(_frame_from_normal(n, b), center - 0.0025 * n))
+        for (node, _), p in zip(self._distractors, distractors, strict=True):
+            self.scene.set_pose(node, _pose(np.eye(3), p))
 
     def render(self, renderer, camera_index: int) -> np.ndarray:
-        """RGB uint8 image (H×W×3) of the current frame from camera ``camera_index``."""
+        """RGB uint8 pinhole image of the current pose from camera ``camera_index`` (at its
+        :class:`RenderView`'s size: :meth:`RenderView.finish` makes it the camera's image)."""
         import pyrender
 
         self.scene.main_camera_node = self._camera_nodes[camera_index]
         flags = pyrender.RenderFlags.FLAT if self.flat else pyrender.RenderFlags.NONE
         color, _ = renderer.render(self.scene, flags=flags)
         return color
+
+    def marker_pixels(self, renderer, camera_index: int) -> np.ndarray:
+        """How many pixels of each marker camera ``camera_index`` sees in the current pose (a
+        segmentation render: occluders hide, the frame's edge cuts), in the camera's own image."""
+        import pyrender
+
+        self.scene.main_camera_node = self._camera_nodes[camera_index]
+        seg, _ = renderer.render(self.scene, flags=pyrender.RenderFlags.SEG, seg_node_map=self._seg_map)
+        ids = self.views[camera_index].finish(np.ascontiguousarray(seg[..., 0]), nearest=True)
+        return np.bincount(ids.ravel(), minlength=len(self._marker_nodes) + 1)[1 : len(self._marker_nodes) + 1]

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from pipeline.camera import load_calibration
-from pipeline.clip import TARGET_TRUTH_COLUMNS, TRUTH_COLUMNS
+from pipeline.clip import TARGET_TRUTH_COLUMNS, TRUTH_COLUMNS, TRUTH_EXTRA_COLUMNS
 from pipeline.io import read_csv
 
 HUE = {"red": 0, "green": 1, "blue": 2}
@@ -62,7 +62,7 @@ def test_clip_contents_and_truth_schema(png_clip, target_clip):
             assert len(list((clip / cam).glob("*.png"))) == frames
         assert (clip / "scenario.yaml").is_file() and (clip / "calib.yaml").is_file()
         header = (clip / "truth.csv").read_text().splitlines()[0].split(",")
-        assert header == TRUTH_COLUMNS
+        assert header == TRUTH_COLUMNS + TRUTH_EXTRA_COLUMNS
         assert not list(clip.glob(".*partial*"))
     tt = read_csv(target_clip / "target_truth.csv", TARGET_TRUTH_COLUMNS)
     assert len(tt["frame"]) == 40 and np.all(np.isfinite(tt["alpha"]))
