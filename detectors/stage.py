@@ -6,7 +6,7 @@ from __future__ import annotations
 import statistics
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -46,7 +46,7 @@ class CameraSummary:
     frames: int
     detections: int
     misses: int | None = None  # visible in truth but not detected
-    false: int | None = None  # detected while truth says not visible
+    false: int | None = None  # detected while truth says the marker is hidden (occluded, out of frame, dropped)
     err_median: float | None = None
     err_p95: float | None = None
     err_max: float | None = None
@@ -217,18 +217,18 @@ def detect_clip(
     warn_failed(checks)
     path = out_dir / "detections.csv"
     write_csv(path, DETECTION_COLUMNS, rows)
+    summaries = summarize(rows, clip_, n_done, n_cams)
+    cameras = [asdict(s) for s in summaries]
     write_json(out_dir / DETECT_INFO, {
         "clip": str(clip), "frames": n_done, "frame_size": list(source.size), "stereo": source.stereo,
         "detector": detector, "markers": [m.spec() for m in markers], "learned": learned,
         "marker_colours": {m.name: list(m.display_rgb()) for m in markers},
-        "checks": [c.as_dict() for c in checks]})
+        "checks": [c.as_dict() for c in checks], "cameras": cameras})
     cols = {name: [r[i] for r in rows] for i, name in enumerate(DETECTION_COLUMNS)}
-    result = DetectResult(path, rows, learned=learned, checks=checks,
-                          marker_colours={m.name: list(m.display_rgb()) for m in markers},
-                          observations=observations_from_columns(cols, n_done, path),
-                          footage=FootageInfo(n_done, tuple(source.size), checks))
-    result.summaries = summarize(rows, clip_, n_done, n_cams)
-    return result
+    return DetectResult(path, rows, summaries, learned=learned, checks=checks,
+                        marker_colours={m.name: list(m.display_rgb()) for m in markers},
+                        observations=observations_from_columns(cols, n_done, path),
+                        footage=FootageInfo(n_done, tuple(source.size), checks, cameras))
 
 
 def _left_frame(source: StereoFrameSource, k: int) -> np.ndarray | None:

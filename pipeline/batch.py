@@ -291,13 +291,15 @@ def _run_local(todo: list[Path], keys: dict[Path, str], out_root: Path, settings
     when the batch is interrupted (Ctrl-C, SIGTERM) instead of finishing their clips."""
     from concurrent.futures.process import BrokenProcessPool
 
-    from pipeline.lifeline import end_pool
+    from pipeline.lifeline import end_pool, signals_deferred
 
     init = (os.getpid(), workers > 1)
     pool = cf.ProcessPoolExecutor(max_workers=max(1, workers), mp_context=mp.get_context("spawn"),
                                   initializer=_worker_init, initargs=init)
     try:
-        futs = {pool.submit(_process_one, str(c), keys[c], str(out_root), settings, os.getpid()): keys[c] for c in todo}
+        with signals_deferred():  # submitting spawns the workers
+            futs = {pool.submit(_process_one, str(c), keys[c], str(out_root), settings, os.getpid()): keys[c]
+                    for c in todo}
         for f in cf.as_completed(futs):
             try:
                 record(f.result())

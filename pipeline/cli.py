@@ -158,10 +158,11 @@ def detect_cmd(
                              progress=lambda done, total: bar.update(task, completed=done, total=total or None),
                              calib_units=calib_units)
     _print_learned(result.learned)
-    table = Table("camera", "frames", "detections", "misses", "px err median", "p95", "max", title=str(result.path))
+    table = Table("camera", "frames", "detections", "misses", "false (hidden)", "px err median", "p95", "max",
+                  title=str(result.path))
     for s in result.summaries:
         table.add_row(s.camera, str(s.frames), str(s.detections), "—" if s.misses is None else str(s.misses),
-                      _fmt(s.err_median), _fmt(s.err_p95), _fmt(s.err_max))
+                      "—" if s.false is None else str(s.false), _fmt(s.err_median), _fmt(s.err_p95), _fmt(s.err_max))
     out.print(table)
 
 
@@ -403,22 +404,6 @@ def _show_warning(message, category, filename, lineno, file=None, line=None) -> 
     console.print(f"[yellow]warning:[/] {escape(text)}", highlight=False, soft_wrap=True)
 
 
-#: The signal that ended the command (SIGINT, SIGTERM), if one did.
-_signal: int | None = None
-
-
-def _on_signal(signum: int, frame: object) -> None:
-    """SIGINT and SIGTERM raise KeyboardInterrupt, so that every lock, temporary file and worker
-    is released on the way out; a second signal during that clean-up is ignored."""
-    import signal
-
-    global _signal
-    _signal = signum
-    for s in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(s, signal.SIG_IGN)
-    raise KeyboardInterrupt
-
-
 def _error(text: str) -> None:
     console.print(f"[bold red]error:[/] {escape(text)}", highlight=False, soft_wrap=True)
 
@@ -427,11 +412,11 @@ def main() -> None:
     """Console-script entry point: user errors become one line on stderr and exit code 2; SIGINT and
     SIGTERM one line and exit 130/143, with locks released and temporary files and workers gone."""
     import os
-    import signal
+
+    from pipeline.lifeline import install_signal_handlers, received_signal
 
     warnings.showwarning = _show_warning
-    for s in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(s, _on_signal)
+    install_signal_handlers()
     try:
         app()
     except StereotrackError as exc:
@@ -444,7 +429,7 @@ def main() -> None:
     except KeyboardInterrupt:
         _interrupted()
     except SystemExit as exc:
-        if exc.code == 130 and _signal is not None:  # typer turns KeyboardInterrupt into Exit(130)
+        if exc.code == 130 and received_signal() is not None:  # typer turns KeyboardInterrupt into Exit(130)
             _interrupted()
         raise
     except Exception as exc:  # a bug, not a bad input: still one line, the traceback on request
@@ -461,7 +446,9 @@ def main() -> None:
 def _interrupted() -> None:
     import signal
 
-    sig = _signal or signal.SIGINT
+    from pipeline.lifeline import received_signal
+
+    sig = received_signal() or signal.SIGINT
     console.print(f"[bold red]interrupted[/] ({signal.Signals(sig).name}): stopped; nothing half-written was kept",
                   highlight=False)
     sys.exit(128 + sig)

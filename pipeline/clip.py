@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import json
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
 from typing import Any
@@ -187,6 +187,8 @@ class FootageInfo:
     frames: int | None
     frame_size: tuple[int, int] | None
     checks: list[Check]
+    #: per camera: frames, detections, misses, false detections while hidden, pixel errors (truth only)
+    cameras: list[dict] = field(default_factory=list)
 
 
 def footage_info(clip: Path, out_dir: Path) -> FootageInfo:
@@ -197,7 +199,7 @@ def footage_info(clip: Path, out_dir: Path) -> FootageInfo:
         try:
             d = json.loads(info.read_text())
             checks = [Check(**c) for c in d.get("checks", [])]
-            return FootageInfo(int(d["frames"]), tuple(d["frame_size"]), checks)  # type: ignore[arg-type]
+            return FootageInfo(int(d["frames"]), tuple(d["frame_size"]), checks, list(d.get("cameras", [])))  # type: ignore[arg-type]
         except (ValueError, KeyError, TypeError) as exc:
             raise StereotrackError(f"unreadable detect record ({exc}): rerun `stereotrack detect`", info) from None
     from detectors.frames import StereoFrameSource

@@ -165,6 +165,8 @@ def estimate_clip(
     result.metrics["pixel_sigma_estimate"] = sigma
     result.metrics["calibration_units"] = calib_units
     result.metrics["checks"] = [c.as_dict() for c in checks]
+    if footage.cameras:
+        result.metrics["detection"] = footage.cameras
     result.metrics["stereotrack_version"] = stereotrack_version()
     for m, cfg in resolved.items():
         result.metrics["methods"][m]["config"] = cfg

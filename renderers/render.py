@@ -126,7 +126,7 @@ class FrameWriter:
 
 def render_camera(
     scenario: Scenario, cam_index: int, clip_dir: Path, fmt: Format, tick: Callable[[int], None] | None = None,
-    renderer=None,  # a pyrender.OffscreenRenderer of this camera's render size to reuse (a persistent worker's)
+    renderer=None,  # a pyrender.OffscreenRenderer to reuse (a persistent worker's; any size)
     truth: Truth | None = None,
 ) -> np.ndarray | None:
     """Render every frame of one camera into ``clip_dir`` at that camera's own times (sync offset,
@@ -141,7 +141,7 @@ def render_camera(
     scene = StereoScene(scenario, rig, truth)
     own = renderer is None
     if own:
-        renderer = create_offscreen_renderer(*scene.views[cam_index].size)
+        renderer = create_offscreen_renderer(*scene.views[cam_index].size)  # type: ignore[misc]
     counts = np.zeros((scenario.frames, len(truth.names)), dtype=np.int64) if scenario.distractors else None
     try:
         writer = FrameWriter(clip_dir, CAMERA_NAMES[cam_index], fmt, scenario.fps, rig.image_size)
@@ -200,21 +200,12 @@ def _render_frame(scene, renderer, cam_index: int, k: int, t0: float) -> np.ndar
     return view.finish(img)
 
 
-def render_size(scenario: Scenario, cam_index: int) -> tuple[int, int]:
-    """The size of camera ``cam_index``'s pinhole render (its image size, plus a margin when its
-    lens distorts): the size of the OpenGL context that renders it."""
-    from renderers.scene import render_view
-
-    rig = scenario.rig.build()
-    return render_view(rig.cameras[cam_index], rig.image_size).size
-
-
 # -- persistent render workers ------------------------------------------------------------------
-# Each worker process keeps its EGL context(s) — one OffscreenRenderer per image size — across
+# Each worker process keeps one EGL context (one OffscreenRenderer, resized per camera view) across
 # every camera of every clip it renders, so a batch of clips pays the start-up (imports, context)
 # once per worker instead of once per camera per clip.
 
-_RENDERERS: dict[tuple[int, int], object] = {}
+_RENDERER: list = []
 _PROGRESS: mp.Queue | None = None
 
 
@@ -235,15 +226,14 @@ def _render_job(scenario_json: str, cam_index: int, staging: str, fmt: Format, j
     from renderers.scene import create_offscreen_renderer
 
     scenario = Scenario.model_validate_json(scenario_json)
-    size = render_size(scenario, cam_index)
-    if size not in _RENDERERS:
-        _RENDERERS[size] = create_offscreen_renderer(*size)
+    if not _RENDERER:
+        _RENDERER.append(create_offscreen_renderer(scenario.rig.width, scenario.rig.height))
 
     def tick(k: int) -> None:
         if _PROGRESS is not None and (k % 5 == 4 or k == scenario.frames - 1):
             _PROGRESS.put((job, cam_index, k + 1))
 
-    return render_camera(scenario, cam_index, Path(staging), fmt, tick, _RENDERERS[size], simulate_truth(scenario))
+    return render_camera(scenario, cam_index, Path(staging), fmt, tick, _RENDERER[0], simulate_truth(scenario))
 
 
 def _staging_dir(clip_dir: Path) -> Path:
@@ -400,31 +390,27 @@ def render_clips(
 
 def _render_here(jobs: list[tuple[Scenario, str | Path]], stagings: list[Path], dirs: list[Path], fmt: Format,
                  progress: Callable[[int, int], None] | None) -> list[RenderResult]:
-    """Every camera of every clip in this process, one renderer per render size."""
+    """Every camera of every clip in this process, with one renderer."""
     from renderers.scene import create_offscreen_renderer
 
     total = sum(s.frames for s, _ in jobs)
-    renderers: dict[tuple[int, int], object] = {}
+    renderer = create_offscreen_renderer(jobs[0][0].rig.width, jobs[0][0].rig.height)
     results, done = [], 0
     try:
         for j, (scen, _) in enumerate(jobs):
             truth = simulate_truth(scen)
             counts = []
             for c in range(2):
-                size = render_size(scen, c)
-                if size not in renderers:
-                    renderers[size] = create_offscreen_renderer(*size)
 
                 def tick(k: int, c: int = c, base: int = done, n: int = scen.frames) -> None:
                     if progress is not None:
                         progress(base + (k + 1 + c * n) // 2, total)
 
-                counts.append(render_camera(scen, c, stagings[j], fmt, tick, renderers[size], truth))
+                counts.append(render_camera(scen, c, stagings[j], fmt, tick, renderer, truth))
             done += scen.frames
             results.append(_finish_clip(scen, stagings[j], dirs[j], fmt, counts))
     finally:
-        for r in renderers.values():
-            r.delete()  # type: ignore[attr-defined]
+        renderer.delete()
     return results
 
 
@@ -434,7 +420,7 @@ def _render_pool(jobs: list[tuple[Scenario, str | Path]], stagings: list[Path], 
     thread each, a user's own LP_NUM_THREADS aside); a clip is finished when both its cameras are."""
     import concurrent.futures as cf
 
-    from pipeline.lifeline import end_pool
+    from pipeline.lifeline import end_pool, signals_deferred
 
     total = sum(s.frames for s, _ in jobs)
     ctx = mp.get_context("spawn")
@@ -452,8 +438,9 @@ def _render_pool(jobs: list[tuple[Scenario, str | Path]], stagings: list[Path], 
     cams_done = [0] * len(jobs)
     results: list[RenderResult | None] = [None] * len(jobs)
     try:
-        futs = {pool.submit(_render_job, scen.model_dump_json(), c, str(stagings[j]), fmt, j): (j, c)
-                for j, (scen, _) in enumerate(jobs) for c in range(2)}
+        with signals_deferred():  # submitting spawns the workers
+            futs = {pool.submit(_render_job, scen.model_dump_json(), c, str(stagings[j]), fmt, j): (j, c)
+                    for j, (scen, _) in enumerate(jobs) for c in range(2)}
         pending = set(futs)
         while pending:
             finished, pending = cf.wait(pending, timeout=0.2, return_when=cf.FIRST_COMPLETED)

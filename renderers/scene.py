@@ -59,26 +59,43 @@ class RenderView:
 
 #: The largest render, per side, that a distorted camera's margin may grow to (× its image size).
 MAX_MARGIN = 2.0
+#: The most pixels a distorted camera's pinhole render may have (× its image's): a lens whose
+#: undistorted frame is larger is rendered with a proportionally shorter focal length (k1 = −0.3
+#: at 640×480: 0.91 of the native resolution at the centre), then remapped.
+MAX_RENDER_AREA = 1.15
+
+_VIEWS: dict[bytes, RenderView] = {}
 
 
 def render_view(cam: Camera, image_size: tuple[int, int]) -> RenderView:
     """The view of ``cam``: every pixel of its distorted image, undistorted onto the pinhole image
     plane (``cv2.undistortPoints`` with ``P = K``), sets the margin the pinhole render needs and the
-    remap from it; a lens without distortion renders as it is."""
+    remap from it; a lens without distortion renders as it is. Computed once per lens and size."""
     if not np.any(cam.D):
         return RenderView(cam.K, image_size)
+    key = cam.K.tobytes() + cam.D.tobytes() + bytes(str(image_size), "ascii")
+    if key not in _VIEWS:
+        _VIEWS[key] = _distorted_view(cam, image_size)
+    return _VIEWS[key]
+
+
+def _distorted_view(cam: Camera, image_size: tuple[int, int]) -> RenderView:
     w, h = image_size
     u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
     und = cam.undistort(np.stack([u.ravel(), v.ravel()], -1)).reshape(h, w, 2)
     lim = np.array([w, h]) * MAX_MARGIN
     und = np.clip(np.nan_to_num(und, nan=-1e9), -lim, np.array([w, h]) + lim)
-    lo = np.floor(und.reshape(-1, 2).min(axis=0)) - 2
-    hi = np.ceil(und.reshape(-1, 2).max(axis=0)) + 2
+    lo, hi = und.reshape(-1, 2).min(axis=0) - 2, und.reshape(-1, 2).max(axis=0) + 2
+    s = min(1.0, float(np.sqrt(MAX_RENDER_AREA * w * h / np.prod(hi - lo))))
+    # the render camera: the pinhole plane scaled by s about the principal point, shifted to the margin
+    c = cam.K[:2, 2]
+    lo_s, hi_s = c + s * (lo - c), c + s * (hi - c)
     K = cam.K.copy()
-    K[0, 2] -= lo[0]
-    K[1, 2] -= lo[1]
-    maps = ((und[..., 0] - lo[0]).astype(np.float32), (und[..., 1] - lo[1]).astype(np.float32))
-    return RenderView(K, (int(hi[0] - lo[0]) + 1, int(hi[1] - lo[1]) + 1), maps)
+    K[:2, :2] *= s
+    K[:2, 2] = c - np.floor(lo_s)
+    maps = tuple((c[i] + s * (und[..., i] - c[i]) - np.floor(lo_s[i])).astype(np.float32) for i in range(2))
+    size = (int(np.ceil(hi_s[0]) - np.floor(lo_s[0])) + 1, int(np.ceil(hi_s[1]) - np.floor(lo_s[1])) + 1)
+    return RenderView(K, size, maps)  # type: ignore[arg-type]
 
 
 def _frame_from_normal(n: np.ndarray, b: np.ndarray | None = None) -> np.ndarray:
@@ -247,17 +264,23 @@ class StereoScene:
         :class:`RenderView`'s size: :meth:`RenderView.finish` makes it the camera's image)."""
         import pyrender
 
-        self.scene.main_camera_node = self._camera_nodes[camera_index]
+        self._aim(renderer, camera_index)
         flags = pyrender.RenderFlags.FLAT if self.flat else pyrender.RenderFlags.NONE
         color, _ = renderer.render(self.scene, flags=flags)
         return color
+
+    def _aim(self, renderer, camera_index: int) -> None:
+        """Render from camera ``camera_index``, at its view's size (one GL context serves every
+        size: pyrender resizes its framebuffers when the viewport changes)."""
+        self.scene.main_camera_node = self._camera_nodes[camera_index]
+        renderer.viewport_width, renderer.viewport_height = self.views[camera_index].size
 
     def marker_pixels(self, renderer, camera_index: int) -> np.ndarray:
         """How many pixels of each marker camera ``camera_index`` sees in the current pose (a
         segmentation render: occluders hide, the frame's edge cuts), in the camera's own image."""
         import pyrender
 
-        self.scene.main_camera_node = self._camera_nodes[camera_index]
+        self._aim(renderer, camera_index)
         seg, _ = renderer.render(self.scene, flags=pyrender.RenderFlags.SEG, seg_node_map=self._seg_map)
         ids = self.views[camera_index].finish(np.ascontiguousarray(seg[..., 0]), nearest=True)
         return np.bincount(ids.ravel(), minlength=len(self._marker_nodes) + 1)[1 : len(self._marker_nodes) + 1]

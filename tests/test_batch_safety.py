@@ -235,7 +235,8 @@ def test_dask_worker_killed_mid_batch(reference, tmp_path):
         while time.time() < deadline and not (out.is_dir() and any(".partial-" in p.name for p in out.iterdir())):
             time.sleep(0.02)
         holder = next(p for p in out.iterdir() if ".partial-" in p.name).name[1:].split(".partial-")[0]
-        worker = max(psutil.Process(procs[1].pid).children(recursive=True), key=lambda p: p.create_time())
+        (worker,) = [p for p in psutil.Process(procs[1].pid).children(recursive=True)
+                     if "spawn_main" in " ".join(p.cmdline())]  # the worker, not the resource tracker
         worker.kill()
         _, err = batch.communicate(timeout=300)
         assert batch.returncode == 0, err
