@@ -64,6 +64,10 @@ def compute_metrics(res: EstimateResult) -> dict[str, Any]:
         nis = [(t.nis, t.nis_dof) for t in per_marker.values() if t.nis is not None]
         if nis:
             entry["nis"] = consistency.summary(np.concatenate([a for a, _ in nis]), np.concatenate([d for _, d in nis]))
+        for key, name in (("gated", "gated"), ("restart", "restarts")):
+            counts = [np.nansum(t.extra[key]) for t in per_marker.values() if key in t.extra]
+            if counts:  # observations the outlier gate rejected (per camera), tracks restarted
+                entry[name] = int(sum(counts))
         sps = [t.seconds_per_step for t in per_marker.values()]
         entry["seconds_per_step"] = float(np.mean(sps))
         entry["steps_per_second"] = float(1.0 / np.mean(sps)) if np.mean(sps) > 0 else None

@@ -145,12 +145,14 @@ def _consistency_figure(src: Path, figdir: Path, colour, plt) -> bool:
 def metrics_table(metrics: dict) -> str:
     """Markdown table of the per-method metrics."""
     head = ("| method | 3-D RMSE (m) | mean (m) | median (m) | final (m) | reproj. RMSE (px) | α RMSE (rad) "
-            "| z RMSE (m) | steps/s |")
-    lines = [head, "|" + "---|" * 9]
+            "| z RMSE (m) | gated | steps/s |")
+    lines = [head, "|" + "---|" * 10]
     for m, e in metrics.get("methods", {}).items():
+        gated = "—" if e.get("gated") is None else f"{e['gated']}" + (f" ({e['restarts']} restarts)" if e.get("restarts")
+                                                                     else "")
         lines.append(f"| {m} | {_fmt(e.get('rmse'))} | {_fmt(e.get('mean'))} | {_fmt(e.get('median'))} | "
                      f"{_fmt(e.get('final'))} | {_fmt(e.get('reprojection_rmse_px'))} | {_fmt(e.get('alpha_rmse_rad'))} | "
-                     f"{_fmt(e.get('distance_rmse_m'))} | {_fmt(e.get('steps_per_second'))} |")
+                     f"{_fmt(e.get('distance_rmse_m'))} | {gated} | {_fmt(e.get('steps_per_second'))} |")
     notes = [f"- **{m}**: {e['note']}" for m, e in metrics.get("methods", {}).items() if e.get("note")]
     return "\n".join(lines + (["", *notes] if notes else []))
 

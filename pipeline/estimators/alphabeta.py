@@ -21,7 +21,19 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from pipeline.estimators.base import NAN3, Estimator, EstimatorConfig, Step, not_started, register
+from pipeline.estimators.base import (
+    NAN3,
+    Estimator,
+    EstimatorConfig,
+    Step,
+    camera_gate,
+    camera_nis,
+    not_started,
+    register,
+)
+
+#: weight of the newest accepted innovation in the α-β gate's robust scale (≈ 20 frames of memory)
+SCALE_WEIGHT = 0.05
 
 
 class ABFilter:
@@ -76,31 +88,105 @@ class AlphaBetaEstimator(Estimator):
     def reset(self) -> None:
         super().reset()
         self.f: ABFilter | None = None
+        cfg: AlphaBetaConfig = self.config  # type: ignore[assignment]
+        self.threshold = camera_gate(cfg.pixel_sigma, cfg.gate)
+        gamma = self._gamma()
+        order = 2 if gamma is None else 3
+        self.F1 = np.array([[1.0, self.dt, 0.5 * self.dt**2], [0.0, 1.0, self.dt], [0.0, 0.0, 1.0]])[:order, :order]
+        self.K1 = np.array([cfg.alpha, cfg.beta / self.dt, 2.0 * (gamma or 0.0) / self.dt**2])[:order]
+        self.scale = 1.0  # the innovations' variance over the model's (≥ 1; lag raises it)
+
+    def _begin(self, s) -> None:
+        """Start the filter and its error covariance (per channel: position, rate(, acceleration))
+        from the initiator's start."""
+        cfg: AlphaBetaConfig = self.config  # type: ignore[assignment]
+        p0, v0 = s.state[:3], s.state[3:]
+        order = len(self.K1)
+        if cfg.space == "image":  # the start in pixels: h(p0), and its rate J(p0) v0
+            self.f = ABFilter(self.model.function(p0), self.dt, cfg.alpha, cfg.beta, self._gamma())
+            J = self.rig.jacobian(p0)
+            self.f.v = J @ v0
+            pos_var = np.full(4, self.model.pixel_sigma**2)
+            rate_var = np.diag(J @ s.covariance[3:, 3:] @ J.T)
+        else:
+            self.f = ABFilter(p0, self.dt, cfg.alpha, cfg.beta, self._gamma())
+            self.f.v = v0.copy()
+            pos_var, rate_var = np.diag(s.covariance[:3, :3]), np.diag(s.covariance[3:, 3:])
+        self.P = np.zeros((len(pos_var), order, order))
+        self.P[:, 0, 0], self.P[:, 1, 1] = pos_var, rate_var
+        if order == 3:
+            self.P[:, 2, 2] = rate_var  # acceleration prior: the velocity's std per second
+        self.initialized = True
+
+    def _correct_covariance(self, z: np.ndarray) -> None:
+        """The fixed-gain filter's error covariance, per channel (predicted ``P⁻ = F P Fᵀ`` in
+        :meth:`_step`); on the channels corrected by ``z``, ``P = (I − KH) P⁻ (I − KH)ᵀ + K R Kᵀ``
+        with R the measurement's variance (σ², or the triangulation's): exact for white measurement
+        noise, and its limit is Kalata's steady state (IEEE TAES 20(2), 1984)."""
+        corrected = np.isfinite(z)
+        if self.config.space == "image":  # type: ignore[attr-defined]
+            R = np.full(len(z), self.model.pixel_sigma**2)
+        else:
+            R = np.diag(self.model.inverse_covariance(np.nan_to_num(z))) if corrected.all() else np.zeros(3)
+        IKH = np.eye(len(self.K1)) - np.outer(self.K1, np.eye(len(self.K1))[0])
+        upd = IKH @ self.P @ IKH.T + R[:, None, None] * np.outer(self.K1, self.K1)
+        self.P = np.where(corrected[:, None, None], upd, self.P)
+
+    def _gate(self, y: np.ndarray) -> tuple[np.ndarray, int]:
+        """Drop the cameras whose innovation falls outside the χ² gate, on the filter's predicted
+        error covariance (:meth:`_covariance_step`; in 3-D seen through the cameras) times a robust
+        scale: an exponentially weighted mean (weight ``SCALE_WEIGHT``) of the accepted cameras'
+        NIS / 2, floored at 1 — an α-β filter lags a manoeuvre, and its innovations grow with the
+        lag, while an outlier never enters the mean."""
+        assert self.f is not None
+        if not np.isfinite(self.threshold):
+            return y, 0
+        if self.config.space == "image":  # type: ignore[attr-defined]
+            r = (y - self.f.x).reshape(2, 2)
+            S = (self.P[:, 0, 0] + self.model.pixel_sigma**2).reshape(2, 2)
+            nis = np.where(np.all(np.isfinite(r), axis=1), np.nansum(r**2 / S, axis=1), np.nan)
+        else:
+            P = np.zeros((6, 6))
+            P[:3, :3] = np.diag(self.P[:, 0, 0])
+            nis = camera_nis(self.model, np.r_[self.f.x, np.zeros(3)], P, y)
+        with np.errstate(invalid="ignore"):
+            g = nis / self.scale > self.threshold
+        ok = np.isfinite(nis) & ~g
+        if ok.any():
+            self.scale = max(1.0, (1 - SCALE_WEIGHT) * self.scale + SCALE_WEIGHT * float(np.mean(nis[ok])) / 2.0)
+        kept = y.copy()
+        for c in np.flatnonzero(g):
+            kept[2 * c : 2 * c + 2] = np.nan
+        return kept, int(g.sum())
 
     def _step(self, y: np.ndarray) -> Step:
         cfg: AlphaBetaConfig = self.config  # type: ignore[assignment]
         image = cfg.space == "image"
+        n_gated, restarted = 0, False
         if self.f is None:
             s = self.start(y)
             if s is None:
                 return not_started()
-            p0, v0 = s.state[:3], s.state[3:]
-            if image:  # the start in pixels: h(p0), and its rate J(p0) v0
-                self.f = ABFilter(self.model.function(p0), self.dt, cfg.alpha, cfg.beta, self._gamma())
-                self.f.v = self.rig.jacobian(p0) @ v0
-            else:
-                self.f = ABFilter(p0, self.dt, cfg.alpha, cfg.beta, self._gamma())
-                self.f.v = v0.copy()
-            self.initialized = True
+            self._begin(s)
             have = True
         else:
-            z = y if image else self.model.inverse_function(y[None])[0]
             self.f.predict()
-            self.f.correct(z)
-            have = bool(np.isfinite(z).any())
+            self.P = self.F1 @ self.P @ self.F1.T
+            kept, n_gated = self._gate(y)
+            self.gated_run = int(np.where(np.isfinite(kept).any(), 0, self.gated_run + np.isfinite(y).any()))
+            s = self.initiator.restart(self.frame, y) if self.gated_run >= cfg.restart_after else None
+            if s is not None:
+                self._begin(s)
+                self.gated_run, restarted = 0, True
+            else:
+                z = kept if image else self.model.inverse_function(kept[None])[0]
+                self.f.correct(z)
+                self._correct_covariance(z)
+            have = restarted or bool(np.isfinite(kept).any())
+        extra = {"gated": float(n_gated), "restart": float(restarted)}
         if image:
-            return Step(self.model.inverse_function(self.f.x[None])[0], NAN3.copy(), predicted=not have)
-        return Step(self.f.x.copy(), self.f.v.copy(), predicted=not have)
+            return Step(self.model.inverse_function(self.f.x[None])[0], NAN3.copy(), predicted=not have, extra=extra)
+        return Step(self.f.x.copy(), self.f.v.copy(), predicted=not have, extra=extra)
 
 
 @register

@@ -82,6 +82,14 @@ class EstimatorConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     init: InitConfig = InitConfig()
     seed: int = 0
+    #: std (px) of detection noise: the scale of the outlier gate, and the measurement noise of the
+    #: methods that model it (the pipeline sets it from the data unless configured)
+    pixel_sigma: float = Field(1.0, gt=0)
+    #: probability of the χ² outlier gate (per camera, 2 degrees of freedom, on the innovation); 0
+    #: turns gating off. 0.9995 rejects a correct observation once in 2,000.
+    gate: float = Field(0.9995, ge=0.0, lt=1.0)
+    #: frames in a row with every observation gated after which a track restarts from the detections
+    restart_after: int = Field(8, ge=1)
 
 
 @dataclass
@@ -158,18 +166,23 @@ class Initiator:
     methods that know their pixel noise — else ``σp² I``.
     """
 
-    def __init__(self, config: InitConfig, model: StereoMeasurementModel, dt: float, propagate: bool = False) -> None:
+    def __init__(self, config: InitConfig, model: StereoMeasurementModel, dt: float, propagate: bool = False,
+                 gate: float = 0.0) -> None:
         self.config, self.model, self.dt, self.propagate = config, model, float(dt), propagate
+        #: largest plausible sum of squared reprojection residuals (px²) of a triangulation
+        self.max_residual = plausible_residual(model.pixel_sigma, gate)
         self.reset()
 
     def reset(self) -> None:
         self._frames: list[int] = []
         self._points: list[np.ndarray] = []
 
-    def _valid(self, X: np.ndarray) -> np.ndarray:
+    def _valid(self, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+        """Triangulations in front of both cameras whose reprojection is plausible (an outlier in
+        one camera off the epipolar line leaves a residual no detection noise explains)."""
         ok = np.all(np.isfinite(X), axis=-1)
         depth = np.where(ok[..., None], self.model.rig.depths(np.where(ok[..., None], X, 1.0)), -1.0)
-        return ok & np.all(depth > 0, axis=-1)
+        return ok & np.all(depth > 0, axis=-1) & (reprojection_residual(self.model, X, Y) <= self.max_residual)
 
     def _given(self, frame: int) -> Start:
         c = self.config
@@ -198,14 +211,24 @@ class Initiator:
         """Consume frame ``frame``'s observation; the start once enough frames were seen."""
         if self.config.mode == "given":
             return self._given(frame)
-        X = self.model.inverse_function(np.asarray(y, dtype=float)[None])[0]
-        if not self._valid(X):
+        y = np.asarray(y, dtype=float)
+        X = self.model.inverse_function(y[None])[0]
+        if not self._valid(X, y):
             return None
         self._frames.append(frame)
         self._points.append(X)
         if len(self._frames) < self.config.frames:
             return None
         return self._fit(np.array(self._frames), np.array(self._points))
+
+    def restart(self, frame: int, y: np.ndarray) -> Start | None:
+        """A new start from this frame's detections alone (a track gated for too long), or None
+        when they do not triangulate plausibly."""
+        y = np.asarray(y, dtype=float)
+        X = self.model.inverse_function(y[None])[0]
+        if not self._valid(X, y):
+            return None
+        return self._fit(np.array([frame]), X[None])
 
     def first(self, Y: np.ndarray) -> Start | None:
         """The start over a whole clip's observations (frames × 4); None if it never starts."""
@@ -226,7 +249,7 @@ class Initiator:
         while len(todo) and lo < n:
             hi = min(n, lo + chunk)
             X = self.model.inverse_function(Y[todo, lo:hi])
-            valid = self._valid(X)
+            valid = self._valid(X, Y[todo, lo:hi])
             left = []
             for i, m in enumerate(todo):
                 for k in np.flatnonzero(valid[i])[: need - len(frames[m])]:
@@ -281,7 +304,9 @@ class Estimator(ABC):
         self.initialized = False
         self.frame = 0
         self.rng = np.random.default_rng(self.config.seed)
-        self.initiator = Initiator(self.config.init, self.model, self.dt, propagate=self.knows_pixel_noise())
+        self.initiator = Initiator(self.config.init, self.model, self.dt, propagate=self.knows_pixel_noise(),
+                                   gate=self.config.gate)
+        self.gated_run = 0  # frames in a row with every observation gated
 
     def start(self, y: np.ndarray) -> Start | None:
         """Offer this frame to the initiator (point methods)."""
@@ -357,6 +382,60 @@ class Estimator(ABC):
         """Positions of many tracks (tracks × frames × obs → tracks × frames × 3), each from a fresh
         state. This version loops over :meth:`run`; vectorised cores override it."""
         return np.stack([self.run(y).position for y in np.asarray(Y, dtype=float)])
+
+
+def plausible_residual(sigma: float, gate: float) -> float:
+    """The χ² gate on a triangulation's summed squared reprojection residual (px²): one degree of
+    freedom (the distance from the epipolar line) at probability ``gate``; inf when gating is off."""
+    if gate <= 0:
+        return float("inf")
+    from scipy.special import chdtri
+
+    return float(sigma**2 * chdtri(1, 1.0 - gate))
+
+
+def camera_gate(sigma: float, gate: float) -> float:
+    """The χ² gate on one camera's normalized innovation squared (2 degrees of freedom)."""
+    if gate <= 0:
+        return float("inf")
+    from scipy.special import chdtri
+
+    return float(chdtri(2, 1.0 - gate))
+
+
+def reprojection_residual(model: StereoMeasurementModel, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """Summed squared pixel residual ``‖h(X) − y‖²`` of triangulations ``X`` (…×3) of ``Y`` (…×4)."""
+    with np.errstate(invalid="ignore"):
+        return np.sum((model.function(np.nan_to_num(X)) - Y) ** 2, axis=-1)
+
+
+def camera_nis(model: StereoMeasurementModel, x: np.ndarray, P: np.ndarray, Y: np.ndarray,
+               R: np.ndarray | None = None) -> np.ndarray:
+    """Each camera's normalized innovation squared ``rᵀ S⁻¹ r`` (…×2; NaN where it has no
+    observation), ``r = y_c − h_c(x)``, ``S = H_c P H_cᵀ + R_c`` at the predicted state ``x`` (…×d)
+    and covariance ``P`` (…×d×d); ``R`` (4×4) defaults to the model's ``σ² I``."""
+    R = model.covar() if R is None else R
+    h = model.function(x)
+    H = model.jacobian(x)
+    out = np.full((*np.shape(Y)[:-1], 2), np.nan)
+    for c in range(2):
+        sl = slice(2 * c, 2 * c + 2)
+        Hc = H[..., sl, :]
+        S = Hc @ P @ np.swapaxes(Hc, -1, -2) + R[sl, sl]
+        r = np.nan_to_num(Y[..., sl] - h[..., sl])
+        nis = np.einsum("...i,...i->...", r, np.linalg.solve(S, r[..., None])[..., 0])
+        out[..., c] = np.where(np.all(np.isfinite(Y[..., sl]), axis=-1), nis, np.nan)
+    return out
+
+
+def gated_cameras(model: StereoMeasurementModel, x: np.ndarray, P: np.ndarray, Y: np.ndarray,
+                  threshold: float, R: np.ndarray | None = None) -> np.ndarray:
+    """Which cameras' observations fall outside the χ² gate (…×2 booleans), each camera on its own
+    (a bad blob in one camera never discards the other's): :func:`camera_nis` above ``threshold``."""
+    if not np.isfinite(threshold):
+        return np.zeros((*np.shape(Y)[:-1], 2), dtype=bool)
+    with np.errstate(invalid="ignore"):
+        return camera_nis(model, x, P, Y, R) > threshold
 
 
 def reprojection_errors(rig: StereoRig, positions: np.ndarray, Y: np.ndarray) -> np.ndarray:

@@ -19,11 +19,19 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.estimators.base import Estimator, Step, not_started, register, transition, white_noise_acceleration
-from pipeline.estimators.kalman_common import KalmanConfig, RTSMixin, available_rows, filtered_step, kalman_batch
+from pipeline.estimators.kalman_common import (
+    GatedFilter,
+    KalmanConfig,
+    RTSMixin,
+    available_rows,
+    filtered_step,
+    gated_step,
+    kalman_batch,
+)
 
 
 @register
-class EKFEstimator(Estimator):
+class EKFEstimator(GatedFilter, Estimator):
     """Extended Kalman filter on the 4-D stereo reprojection (white-noise acceleration)."""
 
     name = "ekf"
@@ -58,13 +66,17 @@ class EKFEstimator(Estimator):
             self.initialized = True
             return filtered_step(f.x, f.P, False)
         f.predict()
+        y, n_gated, restart = self.gate(y, f.x[:, 0], f.P)
+        if restart is not None:
+            f.x, f.P = restart.state.reshape(6, 1), restart.covariance.copy()
+            return gated_step(filtered_step(f.x, f.P, False), n_gated, True)
         rows = available_rows(y)
         if len(rows):
             f.update(y[rows].reshape(-1, 1),
                      lambda x: self.model.jacobian(x[:, 0])[rows],
                      lambda x: self.model.function(x[:, 0])[rows].reshape(-1, 1),
                      R=self.R[np.ix_(rows, rows)])
-        return filtered_step(f.x, f.P, not len(rows), f)
+        return gated_step(filtered_step(f.x, f.P, not len(rows), f), n_gated)
 
     def _linearize(self, p: np.ndarray, y: np.ndarray):
         """Missing rows get ``H = 0``, residual 0 and unit variance: their gain column is exactly

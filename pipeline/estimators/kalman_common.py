@@ -9,7 +9,16 @@ from collections.abc import Callable
 import numpy as np
 from pydantic import Field
 
-from pipeline.estimators.base import Estimator, EstimatorConfig, Step, Track, reprojection_errors
+from pipeline.estimators.base import (
+    Estimator,
+    EstimatorConfig,
+    Start,
+    Step,
+    Track,
+    camera_gate,
+    gated_cameras,
+    reprojection_errors,
+)
 
 
 class KalmanConfig(EstimatorConfig):
@@ -54,10 +63,54 @@ def joseph_update(x: np.ndarray, P: np.ndarray, H: np.ndarray, r: np.ndarray, R:
 Linearize = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
 
 
+class GatedFilter:
+    """Per-camera χ² gating and restarts for the Kalman-family filters (mixed into each): a gated
+    camera's observation is dropped (set missing) before the ordinary update, so every path —
+    :meth:`step`, :meth:`run`, :func:`kalman_batch` — gates identically."""
+
+    def gate_threshold(self) -> float:
+        cfg = self.config  # type: ignore[attr-defined]
+        return camera_gate(cfg.pixel_sigma, cfg.gate)
+
+    def gate_covariance(self) -> np.ndarray:
+        """The pixel noise the gate assumes: the model's ``σ² I``, times ``r_scale``."""
+        return self.model.covar() * self.config.r_scale  # type: ignore[attr-defined]
+
+    def gate(self, y: np.ndarray, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, int, Start | None]:
+        """(the observation with gated cameras missing, how many were gated, a restart or None):
+        after ``restart_after`` frames in a row with every available camera gated, the track
+        restarts from this frame's detections (when they triangulate plausibly)."""
+        g = gated_cameras(self.model, x, P, y, self.gate_threshold(), self.gate_covariance())  # type: ignore[attr-defined]
+        kept = y.copy()
+        for c in np.flatnonzero(g):
+            kept[2 * c : 2 * c + 2] = np.nan
+        self.gated_run = update_gated_run(self.gated_run, y, kept)  # type: ignore[has-type]
+        restart = None
+        if self.gated_run >= self.config.restart_after:  # type: ignore[attr-defined]
+            restart = self.initiator.restart(self.frame, y)  # type: ignore[attr-defined]
+            if restart is not None:
+                self.gated_run = 0
+        return kept, int(g.sum()), restart
+
+
+def update_gated_run(run, y: np.ndarray, kept: np.ndarray):
+    """Frames in a row whose every available camera was gated (works on one track or M tracks)."""
+    had = np.any(np.isfinite(y), axis=-1)
+    has = np.any(np.isfinite(kept), axis=-1)
+    return np.where(has, 0, np.where(had, run + 1, run))
+
+
+def gated_step(step: Step, n_gated: int, restarted: bool = False) -> Step:
+    """A filter's step with its gating recorded (``extra``: cameras gated, restart)."""
+    step.extra.update(gated=float(n_gated), restart=float(restarted))
+    return step
+
+
 def kalman_batch(est: Estimator, Y: np.ndarray, linearize: Linearize) -> np.ndarray:
     """The filter of a Kalman-family estimator over M tracks at once (M × frames × 4 → M × frames
     × 3): each track starts where :class:`~pipeline.estimators.base.Initiator` says (the same
-    start as :meth:`Estimator.run`), then predict with ``est.A, est.Q`` and update through
+    start as :meth:`Estimator.run`), then predict with ``est.A, est.Q``, gate each camera as
+    :class:`GatedFilter` does (restarting tracks gated too long), and update through
     ``linearize`` on every later frame with a measurement."""
     M, n, _ = Y.shape
     est.reset()
@@ -66,6 +119,8 @@ def kalman_batch(est: Estimator, Y: np.ndarray, linearize: Linearize) -> np.ndar
     x, P = np.zeros((M, 6)), np.tile(np.eye(6), (M, 1, 1))
     out = np.full((M, n, 3), np.nan)
     A, Q = est.A, est.Q
+    threshold, Rg = est.gate_threshold(), est.gate_covariance()  # type: ignore[attr-defined]
+    run_gated = np.zeros(M, dtype=int)
     for k in range(n):
         run = begin < k
         x[run] = x[run] @ A.T
@@ -74,12 +129,39 @@ def kalman_batch(est: Estimator, Y: np.ndarray, linearize: Linearize) -> np.ndar
             x[m], P[m] = starts[m].state, starts[m].covariance
         idx = np.flatnonzero(run)
         if len(idx):
-            H, r, R, have = linearize(x[idx, :3], Y[idx, k])
+            Yk = _gate_batch(est, x[idx], P[idx], Y[idx, k], threshold, Rg)
+            run_gated[idx] = update_gated_run(run_gated[idx], Y[idx, k], Yk)
+            fresh = _restart_batch(est, idx, k, Y, run_gated, x, P)
+            H, r, R, have = linearize(x[idx, :3], Yk)
+            have &= ~fresh
             u = idx[have]
             if len(u):
                 x[u], P[u] = joseph_update(x[u], P[u], H[have], r[have], R[have])
         out[begin <= k, k] = x[begin <= k, :3]
     return out
+
+
+def _gate_batch(est: Estimator, x: np.ndarray, P: np.ndarray, Yk: np.ndarray, threshold: float,
+                R: np.ndarray) -> np.ndarray:
+    g = gated_cameras(est.model, x, P, Yk, threshold, R)
+    Yk = Yk.copy()
+    for c in range(2):
+        Yk[g[:, c], 2 * c : 2 * c + 2] = np.nan
+    return Yk
+
+
+def _restart_batch(est: Estimator, idx: np.ndarray, k: int, Y: np.ndarray, run_gated: np.ndarray, x: np.ndarray,
+                   P: np.ndarray) -> np.ndarray:
+    """Restart the tracks of ``idx`` gated too long; which of them restarted."""
+    fresh = np.zeros(len(idx), dtype=bool)
+    for i in np.flatnonzero(run_gated[idx] >= est.config.restart_after):
+        m = idx[i]
+        s = est.initiator.restart(k, Y[m, k])
+        if s is not None:
+            x[m], P[m] = s.state, s.covariance
+            run_gated[m] = 0
+            fresh[i] = True
+    return fresh
 
 
 def rts_smooth(est: Estimator, track: Track) -> Track:

@@ -16,7 +16,7 @@ import numpy as np
 from pydantic import Field
 
 from pipeline.estimators.base import Estimator, Step, not_started, register, transition, white_noise_acceleration
-from pipeline.estimators.kalman_common import KalmanConfig, RTSMixin, filtered_step, kalman_batch
+from pipeline.estimators.kalman_common import GatedFilter, KalmanConfig, RTSMixin, filtered_step, gated_step, kalman_batch
 
 
 class KF3DConfig(KalmanConfig):
@@ -28,7 +28,7 @@ H3 = np.hstack([np.eye(3), np.zeros((3, 3))])
 
 
 @register
-class KF3DEstimator(Estimator):
+class KF3DEstimator(GatedFilter, Estimator):
     """Kalman filter with H = [I 0] on triangulated points."""
 
     name = "kf3d"
@@ -61,11 +61,15 @@ class KF3DEstimator(Estimator):
             self.initialized = True
             return filtered_step(f.x, f.P, False)
         f.predict()
-        X = self.model.inverse_function(y[None])[0]
+        y, n_gated, restart = self.gate(y, f.x[:, 0], f.P)
+        if restart is not None:
+            f.x, f.P = restart.state.reshape(6, 1), restart.covariance.copy()
+            return gated_step(filtered_step(f.x, f.P, False), n_gated, True)
+        X = self.model.inverse_function(y[None])[0]  # a gated camera leaves nothing to triangulate
         have = bool(np.all(np.isfinite(X)))
         if have:
             f.update(X.reshape(3, 1), R=self.measurement_covariance(X[None])[0])
-        return filtered_step(f.x, f.P, not have, f)
+        return gated_step(filtered_step(f.x, f.P, not have, f), n_gated)
 
     def _linearize(self, p: np.ndarray, y: np.ndarray):
         Z = self.model.inverse_function(y)

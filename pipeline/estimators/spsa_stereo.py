@@ -62,7 +62,7 @@ What this method does instead, every frame k with observation ``y_k``:
    sign (the estimate lags a manoeuvre); white noise alternates in sign.
 
 A prediction behind the left camera restarts the track from the frame's own minimum. A frame whose
-minimised cost stays above ``gate`` (normalized units² per camera) is treated as a gap: that catches
+minimised cost stays above ``cost_gate`` (normalized units² per camera) is treated as a gap: that catches
 a detection off the epipolar line (a wrong blob at another height), not one shifted along it, which
 the frame's own cost reads as a change of depth. The floors are the tuning knobs, as α is Algorithm 1's: small for
 smooth motion, larger to follow manoeuvres.
@@ -113,8 +113,8 @@ class SPSAStereoConfig(EstimatorConfig):
     #: perturbation size c in normalized image coordinates (1e-3 ≈ 0.6 px at f = 600 px)
     perturbation: float = Field(1e-3, gt=0)
     #: a frame whose minimised cost (normalized units², per camera) exceeds this is skipped as an
-    #: outlier (it catches detections off the epipolar line); inf disables the gate
-    gate: float = Field(math.inf, gt=0)
+    #: outlier (it catches detections off the epipolar line); inf disables this cost gate
+    cost_gate: float = Field(math.inf, gt=0)
 
 
 def disparity_maps(rig) -> tuple[list[float], list[float]]:
@@ -156,7 +156,7 @@ class SPSAStereoEstimator(Estimator):
         self._c = cfg.perturbation
         self._far = 5.0 * cfg.perturbation
         self._sweeps = cfg.max_sweeps
-        self._gate = cfg.gate
+        self._gate = cfg.cost_gate
         self.p = [0.0, 0.0, 0.0]
         self.v = [0.0, 0.0, 0.0]
 

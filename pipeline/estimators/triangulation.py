@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.estimators.base import NAN3, Estimator, Step, register
+from pipeline.estimators.base import NAN3, Estimator, Step, plausible_residual, register, reprojection_residual
 
 
 @register
@@ -17,25 +17,36 @@ class TriangulationEstimator(Estimator):
     """Frame-by-frame DLT triangulation, no motion model and no memory.
 
     Through a gap it holds the last point (flagged ``predicted``) so that it never emits NaN after
-    its first fix."""
+    its first fix. A frame whose reprojection residual is implausible for the pixel noise (χ², one
+    degree of freedom, at ``gate``: a detection off the epipolar line) is marked gated and
+    treated as a gap."""
 
     name = "triangulation"
 
     def reset(self) -> None:
         super().reset()
         self.last = NAN3.copy()
+        self.max_residual = plausible_residual(self.config.pixel_sigma, self.config.gate)
+
+    def _fix(self, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Triangulations (…×3, NaN where implausible) and which frames were gated (…)."""
+        X = self.model.inverse_function(Y)
+        gated = np.all(np.isfinite(X), axis=-1) & (reprojection_residual(self.model, X, Y) > self.max_residual)
+        X[gated] = np.nan
+        return X, gated
 
     def _step(self, y: np.ndarray) -> Step:
-        X = self.model.inverse_function(y[None])[0]
+        X, gated = self._fix(y[None])
+        X, gated = X[0], bool(gated[0])
         if np.all(np.isfinite(X)):
             self.last = X
             self.initialized = True
-            return Step(X, NAN3.copy())
-        return Step(self.last.copy(), NAN3.copy(), predicted=True)
+            return Step(X, NAN3.copy(), extra={"gated": 0.0})
+        return Step(self.last.copy(), NAN3.copy(), predicted=True, extra={"gated": float(gated)})
 
     def run_batch(self, Y: np.ndarray) -> np.ndarray:
         """All tracks triangulated at once; gaps hold the last fix as :meth:`step` does."""
-        X = self.rig.triangulate(np.asarray(Y, dtype=float))
+        X = self._fix(np.asarray(Y, dtype=float))[0]
         ok = np.all(np.isfinite(X), axis=-1)
         last = np.maximum.accumulate(np.where(ok, np.arange(X.shape[1]), -1), axis=1)
         out = np.take_along_axis(X, np.maximum(last, 0)[..., None], axis=1)

@@ -7,11 +7,11 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.estimators.base import Estimator, Step, not_started, register, transition, white_noise_acceleration
-from pipeline.estimators.kalman_common import KalmanConfig, available_rows, filtered_step
+from pipeline.estimators.kalman_common import GatedFilter, KalmanConfig, available_rows, filtered_step, gated_step
 
 
 @register
-class UKFEstimator(Estimator):
+class UKFEstimator(GatedFilter, Estimator):
     """Unscented Kalman filter on the 4-D stereo reprojection (white-noise acceleration)."""
 
     name = "ukf"
@@ -40,9 +40,13 @@ class UKFEstimator(Estimator):
             self.initialized = True
             return filtered_step(f.x, f.P, False)
         f.predict()
+        y, n_gated, restart = self.gate(y, f.x, f.P)  # gated on the first-order S at the prediction
+        if restart is not None:
+            f.x, f.P = restart.state.copy(), restart.covariance.copy()
+            return gated_step(filtered_step(f.x, f.P, False), n_gated, True)
         rows = available_rows(y)
         if not len(rows):
             f.x, f.P = f.x_prior.copy(), f.P_prior.copy()
-            return filtered_step(f.x, f.P, True)
+            return gated_step(filtered_step(f.x, f.P, True), n_gated)
         f.update(y[rows], R=self.R[np.ix_(rows, rows)], hx=lambda x: self.model.function(x)[rows])
-        return filtered_step(f.x, f.P, False, f)
+        return gated_step(filtered_step(f.x, f.P, False, f), n_gated)
