@@ -124,7 +124,8 @@ def _process_one(clip: str, key: str, out_root: str, settings: dict[str, Any],
             specs = resolve_marker_specs(clip_p, settings.get("markers"), settings.get("root_markers"))
             process_clip(clip_p, partial, detector=settings["detector"], methods=settings.get("methods"),
                          images_in_recording=settings.get("images", True), marker_specs=specs,
-                         calib_units=settings.get("calib_units"), lock=False, configs=settings.get("configs"))
+                         calib_units=settings.get("calib_units"), lock=False, configs=settings.get("configs"),
+                         time_offset=settings.get("time_offset", "auto"))
         (partial / ATTEMPT).unlink()
         write_manifest(partial, settings, inputs)
         if parent_pid is not None and not still_parented(parent_pid):
@@ -170,6 +171,7 @@ def run_batch(
     scheduler_file: str | Path | None = None,
     configs: dict[str, dict] | None = None,
     images: bool = True,
+    time_offset: str | float | None = "auto",
 ) -> list[ClipOutcome]:
     """Process every clip under ``input_dir``; write ``summary.csv`` and ``summary.md``.
 
@@ -199,7 +201,7 @@ def run_batch(
                                input_dir)
     root_markers = read_markers_file(input_dir / MARKERS_FILE) if (input_dir / MARKERS_FILE).is_file() else None
     settings = {"detector": detector, "methods": methods, "markers": marker_specs, "root_markers": root_markers,
-                "calib_units": calib_units, "configs": configs, "images": images}
+                "calib_units": calib_units, "configs": configs, "images": images, "time_offset": time_offset}
     keys = {c: clip_key(c, input_dir) for c in clips}
     ensure_dir(out_root)
     with OutputLock(out_root, f"stereotrack batch {input_dir}"):

@@ -334,16 +334,29 @@ class StereoMeasurementModel:
     rig: StereoRig
     pixel_sigma: float = 1.0
     ndim_state: int = 6
+    #: δ (s): the right camera's frame k is exposed δ after the left camera's. A state at the left
+    #: camera's time is seen by the right camera at ``p + v·δ`` (velocity in components 3–5).
+    time_offset: float = 0.0
 
     def function(self, x: np.ndarray) -> np.ndarray:
-        """``h(x)``: …×ndim_state (or …×3) → …×4 pixels."""
-        return self.rig.project(np.asarray(x, dtype=float)[..., :3])
+        """``h(x) = [proj(P1, p); proj(P2, p + v·δ)]``: …×ndim_state (or …×3, δ ignored) → …×4 pixels."""
+        x = np.asarray(x, dtype=float)
+        p = x[..., :3]
+        if self.time_offset == 0.0 or x.shape[-1] < 6:
+            return self.rig.project(p)
+        return np.concatenate([self.rig.left.project(p), self.rig.right.project(p + x[..., 3:6] * self.time_offset)], -1)
 
     def jacobian(self, x: np.ndarray) -> np.ndarray:
-        """``∂h/∂x``: …×ndim_state → …×4×ndim_state."""
+        """``∂h/∂x``: …×ndim_state → …×4×ndim_state; with a time offset the right camera's rows gain
+        ``δ·∂proj₂/∂p`` on the velocity."""
         x = np.asarray(x, dtype=float)
-        J = self.rig.jacobian(x[..., :3])
-        pad = np.zeros((*J.shape[:-1], self.ndim_state - 3))
+        pad = np.zeros((*x.shape[:-1], 4, self.ndim_state - 3))
+        if self.time_offset == 0.0:
+            return np.concatenate([self.rig.jacobian(x[..., :3]), pad], axis=-1)
+        p = x[..., :3]
+        Jr = self.rig.right.jacobian(p + x[..., 3:6] * self.time_offset)
+        J = np.concatenate([self.rig.left.jacobian(p), Jr], axis=-2)
+        pad[..., 2:, :3] = self.time_offset * Jr
         return np.concatenate([J, pad], axis=-1)
 
     def inverse_function(self, y: np.ndarray) -> np.ndarray:

@@ -124,6 +124,9 @@ MarkersOption = Annotated[list[str] | None, typer.Option(
 CalibUnitsOption = Annotated[str | None, typer.Option(
     "--calib-units", help="Length unit of the calibration's T (m, cm or mm). It overrides a 'units' the file "
     "declares, with a warning naming both when they differ; outputs are in metres.")]
+TimeOffsetOption = Annotated[str, typer.Option(
+    "--time-offset", help="The right camera's delay behind the left (s): 'auto' estimates it from the detections "
+    "and applies it when its 95 % interval excludes 0; 'off'; or seconds. A clip's timestamps.csv wins.")]
 ConfigOption = Annotated[Path | None, typer.Option(
     "--config", help="YAML file mapping a method name to its settings, e.g. 'ekf: {process_noise: 2.0}' "
     "(see `stereotrack methods`); the resolved settings are recorded in metrics.json.")]
@@ -185,6 +188,15 @@ def _methods(methods: str | None) -> list[str] | None:
     return [m.strip() for m in methods.split(",") if m.strip()] if methods else None
 
 
+def _print_sync(metrics: dict) -> None:
+    from pipeline.sync import SyncEstimate
+
+    sync = metrics.get("sync")
+    if sync:
+        s = SyncEstimate(**{**sync, "ci_s": tuple(sync["ci_s"]) if sync.get("ci_s") else None})
+        out.print(s.describe(), highlight=False)
+
+
 def _metrics_table(metrics: dict, title: str) -> Table:
     table = Table(title=title, caption="3-D errors in m, reprojection in px, α in rad, z in m")
     table.add_column("method", no_wrap=True)
@@ -205,15 +217,20 @@ def estimate_cmd(
                                                 "inputs are always read from CLIP/out.")] = None,
     calib_units: CalibUnitsOption = None,
     config: ConfigOption = None,
+    time_offset: TimeOffsetOption = "auto",
 ) -> None:
     """Estimate 3-D tracks with each method; write estimates/<method>.csv and metrics.json."""
     from pipeline.estimate import estimate_clip
+    from pipeline.sync import parse_time_offset
 
     configs = _configs(config)
+    offset = parse_time_offset(time_offset)
     with progress_bar() as bar:
         task = bar.add_task("estimate", total=None)
         res = estimate_clip(clip, _methods(methods), output, configs=configs, in_dir=clip / "out",
-                            progress=lambda d, t: bar.update(task, completed=d, total=t), calib_units=calib_units)
+                            progress=lambda d, t: bar.update(task, completed=d, total=t), calib_units=calib_units,
+                            time_offset=offset)
+    _print_sync(res.metrics)
     out.print(_metrics_table(res.metrics, str(res.out_dir / "metrics.json")))
 
 
@@ -247,15 +264,18 @@ def run_cmd(
     markers: MarkersOption = None,
     calib_units: CalibUnitsOption = None,
     config: ConfigOption = None,
+    time_offset: TimeOffsetOption = "auto",
 ) -> None:
     """Run every stage on one clip: (render), detect, estimate, metrics, report, recording.
 
     A clip folder of real footage needs two videos (or PNG folders), a calibration and its markers
     (--markers or a markers.yaml in the folder)."""
     from pipeline.run import DEFAULT_SCENARIO, process_clip
+    from pipeline.sync import parse_time_offset
 
     t0 = __import__("time").perf_counter()
     configs = _configs(config)
+    offset = parse_time_offset(time_offset)
     target = target or DEFAULT_SCENARIO
     clip = Path(target)
     if clip.is_file() and clip.suffix.lower() not in (".yaml", ".yml"):
@@ -282,8 +302,10 @@ def run_cmd(
 
         res = process_clip(clip, detector=detector, methods=_methods(methods), stage=stage,
                            progress=lambda d, t: bar.update(task, completed=d, total=t),
-                           marker_specs=_specs(markers), calib_units=calib_units, configs=configs)
+                           marker_specs=_specs(markers), calib_units=calib_units, configs=configs,
+                           time_offset=offset)
     _print_learned(res.detect.learned)
+    _print_sync(res.estimate.metrics)
     out.print(_metrics_table(res.estimate.metrics, f"{clip} — {res.estimate.n_frames} frames"))
     out.print(f"outputs in {res.out_dir}: detections.csv, estimates/, metrics.json, report.md, run.rrd")
     out.print(f"replay: stereotrack view {clip}    ({__import__('time').perf_counter() - t0:.1f} s)")
@@ -327,14 +349,17 @@ def batch_cmd(
     calib_units: CalibUnitsOption = None,
     config: ConfigOption = None,
     no_images: Annotated[bool, typer.Option("--no-images", help="Leave the frames out of each clip's recording.")] = False,
+    time_offset: TimeOffsetOption = "auto",
 ) -> None:
     """Process every clip folder under INPUT_DIR; exit code 1 if any clip failed.
 
     Markers: --markers for every clip, else each clip's markers.yaml, else INPUT_DIR/markers.yaml,
     else the colours of a rendered clip (clip.json)."""
     from pipeline.batch import run_batch
+    from pipeline.sync import parse_time_offset
 
     configs = _configs(config)
+    offset = parse_time_offset(time_offset)
     sched = scheduler or (dask if dask else None)
     if dask is not None and dask != "local":
         raise StereotrackError("--dask takes 'local'; use --scheduler tcp://host:port for a running cluster")
@@ -343,7 +368,7 @@ def batch_cmd(
         outcomes = run_batch(input_dir, output, workers, sched, force, detector, _methods(methods),
                              progress=lambda d, t: bar.update(task, completed=d, total=t),
                              marker_specs=_specs(markers), calib_units=calib_units, scheduler_file=scheduler_file,
-                             configs=configs, images=not no_images)
+                             configs=configs, images=not no_images, time_offset=offset)
     from pipeline.batch import clip_warnings
 
     table = Table("clip", "status", "attempts", "warnings", "error", title=str(output / "summary.csv"))

@@ -12,7 +12,7 @@ import numpy as np
 
 from pipeline import consistency
 from pipeline.camera import StereoRig
-from pipeline.checks import jump_checks, rig_for_frames, stereo_checks, warn_failed
+from pipeline.checks import Check, jump_checks, rig_for_frames, stereo_checks, warn_failed
 from pipeline.clip import (
     ESTIMATE_COLUMNS,
     TARGET_COLUMNS,
@@ -31,6 +31,7 @@ from pipeline.estimators.base import is_builtin, origin
 from pipeline.io import write_csv, write_json
 from pipeline.manifest import stereotrack_version
 from pipeline.metrics import compute_metrics
+from pipeline.sync import SyncEstimate
 
 
 @dataclass
@@ -79,6 +80,7 @@ def estimate_clip(
     calib_units: str | None = None,
     in_dir: str | Path | None = None,
     detections: tuple[dict[str, np.ndarray], FootageInfo] | None = None,
+    time_offset: str | float | None = "auto",
 ) -> EstimateResult:
     """Run every requested method on every marker of a clip and write estimates and metrics.
 
@@ -120,7 +122,9 @@ def estimate_clip(
     if truth is not None:
         n = max(n, truth.n_frames)
     obs = {k: np.vstack([v, np.full((n - len(v), 4), np.nan)]) for k, v in obs.items()}
-    new_checks = stereo_checks(rig, obs, clip_.calibration_name) + jump_checks(obs, rig.image_size[0] or 640)
+    sync, aligned = _sync(clip_, rig, obs, time_offset)
+    new_checks = [_sync_check(sync), *stereo_checks(rig, aligned, clip_.calibration_name),
+                  *jump_checks(obs, rig.image_size[0] or 640)]
     warn_failed(new_checks)
     checks += new_checks
     target = find_target(clip_, target_radius, obs)
@@ -141,7 +145,7 @@ def estimate_clip(
     done, total = 0, len(point_methods) * len(obs) + len(target_methods)
     for m in target_methods:
         assert target is not None
-        Yt = np.stack([obs.get(f"{target.name}_{j}", np.full((n, 4), np.nan)) for j in range(1, 5)], axis=1)
+        Yt = np.stack([aligned.get(f"{target.name}_{j}", np.full((n, 4), np.nan)) for j in range(1, 5)], axis=1)
         cfg = {"radius": target.radius, **(target.config if m != "four_point" else {}), **configs.get(m, {})}
         est = create(m, rig, dt, cfg)
         resolved[m] = est.config.model_dump(mode="json")
@@ -152,9 +156,10 @@ def estimate_clip(
             progress(done, total)
     for m in point_methods:
         tracks[m] = {}
-        est = create(m, rig, dt, configs.get(m))
+        modelled = sync.applied and sync.source != "timestamps" and reg[m].models_time_offset
+        est = create(m, rig, dt, configs.get(m), time_offset=sync.offset_s if modelled else 0.0)
         resolved[m] = est.config.model_dump(mode="json")
-        for marker, Y in obs.items():
+        for marker, Y in (obs if modelled else aligned).items():  # the others see the right camera interpolated
             tracks[m][marker] = _run_method(est, Y, marker)
             done += 1
             if progress is not None:
@@ -165,6 +170,7 @@ def estimate_clip(
     result.metrics["pixel_sigma_estimate"] = sigma
     result.metrics["calibration_units"] = calib_units
     result.metrics["checks"] = [c.as_dict() for c in checks]
+    result.metrics["sync"] = sync.as_dict()
     if footage.cameras:
         result.metrics["detection"] = footage.cameras
     result.metrics["stereotrack_version"] = stereotrack_version()
@@ -172,6 +178,23 @@ def estimate_clip(
         result.metrics["methods"][m]["config"] = cfg
     write_json(out_dir / "metrics.json", result.metrics)
     return result
+
+
+def _sync(clip: Clip, rig: StereoRig, obs: dict[str, np.ndarray], setting: str | float | None) -> tuple:
+    """The cameras' time offset for this clip and the observations aligned to the left camera's
+    instants (see :mod:`pipeline.sync`): from timestamps.csv when the clip has one, else from the
+    detections (or as given)."""
+    from pipeline.clip import TIMESTAMPS
+    from pipeline.sync import read_timestamps, resolve_sync
+
+    ts_path = clip.folder / TIMESTAMPS
+    ts = read_timestamps(ts_path) if setting != "off" and clip.path.is_dir() and ts_path.is_file() else None
+    return resolve_sync(setting, rig, obs, clip.fps, ts)
+
+
+def _sync_check(sync: SyncEstimate) -> Check:
+    """The offset as an input check: a significant offset found (and corrected) is worth a look."""
+    return Check("sync", not (sync.applied and sync.source == "detections"), sync.describe(), sync.offset_s)
 
 
 def _run_method(est: Estimator, Y: np.ndarray, marker: str) -> Track:

@@ -42,6 +42,7 @@ def process_clip(
     calib_units: str | None = None,
     lock: bool = True,
     configs: dict[str, dict] | None = None,
+    time_offset: str | float | None = "auto",
 ) -> RunResult:
     """Detect, estimate, report and record one clip folder into ``out_dir`` (default CLIP/out).
 
@@ -53,18 +54,18 @@ def process_clip(
     out_dir = Path(out_dir) if out_dir else Path(clip) / "out"
     if not lock:
         return _process_clip(Path(clip), out_dir, detector, methods, marker_specs, recording, images_in_recording,
-                             stage, progress, calib_units, configs)
+                             stage, progress, calib_units, configs, time_offset)
     with OutputLock(out_dir, f"stereotrack run {clip}"):
         for stale in list(out_dir.rglob(".*.partial-*")):
             stale.unlink(missing_ok=True) if stale.is_file() else shutil.rmtree(stale, ignore_errors=True)
         return _process_clip(Path(clip), out_dir, detector, methods, marker_specs, recording, images_in_recording,
-                             stage, progress, calib_units, configs)
+                             stage, progress, calib_units, configs, time_offset)
 
 
 def _process_clip(clip: Path, out_dir: Path, detector: str, methods: list[str] | None, marker_specs: list[str] | None,
                   recording: bool, images_in_recording: bool, stage: Callable[[str], None] | None,
                   progress: Callable[[int, int], None] | None, calib_units: str | None,
-                  configs: dict[str, dict] | None = None) -> RunResult:
+                  configs: dict[str, dict] | None = None, time_offset: str | float | None = "auto") -> RunResult:
     t0 = time.perf_counter()
     say = stage or (lambda s: None)
     clip_ = Clip.open(clip)  # read once, handed to every stage
@@ -76,7 +77,7 @@ def _process_clip(clip: Path, out_dir: Path, detector: str, methods: list[str] |
                           calib_units=calib_units, frame_sink=sink)
         say("estimate")
         est = estimate_clip(clip_, methods, out_dir=out_dir, progress=progress, calib_units=calib_units,
-                            configs=configs, detections=(det.observations, det.footage))
+                            configs=configs, detections=(det.observations, det.footage), time_offset=time_offset)
         say("report")
         report = write_report(clip_, out_dir, progress=progress)
         rrd = None

@@ -162,7 +162,7 @@ def test_corrupted_output_is_redone(reference, tmp_path):
         assert clip_outputs(out / f"clip{i}") == clip_outputs(ref_out / f"clip{i}")
     # outputs made with other settings than the ones asked for now do not count as done
     asked = {"detector": "blob", "methods": ["triangulation"], "markers": None, "root_markers": None, "calib_units": None,
-             "configs": None, "images": False}
+             "configs": None, "images": False, "time_offset": "auto"}
     assert verify_manifest(out / "clip2", asked) == "made with other settings (methods)"
     assert verify_manifest(out / "clip2", {**asked, "methods": METHODS.split(",")}) is None
 

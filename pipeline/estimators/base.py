@@ -278,7 +278,13 @@ class Estimator(ABC):
     #: frames); on a shorter clip ``metrics.json`` and the report say so instead of an error
     min_frames: ClassVar[int] = 1
 
-    def __init__(self, rig: StereoRig, dt: float, config: EstimatorConfig | dict[str, Any] | None = None) -> None:
+    #: whether the method places the right camera's observation at its own time through the
+    #: measurement model (a state with velocity); the others are given the right camera's
+    #: detections interpolated to the left camera's times when the cameras are out of sync
+    models_time_offset: ClassVar[bool] = False
+
+    def __init__(self, rig: StereoRig, dt: float, config: EstimatorConfig | dict[str, Any] | None = None,
+                 time_offset: float = 0.0) -> None:
         rig.check()
         if not dt > 0:
             raise StereotrackError(f"time step must be positive, got {dt}")
@@ -286,7 +292,7 @@ class Estimator(ABC):
         self.dt = float(dt)
         self.config = config if isinstance(config, self.Config) else self.Config.model_validate(config or {})
         sigma = float(getattr(self.config, "pixel_sigma", 1.0))
-        self.model = StereoMeasurementModel(rig, sigma)
+        self.model = StereoMeasurementModel(rig, sigma, time_offset=float(time_offset) if self.models_time_offset else 0.0)
         self.reset()
 
     @classmethod
@@ -358,7 +364,7 @@ class Estimator(ABC):
         for k, s in enumerate(steps):
             for key, val in s.extra.items():
                 extra.setdefault(key, np.full(n, np.nan))[k] = val
-        rep = reprojection_errors(self.rig, pos, Y) if self.kind == "point" else np.full(n, np.nan)
+        rep = reprojection_errors(self.rig, pos, Y, vel, self.model.time_offset) if self.kind == "point" else np.full(n, np.nan)
         return Track(self.name, pos, vel, rep, ctr if ctr is not None else np.full(n, np.nan), pred,
                      seconds_per_step, extra, cov, nis if dof.any() else None, dof if dof.any() else None)
 
@@ -405,7 +411,7 @@ def camera_gate(sigma: float, gate: float) -> float:
 
 def reprojection_residual(model: StereoMeasurementModel, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
     """Summed squared pixel residual ``‖h(X) − y‖²`` of triangulations ``X`` (…×3) of ``Y`` (…×4)."""
-    with np.errstate(invalid="ignore"):
+    with np.errstate(invalid="ignore", divide="ignore"):
         return np.sum((model.function(np.nan_to_num(X)) - Y) ** 2, axis=-1)
 
 
@@ -438,11 +444,18 @@ def gated_cameras(model: StereoMeasurementModel, x: np.ndarray, P: np.ndarray, Y
         return camera_nis(model, x, P, Y, R) > threshold
 
 
-def reprojection_errors(rig: StereoRig, positions: np.ndarray, Y: np.ndarray) -> np.ndarray:
-    """Per-frame RMS pixel distance between ``h(position)`` and the available observations."""
+def reprojection_errors(rig: StereoRig, positions: np.ndarray, Y: np.ndarray, velocities: np.ndarray | None = None,
+                        time_offset: float = 0.0) -> np.ndarray:
+    """Per-frame RMS pixel distance between ``h(position)`` and the available observations (with a
+    time offset, the right camera sees ``position + velocity·δ``)."""
     ok = np.all(np.isfinite(positions), axis=1)
     r = np.full(Y.shape, np.nan)
-    r[ok] = rig.project(positions[ok]) - Y[ok]
+    if time_offset and velocities is not None:
+        model = StereoMeasurementModel(rig, time_offset=time_offset)
+        ok &= np.all(np.isfinite(velocities), axis=1)
+        r[ok] = model.function(np.hstack([positions[ok], velocities[ok]])) - Y[ok]
+    else:
+        r[ok] = rig.project(positions[ok]) - Y[ok]
     with np.errstate(invalid="ignore"):
         n = np.sum(np.isfinite(r), axis=1)
         out = np.sqrt(np.nansum(r**2, axis=1) / np.maximum(n, 1))
@@ -511,9 +524,13 @@ def methods(kind: Kind | None = None) -> list[str]:
     return [n for n, c in registry().items() if kind is None or c.kind == kind]
 
 
-def create(name: str, rig: StereoRig, dt: float, config: EstimatorConfig | dict | None = None) -> Estimator:
-    """Build a registered estimator by name."""
+def create(name: str, rig: StereoRig, dt: float, config: EstimatorConfig | dict | None = None,
+           time_offset: float = 0.0) -> Estimator:
+    """Build a registered estimator by name (``time_offset``: δ of the rig, for the methods that
+    model it; see :attr:`Estimator.models_time_offset`)."""
     reg = registry()
     if name not in reg:
         raise StereotrackError(f"unknown method {name!r} (known: {', '.join(reg)})")
+    if time_offset and reg[name].models_time_offset:
+        return reg[name](rig, dt, config, time_offset=time_offset)
     return reg[name](rig, dt, config)

@@ -36,6 +36,7 @@ class EKFEstimator(GatedFilter, Estimator):
 
     name = "ekf"
     Config = KalmanConfig
+    models_time_offset = True
 
     def reset(self) -> None:
         super().reset()

@@ -117,14 +117,30 @@ class SPSAStereoConfig(EstimatorConfig):
     cost_gate: float = Field(math.inf, gt=0)
 
 
+def rectifying_frame(rig) -> tuple[np.ndarray, np.ndarray]:
+    """``(R, t)``: world → a frame at the left camera whose x axis points along the baseline, to the
+    second camera wherever it sits (right, left, above, below, diagonal), and whose z axis stays
+    close to the left optical axis — Bouguet's rectifying rotation (e₁ along the baseline,
+    e₂ = (−e₁ᵧ, e₁ₓ, 0)/‖·‖, e₃ = e₁ × e₂; Bradski & Kaehler, *Learning OpenCV*, ch. 12). In it
+    the second camera sits at (b, 0, 0), so ``q₂`` is its image x for any layout."""
+    left = rig.left
+    e1 = left.R @ rig.right.center + np.ravel(left.t)  # the second camera, in the left camera's frame
+    e1 = e1 / np.linalg.norm(e1)
+    e2 = np.array([-e1[1], e1[0], 0.0])
+    e2 = e2 / np.linalg.norm(e2) if np.linalg.norm(e2) > 1e-9 else np.array([0.0, 1.0, 0.0])
+    Rr = np.stack([e1, e2, np.cross(e1, e2)])
+    return Rr @ left.R, Rr @ np.ravel(left.t)
+
+
 def disparity_maps(rig) -> tuple[list[float], list[float]]:
     """Each camera's normalized projection as a 3×4 map of ``(s₀, s₁, 1, s₂)`` (row-major floats):
-    ``[M_c | m_c / b]`` with ``M_c = R_c R_lᵀ``, ``m_c = t_c − M_c t_l``."""
-    left = rig.left
+    ``[M_c | m_c / b]`` with ``M_c = R_c R₀ᵀ``, ``m_c = t_c − M_c t₀`` for the rectifying frame
+    ``(R₀, t₀)`` of :func:`rectifying_frame`."""
+    R0, t0 = rectifying_frame(rig)
     out = []
     for cam in rig.cameras:
-        M = cam.R @ left.R.T
-        m = np.ravel(cam.t) - M @ np.ravel(left.t)
+        M = cam.R @ R0.T
+        m = np.ravel(cam.t) - M @ t0
         out.append(np.hstack([M, (m / rig.baseline)[:, None]]).ravel().tolist())
     return out[0], out[1]
 
@@ -145,9 +161,10 @@ class SPSAStereoEstimator(Estimator):
     def reset(self) -> None:
         super().reset()
         cfg: SPSAStereoConfig = self.config  # type: ignore[assignment]
-        left = self.rig.left
-        self._Rl = left.R.ravel().tolist()
-        self._tl = np.ravel(left.t).tolist()
+        self._unit_rig = self.rig.normalized()  # triangulates normalized observations (restarts)
+        R0, t0 = rectifying_frame(self.rig)  # q lives in this frame: any layout is a "right" one
+        self._Rl = R0.ravel().tolist()
+        self._tl = t0.tolist()
         self._b = self.rig.baseline
         self._Al, self._Ar = disparity_maps(self.rig)
         self._nmax_image = max_memory(cfg.alpha_min)
@@ -166,8 +183,8 @@ class SPSAStereoEstimator(Estimator):
         return np.array(self.p + self.v)
 
     def g(self, p) -> list[float] | None:
-        """``q = (x_c/z_c, y_c/z_c, x_c/z_c − b/z_c)`` of a world point (the left camera's image
-        coordinates and, for a rectified rig, the right one's x); None behind the left camera."""
+        """``q = (x_c/z_c, y_c/z_c, x_c/z_c − b/z_c)`` of a world point in the rectifying frame (the
+        left camera's image coordinates there, and the second camera's x); None behind it."""
         R, t = self._Rl, self._tl
         x = R[0] * p[0] + R[1] * p[1] + R[2] * p[2] + t[0]
         y = R[3] * p[0] + R[4] * p[1] + R[5] * p[2] + t[1]
@@ -227,20 +244,21 @@ class SPSAStereoEstimator(Estimator):
         c, J = self._c, self.cost
         q0, q1, q2 = q
         J0 = J(q0, q1, q2, yn, use_l, use_r)
-        m0 = 1.0 if use_l else 0.0  # a coordinate only one camera sees is not perturbed without it
-        m2 = 1.0 if use_r else 0.0
+        # with one camera its x moves q₀ and q₂ together: the disparity (depth) is what it cannot see
+        one = use_l != use_r
         s1 = SQRT_HALF if (use_l and use_r) else 1.0  # both cameras see q₁: twice the curvature
-        dim = 1.0 + m0 + m2
+        dim = 2.0 if one else 3.0
         for _ in range(self._sweeps):
             g0 = g1 = g2 = hsum = 0.0
             for D in DIAGONALS:
-                d0, d1, d2 = D[0] * m0, D[1] * s1, D[2] * m2
+                d0, d1 = D[0], D[1] * s1
+                d2 = D[0] if one else D[2]
                 Jp = J(q0 + c * d0, q1 + c * d1, q2 + c * d2, yn, use_l, use_r)
                 Jm = J(q0 - c * d0, q1 - c * d1, q2 - c * d2, yn, use_l, use_r)
                 d = Jp - Jm
-                g0 += D[0] * m0 * d
+                g0 += D[0] * d
                 g1 += D[1] * d
-                g2 += D[2] * m2 * d
+                g2 += (D[0] if one else D[2]) * d
                 hsum += Jp + Jm - 2.0 * J0
             if not hsum > 0.0:
                 break
@@ -296,9 +314,10 @@ class SPSAStereoEstimator(Estimator):
             return True, math.nan, math.nan
         q = self.g(pp)
         if q is None:  # the prediction left the field of view behind the camera: start again
-            if not (use_l and use_r) or yn[0] - yn[2] <= 1e-12:
+            q = self.g(self._unit_rig.triangulate(np.array(yn))) if use_l and use_r else None
+            if q is None or not all(math.isfinite(c) for c in q) or q[0] - q[2] <= 1e-12:
                 return True, math.nan, math.nan
-            h0, h1, h2, cost = self._minimise([yn[0], yn[1], yn[2]], yn, True, True)
+            h0, h1, h2, cost = self._minimise(q, yn, True, True)
             self._begin((*self.g_inv(h0, h1, h2), 0.0, 0.0, 0.0), 1.0)
             return False, cost, 1.0
         h0, h1, h2, cost = self._minimise(q, yn, use_l, use_r)

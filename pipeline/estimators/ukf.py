@@ -16,6 +16,7 @@ class UKFEstimator(GatedFilter, Estimator):
 
     name = "ukf"
     Config = KalmanConfig
+    models_time_offset = True
 
     def reset(self) -> None:
         super().reset()

@@ -1,0 +1,237 @@
+"""The time offset between a rig's cameras, found from the detections and used.
+
+Convention: the right camera's frame k is exposed δ after the left camera's (δ > 0: the right
+camera is late). A moving marker seen by both cameras lies on its epipolar line only when the two
+observations are of the same instant, so the epipolar distance of matched detections — with the
+right camera's track interpolated in time to the left camera's instants, ``k − δ·fps`` — is
+smallest at the true δ (Hartley & Zisserman §9: ``x₂ᵀ F x₁ = 0`` for one instant; motion
+across the epipolar lines is what reveals δ, motion along them leaves it unobservable). The
+estimate minimises a robust mean of squared epipolar distances over a fine grid of δ and refines
+the minimum with a parabola; its 95 % interval comes from a moving-block bootstrap over frames
+(blocks keep the residuals' correlation in time), widened by ``CI_WIDEN``.
+
+When a clip has ``timestamps.csv`` (per-camera frame times) those times are used instead: the right
+camera's detections are interpolated to the left camera's frame times, which handles offsets,
+jitter and dropped frames at once.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.camera import StereoRig
+from pipeline.errors import StereotrackError
+
+#: the offsets searched, in frames either side of zero (fewer for short clips: a quarter of them)
+MAX_SHIFT_FRAMES = 10.0
+GRID_STEP = 0.02  # frames
+#: epipolar distances beyond this (px) count as this: a mismatched pair must not decide δ
+CLIP_PX = 6.0
+BOOTSTRAP = 200
+BLOCK = 10  # frames per bootstrap block
+#: the interval is ±1.96 bootstrap standard deviations widened by this: on a slow target moving
+#: mostly along the epipolar lines the plain bootstrap's interval held 0 in 80–85 % of clean
+#: simulated clips (tests/test_sync.py measures the widened one)
+CI_WIDEN = float(np.sqrt(2.0))
+MIN_PAIRS = 12
+
+
+@dataclass
+class SyncEstimate:
+    """``offset_s``: δ (s, positive when the right camera is late); ``ci_s``: its 95 % interval;
+    ``applied``: whether the estimators used it; ``source``: detections, timestamps, given or off."""
+
+    offset_s: float
+    ci_s: tuple[float, float] | None
+    applied: bool
+    source: str
+    residual_px: float | None = None
+    note: str = ""
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+    def describe(self) -> str:
+        """One line for the terminal and the report."""
+        if self.source == "off":
+            return "sync offset: not estimated (--time-offset off)"
+        if self.source == "timestamps":
+            return f"sync offset: from timestamps.csv, median {1000 * self.offset_s:+.2f} ms (right camera late when +)"
+        if self.source == "given":
+            return f"sync offset: {1000 * self.offset_s:+.2f} ms as given (--time-offset)"
+        if self.ci_s is None:
+            return f"sync offset: not estimated ({self.note})"
+        lo, hi = self.ci_s
+        state = "applied" if self.applied else "not applied: the interval contains 0"
+        return (f"sync offset: {1000 * self.offset_s:+.2f} ms (95 % interval {1000 * lo:+.2f} … {1000 * hi:+.2f} ms), "
+                f"{state}")
+
+
+def interpolate_track(uv: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """A camera's track (frames × 2, NaN where missed) at fractional frame indices ``at``: linear
+    between the two neighbouring frames, NaN where either is missing or outside the clip."""
+    n = len(uv)
+    lo = np.floor(at).astype(int)
+    w = (at - lo)[:, None]
+    ok = (lo >= 0) & (lo + 1 < n)
+    out = np.full((len(at), 2), np.nan)
+    i = lo[ok]
+    out[ok] = (1 - w[ok]) * uv[i] + w[ok] * uv[i + 1]
+    exact = (w[:, 0] == 0) & (lo >= 0) & (lo < n)  # an integer index needs no right neighbour
+    out[exact] = uv[lo[exact]]
+    return out
+
+
+def shift_right(obs: dict[str, np.ndarray], shift_frames: float) -> dict[str, np.ndarray]:
+    """Observations with the right camera's track interpolated to the left camera's instants: the
+    right camera's frame ``k − shift`` (it is ``shift`` frames late)."""
+    out = {}
+    for name, Y in obs.items():
+        k = np.arange(len(Y), dtype=float)
+        out[name] = np.column_stack([Y[:, :2], interpolate_track(Y[:, 2:], k - shift_frames)])
+    return out
+
+
+def _distance_table(rig: StereoRig, obs: dict[str, np.ndarray], shifts: np.ndarray) -> np.ndarray:
+    """Clipped squared epipolar distances: (markers·frames) × shifts, NaN where no pair exists."""
+    rows = []
+    for Y in obs.values():
+        k = np.arange(len(Y), dtype=float)
+        D = np.full((len(Y), len(shifts)), np.nan)
+        for j, s in enumerate(shifts):
+            right = interpolate_track(Y[:, 2:], k - s)
+            d = rig.epipolar_distance(np.column_stack([Y[:, :2], right]))
+            D[:, j] = np.minimum(d, CLIP_PX) ** 2
+        rows.append(D)
+    return np.vstack(rows)
+
+
+def _argmin(cost: np.ndarray, shifts: np.ndarray) -> float:
+    """The minimum of a sampled cost, refined by the parabola through it and its neighbours."""
+    j = int(np.nanargmin(cost))
+    if 0 < j < len(cost) - 1 and np.all(np.isfinite(cost[j - 1 : j + 2])):
+        a, b, c = cost[j - 1 : j + 2]
+        den = a - 2 * b + c
+        if den > 0:
+            return float(shifts[j] + 0.5 * (a - c) / den * (shifts[1] - shifts[0]))
+    return float(shifts[j])
+
+
+def estimate_offset(rig: StereoRig, obs: dict[str, np.ndarray], fps: float, seed: int = 0) -> SyncEstimate:
+    """δ from the detections alone (see the module docstring); ``applied`` is left False."""
+    n = max((len(Y) for Y in obs.values()), default=0)
+    both = sum(int(np.all(np.isfinite(Y), axis=1).sum()) for Y in obs.values())
+    if both < MIN_PAIRS:
+        return SyncEstimate(0.0, None, False, "detections", note=f"only {both} frames with both cameras")
+    span = min(MAX_SHIFT_FRAMES, max(1.0, n / 4))
+    shifts = np.arange(-span, span + GRID_STEP / 2, GRID_STEP)
+    D = _distance_table(rig, obs, shifts)
+    valid = np.all(np.isfinite(D), axis=1)  # pairs that exist at every shift searched
+    if valid.sum() < MIN_PAIRS:
+        return SyncEstimate(0.0, None, False, "detections", note="too few frames with both cameras and their neighbours")
+    D = D[valid]
+    best = _argmin(D.mean(axis=0), shifts)
+    rng = np.random.default_rng(seed)
+    blocks = np.arange(0, len(D), BLOCK)
+    boot = []
+    for _ in range(BOOTSTRAP):
+        starts = rng.choice(blocks, size=len(blocks))
+        idx = np.concatenate([np.arange(s, min(s + BLOCK, len(D))) for s in starts])
+        boot.append(_argmin(D[idx].mean(axis=0), shifts))
+    half = CI_WIDEN * 1.96 * float(np.std(boot))
+    residual = float(np.sqrt(np.interp(best, shifts, D.mean(axis=0))))
+    return SyncEstimate(best / fps, ((best - half) / fps, (best + half) / fps), False, "detections", residual)
+
+
+def resolve_sync(setting: str | float | None, rig: StereoRig, obs: dict[str, np.ndarray], fps: float,
+                 timestamps: dict[str, np.ndarray] | None = None) -> tuple[SyncEstimate, dict[str, np.ndarray]]:
+    """The offset to use (``--time-offset``: ``auto`` — the default —, ``off`` or seconds) and the
+    observations with the right camera aligned to the left camera's instants (for the methods
+    that do not model the offset). ``timestamps`` (per camera: frame → time) win over both."""
+    if timestamps is not None:
+        aligned = align_by_timestamps(obs, timestamps)
+        return SyncEstimate(_median_offset(timestamps), None, True, "timestamps"), aligned
+    if setting in (None, "auto"):
+        est = estimate_offset(rig, obs, fps)
+        est.applied = est.ci_s is not None and not (est.ci_s[0] <= 0.0 <= est.ci_s[1])
+    elif setting == "off":
+        est = SyncEstimate(0.0, None, False, "off")
+    else:
+        est = SyncEstimate(float(setting), None, float(setting) != 0.0, "given")
+    if not est.applied:
+        return est, obs
+    return est, shift_right(obs, est.offset_s * fps)
+
+
+def parse_time_offset(value: str | None) -> str | float | None:
+    """``--time-offset``: ``auto``, ``off`` or a number of seconds; else one error."""
+    if value is None or value in ("auto", "off"):
+        return value
+    try:
+        v = float(value)
+    except ValueError:
+        raise StereotrackError(f"--time-offset takes auto, off or seconds (e.g. 0.0167), not {value!r}") from None
+    if not np.isfinite(v):
+        raise StereotrackError(f"--time-offset must be finite, not {value!r}")
+    return v
+
+
+# -- timestamps ----------------------------------------------------------------------------------
+
+
+def read_timestamps(path: str | Path) -> dict[str, np.ndarray]:
+    """``timestamps.csv`` → per camera an array of times indexed by frame (NaN where the camera has
+    no such frame); errors name the line."""
+    from pipeline.clip import TIMESTAMP_COLUMNS
+    from pipeline.io import read_csv
+
+    cols = read_csv(path, TIMESTAMP_COLUMNS, finite=["frame", "t"])
+    out: dict[str, np.ndarray] = {}
+    for cam in ("left", "right"):
+        sel = cols["camera"] == cam
+        frames = cols["frame"][sel]
+        if np.any(frames < 0) or np.any(frames != np.round(frames)):
+            raise StereotrackError("frame numbers must be whole and non-negative", path)
+        t = np.full(int(frames.max()) + 1 if len(frames) else 0, np.nan)
+        t[frames.astype(int)] = cols["t"][sel]
+        out[cam] = t
+    if not len(out["left"]) or not len(out["right"]):
+        raise StereotrackError("needs rows for both cameras (left and right)", path)
+    return out
+
+
+def align_by_timestamps(obs: dict[str, np.ndarray], ts: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The right camera's detections interpolated in time to each left frame's time (offset,
+    jitter and dropped frames at once; NaN where the right camera has no frames either side)."""
+    tl, tr = ts["left"], ts["right"]
+    out = {}
+    for name, Y in obs.items():
+        n = len(Y)
+        t_left = np.full(n, np.nan)
+        m = min(n, len(tl))
+        t_left[:m] = tl[:m]
+        rf = np.flatnonzero(np.isfinite(tr[: n]) & np.all(np.isfinite(Y[: len(tr), 2:]), axis=1)[: len(tr[: n])])
+        right = np.full((n, 2), np.nan)
+        t_r, uv = tr[rf], Y[rf, 2:]
+        order = np.argsort(t_r)
+        t_r, uv = t_r[order], uv[order]
+        if len(rf) >= 2:
+            j = np.searchsorted(t_r, t_left) - 1
+            ok = np.isfinite(t_left) & (j >= 0) & (j + 1 < len(t_r))
+            jj = j[ok]
+            w = ((t_left[ok] - t_r[jj]) / (t_r[jj + 1] - t_r[jj]))[:, None]
+            right[ok] = (1 - w) * uv[jj] + w * uv[jj + 1]
+        exact = np.isin(t_left, t_r)  # the same instant: no interpolation needed (a 1-frame clip)
+        right[exact] = uv[np.searchsorted(t_r, t_left[exact])]
+        out[name] = np.column_stack([Y[:, :2], right])
+    return out
+
+
+def _median_offset(ts: dict[str, np.ndarray]) -> float:
+    m = min(len(ts["left"]), len(ts["right"]))
+    d = ts["right"][:m] - ts["left"][:m]
+    d = d[np.isfinite(d)]
+    return float(np.median(d)) if len(d) else 0.0
