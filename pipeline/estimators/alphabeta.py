@@ -31,6 +31,7 @@ from pipeline.estimators.base import (
     not_started,
     register,
 )
+from pipeline.estimators.kalman_common import update_gated_run
 
 #: weight of the newest accepted innovation in the α-β gate's robust scale (≈ 20 frames of memory)
 SCALE_WEIGHT = 0.05
@@ -134,10 +135,11 @@ class AlphaBetaEstimator(Estimator):
 
     def _gate(self, y: np.ndarray) -> tuple[np.ndarray, int]:
         """Drop the cameras whose innovation falls outside the χ² gate, on the filter's predicted
-        error covariance (:meth:`_covariance_step`; in 3-D seen through the cameras) times a robust
-        scale: an exponentially weighted mean (weight ``SCALE_WEIGHT``) of the accepted cameras'
-        NIS / 2, floored at 1 — an α-β filter lags a manoeuvre, and its innovations grow with the
-        lag, while an outlier never enters the mean."""
+        error covariance (:meth:`_correct_covariance`; in 3-D seen through the cameras) times a
+        robust scale: an exponentially weighted mean (weight ``SCALE_WEIGHT``) of every camera's
+        NIS / 2, each clipped at the gate (Huber's idea), floored at 1 — an α-β filter lags a
+        manoeuvre and its innovations grow with the lag, which widens the gate within a few
+        frames, while a lone outlier moves it by a bounded step."""
         assert self.f is not None
         if not np.isfinite(self.threshold):
             return y, 0
@@ -151,9 +153,10 @@ class AlphaBetaEstimator(Estimator):
             nis = camera_nis(self.model, np.r_[self.f.x, np.zeros(3)], P, y)
         with np.errstate(invalid="ignore"):
             g = nis / self.scale > self.threshold
-        ok = np.isfinite(nis) & ~g
-        if ok.any():
-            self.scale = max(1.0, (1 - SCALE_WEIGHT) * self.scale + SCALE_WEIGHT * float(np.mean(nis[ok])) / 2.0)
+        seen = np.isfinite(nis)
+        if seen.any():  # every innovation counts, clipped at the gate: a lone outlier moves it a bounded step
+            clipped = np.minimum(nis[seen], self.threshold * self.scale)
+            self.scale = max(1.0, (1 - SCALE_WEIGHT) * self.scale + SCALE_WEIGHT * float(np.mean(clipped)) / 2.0)
         kept = y.copy()
         for c in np.flatnonzero(g):
             kept[2 * c : 2 * c + 2] = np.nan
@@ -173,7 +176,7 @@ class AlphaBetaEstimator(Estimator):
             self.f.predict()
             self.P = self.F1 @ self.P @ self.F1.T
             kept, n_gated = self._gate(y)
-            self.gated_run = int(np.where(np.isfinite(kept).any(), 0, self.gated_run + np.isfinite(y).any()))
+            self.gated_run = int(update_gated_run(self.gated_run, y, kept))
             s = self.initiator.restart(self.frame, y) if self.gated_run >= cfg.restart_after else None
             if s is not None:
                 self._begin(s)

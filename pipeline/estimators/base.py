@@ -88,7 +88,7 @@ class EstimatorConfig(BaseModel):
     #: probability of the χ² outlier gate (per camera, 2 degrees of freedom, on the innovation); 0
     #: turns gating off. 0.9995 rejects a correct observation once in 2,000.
     gate: float = Field(0.9995, ge=0.0, lt=1.0)
-    #: frames in a row with every observation gated after which a track restarts from the detections
+    #: frames in a row with a camera's observation gated after which a track restarts from the detections
     restart_after: int = Field(8, ge=1)
 
 
@@ -312,7 +312,7 @@ class Estimator(ABC):
         self.rng = np.random.default_rng(self.config.seed)
         self.initiator = Initiator(self.config.init, self.model, self.dt, propagate=self.knows_pixel_noise(),
                                    gate=self.config.gate)
-        self.gated_run = 0  # frames in a row with every observation gated
+        self.gated_run = 0  # frames in a row with a camera gated
 
     def start(self, y: np.ndarray) -> Start | None:
         """Offer this frame to the initiator (point methods)."""
