@@ -3,6 +3,7 @@ when the clip has truth, ``out/metrics.json`` (SPEC §3)."""
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -189,6 +190,9 @@ def _sync(clip: Clip, rig: StereoRig, obs: dict[str, np.ndarray], setting: str |
 
     ts_path = clip.folder / TIMESTAMPS
     ts = read_timestamps(ts_path) if setting != "off" and clip.path.is_dir() and ts_path.is_file() else None
+    if ts is not None and isinstance(setting, float):  # the command line wins over the clip's own file
+        warnings.warn(f"{ts_path}: --time-offset {setting:g} s used instead of this file's frame times", stacklevel=3)
+        ts = None
     return resolve_sync(setting, rig, obs, clip.fps, ts)
 
 

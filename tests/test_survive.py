@@ -60,9 +60,10 @@ def outlier_runs() -> list:
 @pytest.mark.parametrize("method", GATED)
 def test_gated_methods_ignore_outliers(method, outlier_runs):
     clean, dirty, rejected, injected, false, observed = [], [], 0.0, 0, 0.0, 0
+    cfg = {"pixel_sigma": 1.0, "gate": 0.9995}  # the default, but for the alpha-betas (opt-in there)
     for rig, dt, X, Y, Yo, bad in outlier_runs:
-        a = create(method, rig, dt, {"pixel_sigma": 1.0}).run(Y)
-        b = create(method, rig, dt, {"pixel_sigma": 1.0}).run(Yo)
+        a = create(method, rig, dt, cfg).run(Y)
+        b = create(method, rig, dt, cfg).run(Yo)
         clean.append(rmse(a, X))
         dirty.append(rmse(b, X))
         rejected += np.nansum(b.extra["gated"][bad])
