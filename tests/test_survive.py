@@ -17,7 +17,7 @@ from pipeline.sync import estimate_offset, resolve_sync
 from renderers.motion import simulate_truth
 from renderers.scenario import load_scenario, parse_scenario
 
-GATED = ["kf3d", "ekf", "ukf", "kf3d_rts", "ekf_rts", "alphabeta", "alphabetagamma"]
+GATED = ["kf3d", "ekf", "ukf", "kf3d_rts", "ekf_rts", "alphabeta", "alphabetagamma", "spsa_stereo"]
 
 
 def scene(name: str, layout: str, frames: int = 200):
@@ -60,7 +60,7 @@ def outlier_runs() -> list:
 @pytest.mark.parametrize("method", GATED)
 def test_gated_methods_ignore_outliers(method, outlier_runs):
     clean, dirty, rejected, injected, false, observed = [], [], 0.0, 0, 0.0, 0
-    cfg = {"pixel_sigma": 1.0, "gate": 0.9995}  # the default, but for the alpha-betas (opt-in there)
+    cfg = {"pixel_sigma": 1.0, "gate": 0.9995}  # the default, but for the alpha-betas and spsa_stereo (opt-in)
     for rig, dt, X, Y, Yo, bad in outlier_runs:
         a = create(method, rig, dt, cfg).run(Y)
         b = create(method, rig, dt, cfg).run(Yo)

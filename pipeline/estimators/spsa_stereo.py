@@ -72,6 +72,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 
 import numpy as np
 from pydantic import Field
@@ -82,6 +83,7 @@ from pipeline.estimators.base import (
     InitConfig,
     Step,
     Track,
+    camera_gate,
     not_started,
     register,
     reprojection_errors,
@@ -95,7 +97,11 @@ DIAGONALS = ((1.0, 1.0, 1.0), (1.0, 1.0, -1.0), (1.0, -1.0, 1.0), (-1.0, 1.0, 1.
 
 
 class SPSAStereoConfig(EstimatorConfig):
-    """Gain floors, Newton steps per frame, perturbation size and outlier gate of ``spsa_stereo``."""
+    """Gain floors, Newton steps per frame, perturbation size and outlier gates of ``spsa_stereo``."""
+
+    #: the per-camera χ² gate on the prediction's reprojection (see :meth:`SPSAStereoEstimator._gate`):
+    #: off by default, as for the alpha-beta filters (floor gains lag a manoeuvre systematically)
+    gate: float = Field(0.0, ge=0.0, lt=1.0)
 
     init: InitConfig = InitConfig(frames=2)
     #: the floor of the gain α_n of the image coordinates x/z, y/z (the memory stops growing there)
@@ -174,6 +180,9 @@ class SPSAStereoEstimator(Estimator):
         self._far = 5.0 * cfg.perturbation
         self._sweeps = cfg.max_sweeps
         self._gate = cfg.cost_gate
+        self._nis_gate = camera_gate(cfg.pixel_sigma, cfg.gate)
+        self._f2 = [float(c.K[0, 0] * c.K[1, 1]) for c in self.rig.cameras]  # px² per normalized unit²
+        self._recent: deque = deque(maxlen=30)
         self.p = [0.0, 0.0, 0.0]
         self.v = [0.0, 0.0, 0.0]
 
@@ -312,6 +321,10 @@ class SPSAStereoEstimator(Estimator):
         self.p = pp
         if not (use_l or use_r):
             return True, math.nan, math.nan
+        if math.isfinite(self._nis_gate):
+            use_l, use_r = self._gate_cameras(pp, yn, use_l, use_r)
+            if not (use_l or use_r):
+                return True, math.nan, math.nan
         q = self.g(pp)
         if q is None:  # the prediction left the field of view behind the camera: start again
             q = self.g(self._unit_rig.triangulate(np.array(yn))) if use_l and use_r else None
@@ -342,6 +355,26 @@ class SPSAStereoEstimator(Estimator):
         self.v = [v[0] + k * (pv[0] - pp[0]), v[1] + k * (pv[1] - pp[1]), v[2] + k * (pv[2] - pp[2])]
         return False, cost, a0
 
+    def _gate_cameras(self, pp: list[float], yn: tuple, use_l: bool, use_r: bool) -> tuple[bool, bool]:
+        """Drop a camera whose observation lies too far from the prediction: its squared
+        reprojection residual (px²) over ``σ²`` times a robust scale — the median of the last 30
+        such values over χ²₂'s median (ln 4), floored at 1 — beyond the χ² gate (2 dof)."""
+        uv = self.model.function(np.array(pp)) if all(math.isfinite(c) for c in pp) else None
+        if uv is None:
+            return use_l, use_r
+        un = self.rig.normalize(uv)
+        out = [use_l, use_r]
+        sigma2 = self.config.pixel_sigma**2  # type: ignore[attr-defined]
+        for c in (0, 1):
+            if out[c]:
+                nis = ((un[2 * c] - yn[2 * c]) ** 2 + (un[2 * c + 1] - yn[2 * c + 1]) ** 2) * self._f2[c] / sigma2
+                scale = max(1.0, float(np.median(self._recent)) / math.log(4.0)) if self._recent else 1.0
+                self._recent.append(nis)
+                if nis / scale > self._nis_gate:
+                    out[c] = False
+                    self._gated += 1
+        return out[0], out[1]
+
     def _step(self, y: np.ndarray) -> Step:
         if not self.initialized:
             st = self.start(y)
@@ -350,9 +383,11 @@ class SPSAStereoEstimator(Estimator):
             self._begin(st.state.tolist(), self._start_memory())
             return Step(np.array(self.p), np.array(self.v))
         yn = tuple(self.rig.normalize(y).tolist())
+        self._gated = 0
         pred, cost, gain = self._update(yn, math.isfinite(yn[0]) and math.isfinite(yn[1]),
                                         math.isfinite(yn[2]) and math.isfinite(yn[3]))
-        return Step(np.array(self.p), np.array(self.v), predicted=pred, extra={"cost": cost, "gain": gain})
+        return Step(np.array(self.p), np.array(self.v), predicted=pred,
+                    extra={"cost": cost, "gain": gain, "gated": float(self._gated)})
 
     def _fast(self, Y: np.ndarray) -> tuple[list, list, list, list, list]:
         """Every frame from a fresh state in one loop without per-frame objects (observations
@@ -370,21 +405,25 @@ class SPSAStereoEstimator(Estimator):
             states[k], pred[k] = self.p + self.v, False
             k += 1
         update = self._update
+        gated = [math.nan] * (k + 1 if start is not None else n) + [0.0] * (n - k - 1 if start is not None else 0)
         for j in range(k, n):
+            self._gated = 0
             pred[j], costs[j], gains[j] = update(tuple(rows[j]), okl[j], okr[j])
             states[j] = self.p + self.v
+            gated[j] = float(self._gated)
         self.frame = n
-        return states, pred, costs, gains, []
+        return states, pred, costs, gains, gated
 
     def run(self, Y: np.ndarray) -> Track:
         """The clip through :meth:`_fast` (a warm-up on the first frames outside the timing)."""
         Y = self.check(Y)
         self._fast(Y[: self.warmup_frames])
         t0 = time.perf_counter()
-        states, pred, costs, gains, _ = self._fast(Y)
+        states, pred, costs, gains, gated = self._fast(Y)
         elapsed = time.perf_counter() - t0
         n = len(Y)
         S = np.array(states, dtype=float).reshape(n, 6)
-        extra = {"cost": np.array(costs, dtype=float), "gain": np.array(gains, dtype=float)}
+        extra = {"cost": np.array(costs, dtype=float), "gain": np.array(gains, dtype=float),
+                 "gated": np.array(gated, dtype=float)}
         return Track(self.name, S[:, :3], S[:, 3:], reprojection_errors(self.rig, S[:, :3], Y), np.full(n, np.nan),
                      np.array(pred, dtype=bool), elapsed / max(n, 1), extra)
