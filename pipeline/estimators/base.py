@@ -416,32 +416,35 @@ def reprojection_residual(model: StereoMeasurementModel, X: np.ndarray, Y: np.nd
 
 
 def camera_nis(model: StereoMeasurementModel, x: np.ndarray, P: np.ndarray, Y: np.ndarray,
-               R: np.ndarray | None = None) -> np.ndarray:
+               R: np.ndarray | None = None, h: np.ndarray | None = None, H: np.ndarray | None = None) -> np.ndarray:
     """Each camera's normalized innovation squared ``rᵀ S⁻¹ r`` (…×2; NaN where it has no
     observation), ``r = y_c − h_c(x)``, ``S = H_c P H_cᵀ + R_c`` at the predicted state ``x`` (…×d)
-    and covariance ``P`` (…×d×d); ``R`` (4×4) defaults to the model's ``σ² I``."""
+    and covariance ``P`` (…×d×d); ``R`` (4×4) defaults to the model's ``σ² I``; ``h``, ``H``: the
+    model at ``x`` when the caller has them already."""
     R = model.covar() if R is None else R
-    h = model.function(x)
-    H = model.jacobian(x)
+    h = model.function(x) if h is None else h
+    H = model.jacobian(x) if H is None else H
+    S = H @ P @ np.swapaxes(H, -1, -2) + R  # both cameras at once; each camera's own is its 2×2 block
+    with np.errstate(invalid="ignore"):
+        r = Y - h
     out = np.full((*np.shape(Y)[:-1], 2), np.nan)
     for c in range(2):
-        sl = slice(2 * c, 2 * c + 2)
-        Hc = H[..., sl, :]
-        S = Hc @ P @ np.swapaxes(Hc, -1, -2) + R[sl, sl]
-        r = np.nan_to_num(Y[..., sl] - h[..., sl])
-        nis = np.einsum("...i,...i->...", r, np.linalg.solve(S, r[..., None])[..., 0])
-        out[..., c] = np.where(np.all(np.isfinite(Y[..., sl]), axis=-1), nis, np.nan)
+        i = 2 * c
+        a, b, d = S[..., i, i], S[..., i, i + 1], S[..., i + 1, i + 1]
+        u, v = r[..., i], r[..., i + 1]
+        out[..., c] = (d * u * u - 2.0 * b * u * v + a * v * v) / (a * d - b * b)  # rᵀ S_c⁻¹ r, 2×2 in closed form
     return out
 
 
 def gated_cameras(model: StereoMeasurementModel, x: np.ndarray, P: np.ndarray, Y: np.ndarray,
-                  threshold: float, R: np.ndarray | None = None) -> np.ndarray:
+                  threshold: float, R: np.ndarray | None = None, h: np.ndarray | None = None,
+                  H: np.ndarray | None = None) -> np.ndarray:
     """Which cameras' observations fall outside the χ² gate (…×2 booleans), each camera on its own
     (a bad blob in one camera never discards the other's): :func:`camera_nis` above ``threshold``."""
     if not np.isfinite(threshold):
         return np.zeros((*np.shape(Y)[:-1], 2), dtype=bool)
     with np.errstate(invalid="ignore"):
-        return camera_nis(model, x, P, Y, R) > threshold
+        return camera_nis(model, x, P, Y, R, h, H) > threshold
 
 
 def reprojection_errors(rig: StereoRig, positions: np.ndarray, Y: np.ndarray, velocities: np.ndarray | None = None,

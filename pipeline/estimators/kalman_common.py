@@ -76,15 +76,17 @@ class GatedFilter:
         """The pixel noise the gate assumes: the model's ``σ² I``, times ``r_scale``."""
         return self.model.covar() * self.config.r_scale  # type: ignore[attr-defined]
 
-    def gate(self, y: np.ndarray, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, int, Start | None]:
+    def gate(self, y: np.ndarray, x: np.ndarray, P: np.ndarray, h: np.ndarray | None = None,
+             H: np.ndarray | None = None) -> tuple[np.ndarray, int, Start | None]:
         """(the observation with gated cameras missing, how many were gated, a restart or None):
         after ``restart_after`` frames in a row with a camera gated, the track restarts from this
-        frame's detections (when they triangulate plausibly)."""
-        g = gated_cameras(self.model, x, P, y, self.gate_threshold(), self.gate_covariance())  # type: ignore[attr-defined]
+        frame's detections (when they triangulate plausibly). ``h``, ``H``: the model at ``x``."""
+        g = gated_cameras(self.model, x, P, y, self.gate_threshold(), self.gate_covariance(), h, H)  # type: ignore[attr-defined]
         kept = y.copy()
         for c in np.flatnonzero(g):
             kept[2 * c : 2 * c + 2] = np.nan
-        self.gated_run = update_gated_run(self.gated_run, y, kept)  # type: ignore[has-type]
+        had, gated = bool(np.isfinite(y).any()), bool(g.any())  # one track: plain Python, as update_gated_run
+        self.gated_run = self.gated_run + 1 if gated else (0 if had else self.gated_run)  # type: ignore[has-type]
         restart = None
         if self.gated_run >= self.config.restart_after:  # type: ignore[attr-defined]
             restart = self.initiator.restart(self.frame, y)  # type: ignore[attr-defined]
@@ -191,13 +193,17 @@ def rts_smooth(est: Estimator, track: Track) -> Track:
     return track
 
 
-def filtered_step(x: np.ndarray, P: np.ndarray, predicted: bool, f=None) -> Step:
-    """A Kalman-family step from the filter's state; with ``f`` (a filterpy filter that just
-    updated) its innovation ``y`` and covariance ``S`` are kept for NIS."""
+def filtered_step(x: np.ndarray, P: np.ndarray, predicted: bool, f=None, innovation: np.ndarray | None = None,
+                  innovation_covariance: np.ndarray | None = None) -> Step:
+    """A Kalman-family step from the filter's state; the update's innovation ``y`` and covariance
+    ``S`` (from ``f``, a filterpy filter that just updated, or given) are kept for NIS."""
     x = np.ravel(x)
-    if f is None or predicted:
+    if f is not None:
+        innovation, innovation_covariance = np.ravel(f.y), np.array(f.S, dtype=float)
+    if innovation is None or predicted:
         return Step(x[:3].copy(), x[3:].copy(), predicted, P.copy())
-    return Step(x[:3].copy(), x[3:].copy(), predicted, P.copy(), np.ravel(f.y).copy(), np.array(f.S, dtype=float).copy())
+    return Step(x[:3].copy(), x[3:].copy(), predicted, P.copy(), np.array(innovation, dtype=float).copy(),
+                np.array(innovation_covariance, dtype=float).copy())
 
 
 class RTSMixin:
