@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.camera import StereoRig
+from pipeline.checks import EPIPOLAR_WARN_PX
 from pipeline.errors import StereotrackError
 
 #: the offsets searched, in frames either side of zero (fewer for short clips: a quarter of them)
@@ -65,7 +66,7 @@ class SyncEstimate:
         if self.ci_s is None:
             return f"sync offset: not estimated ({self.note})"
         lo, hi = self.ci_s
-        state = "applied" if self.applied else "not applied: the interval contains 0"
+        state = "applied" if self.applied else f"not applied: {self.note or 'the interval contains 0'}"
         return (f"sync offset: {1000 * self.offset_s:+.2f} ms (95 % interval {1000 * lo:+.2f} … {1000 * hi:+.2f} ms), "
                 f"{state}")
 
@@ -121,7 +122,9 @@ def _argmin(cost: np.ndarray, shifts: np.ndarray) -> float:
 
 
 def estimate_offset(rig: StereoRig, obs: dict[str, np.ndarray], fps: float, seed: int = 0) -> SyncEstimate:
-    """δ from the detections alone (see the module docstring); ``applied`` is left False."""
+    """δ from the detections alone (see the module docstring); ``applied`` is left False. It is
+    applied (:func:`resolve_sync`) only when the interval excludes 0 and the epipolar residual at δ
+    is within the epipolar check's threshold: an offset must explain the mismatch to be one."""
     n = max((len(Y) for Y in obs.values()), default=0)
     both = sum(int(np.all(np.isfinite(Y), axis=1).sum()) for Y in obs.values())
     if both < MIN_PAIRS:
@@ -134,6 +137,9 @@ def estimate_offset(rig: StereoRig, obs: dict[str, np.ndarray], fps: float, seed
         return SyncEstimate(0.0, None, False, "detections", note="too few frames with both cameras and their neighbours")
     D = D[valid]
     best = _argmin(D.mean(axis=0), shifts)
+    if abs(best) >= span - 2 * GRID_STEP:  # the cost still falls at the edge: no minimum inside the range
+        return SyncEstimate(0.0, None, False, "detections",
+                            note=f"no minimum within ±{span:g} frames (swapped cameras or mismatched detections?)")
     rng = np.random.default_rng(seed)
     blocks = np.arange(0, len(D), BLOCK)
     boot = []
@@ -156,7 +162,12 @@ def resolve_sync(setting: str | float | None, rig: StereoRig, obs: dict[str, np.
         return SyncEstimate(_median_offset(timestamps), None, True, "timestamps"), aligned
     if setting in (None, "auto"):
         est = estimate_offset(rig, obs, fps)
-        est.applied = est.ci_s is not None and not (est.ci_s[0] <= 0.0 <= est.ci_s[1])
+        excludes_zero = est.ci_s is not None and not (est.ci_s[0] <= 0.0 <= est.ci_s[1])
+        explains = est.residual_px is not None and est.residual_px <= EPIPOLAR_WARN_PX
+        est.applied = excludes_zero and explains
+        if excludes_zero and not explains:  # the epipolar error is no matter of time (calibration, matching)
+            est.note = (f"the epipolar residual at the best offset is {est.residual_px:.1f} px (> {EPIPOLAR_WARN_PX:g}): "
+                        "not a time offset")
     elif setting == "off":
         est = SyncEstimate(0.0, None, False, "off")
     else:
