@@ -96,6 +96,8 @@ def compute_metrics(res: EstimateResult) -> dict[str, Any]:
         entry = {"target": True, "seconds_per_step": t.seconds_per_step,
                  "steps_per_second": 1.0 / t.seconds_per_step if t.seconds_per_step > 0 else None,
                  "valid_frames": int(np.isfinite(t.extra["alpha"]).sum())}
+        if "gated" in t.extra:  # measurements the target filter's gate rejected
+            entry["gated"] = int(np.nansum(t.extra["gated"]))
         tg = res.target
         if tg is not None and tg.alpha is not None and tg.distance is not None:
             entry["alpha_rmse_rad"] = rmse(t.extra["alpha"], tg.alpha)

@@ -247,3 +247,33 @@ def test_one_camera_step_sideways_moves_no_depth(layout):
             depth = t.position[:, 2]
             jump[m] = abs(depth[40] - depth[39])
         assert jump["spsa_stereo"] <= max(jump["ekf"], 0.02), (layout, cam, jump)
+
+
+def test_target_filters_gate_a_corrupted_frame(target_clip, tmp_path):
+    """Three frames of the four-point target with one camera's points 1 and 3 moved 40 px apart
+    (a mis-detected plate: its foreshortening, hence α and z, is wrong by ~0.2 rad; kalman_bucy's
+    own α uncertainty is ~0.05 rad, so its gate catches only errors this gross): with the gate on,
+    kalman_bucy's and pnp_kf's α and z stay within 1.3× of their errors on the clean detections, and
+    the frames are counted as gated; the same filters without the gate are thrown off further."""
+    from detectors.stage import detect_clip
+    from pipeline.estimate import estimate_clip
+
+    det = detect_clip(target_clip, "blob", out_dir=tmp_path / "clean")
+    obs = {k: v.copy() for k, v in det.observations.items()}
+    dirty = {k: v.copy() for k, v in obs.items()}
+    for k in (15, 22, 29):
+        dirty["target_1"][k, 3] -= 40.0
+        dirty["target_3"][k, 3] += 40.0
+    gate_on = {m: {"gate": 0.9995, "pixel_sigma": 0.5} for m in ("kalman_bucy", "pnp_kf")}
+    gate_off = {m: {"gate": 0.0, "pixel_sigma": 0.5} for m in ("kalman_bucy", "pnp_kf")}
+    runs = {}
+    for name, o, cfg in (("clean", obs, gate_on), ("gated", dirty, gate_on), ("ungated", dirty, gate_off)):
+        res = estimate_clip(target_clip, ["kalman_bucy", "pnp_kf"], out_dir=tmp_path / name, configs=cfg,
+                            detections=(o, det.footage))
+        runs[name] = res.metrics["methods"]
+    for m in ("kalman_bucy", "pnp_kf"):
+        for q in ("alpha_rmse_rad", "distance_rmse_m"):
+            assert runs["gated"][m][q] <= 1.3 * runs["clean"][m][q], (m, q, runs["gated"][m][q],
+                                                                      runs["clean"][m][q])
+        assert runs["gated"][m]["gated"] >= 3 and runs["clean"][m]["gated"] == 0
+        assert runs["ungated"][m]["alpha_rmse_rad"] > 1.3 * runs["clean"][m]["alpha_rmse_rad"], m

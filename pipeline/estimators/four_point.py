@@ -34,7 +34,7 @@ import numpy as np
 from pydantic import Field
 
 from pipeline.camera import Camera, StereoRig
-from pipeline.estimators.base import Estimator, EstimatorConfig, Step, register
+from pipeline.estimators.base import Estimator, EstimatorConfig, Step, camera_gate, register
 
 Formula = Literal["exact", "paper"]
 
@@ -204,10 +204,22 @@ class TargetEstimator(Estimator):
         return measure_stereo(self.rig, np.asarray(obs, dtype=float), c.radius, c.formula, c.cameras)
 
     @staticmethod
-    def target_step(alpha: float, distance: float, center: np.ndarray, predicted: bool, **kw) -> Step:
-        """A four-point step: the plate centre as position, α and z in ``extra``."""
-        return Step(np.asarray(center, dtype=float), np.full(3, np.nan), predicted,
-                    extra={"alpha": alpha, "distance": distance}, **kw)
+    def target_step(alpha: float, distance: float, center: np.ndarray, predicted: bool, gated: float | None = None,
+                    **kw) -> Step:
+        """A four-point step: the plate centre as position, α and z (and, for filters, whether the
+        gate rejected this frame's measurement) in ``extra``."""
+        extra = {"alpha": alpha, "distance": distance} | ({"gated": gated} if gated is not None else {})
+        return Step(np.asarray(center, dtype=float), np.full(3, np.nan), predicted, extra=extra, **kw)
+
+    def gated_measurement(self, u: np.ndarray, predicted: np.ndarray, S: np.ndarray) -> bool:
+        """Whether a measurement ``u = [α, z]`` lies outside the χ² gate (2 dof, ``gate``) around the
+        filter's predicted ``[α, z]`` with innovation covariance ``S``: a target whose points were
+        mis-detected or mislabelled in one frame must not throw the filter off."""
+        threshold = camera_gate(self.config.pixel_sigma, self.config.gate)  # type: ignore[attr-defined]
+        if not np.isfinite(threshold):
+            return False
+        r = np.asarray(u, dtype=float) - predicted
+        return bool(r @ np.linalg.solve(S, r) > threshold)
 
     def _step(self, obs: np.ndarray) -> Step:
         m = self.measure(obs)

@@ -139,6 +139,10 @@ def propagated_variance(measure, obs: np.ndarray, m0, pixel_sigma: float, eps: f
 class KalmanBucyConfig(TargetConfig):
     """Channel models, noise, gain and integration of the Kalman–Bucy filter."""
 
+    #: the χ² gate on the fused [α, z] measurement (2 dof): off by default — with the pixel noise
+    #: measured on a rendered clip (hundredths of a pixel) it rejected good measurements and made
+    #: kalman_bucy's α RMSE 0.0030 rad instead of 0.0021; ``gate: 0.9995`` turns it on
+    gate: float = Field(0.0, ge=0.0, lt=1.0)
     a_alpha: float = -1.0
     alpha_feedback: tuple[float, float] = (1.0, 0.73)
     a_z: float = -0.2
@@ -206,6 +210,9 @@ class KalmanBucyEstimator(TargetEstimator):
             self._center_dir = m.center / m.center[2]
             return self.target_step(m.alpha, m.distance, m.center, False)
         u = np.array([m.alpha, m.distance]) if m.ok else None
+        gated = 0.0
+        if u is not None and self.gated_measurement(u, C4 @ self.x, C4 @ self.P @ C4.T + np.diag(self.meas_var)):
+            u, gated = None, 1.0  # treated as a frame without a measurement
         if c.gain == "riccati":
             if u is not None:
                 self.K = self.P @ C4.T @ self.Rinv
@@ -214,6 +221,6 @@ class KalmanBucyEstimator(TargetEstimator):
                 self.P = riccati_step(self.P, self.dt, self.A, np.zeros_like(C4), self.GQG, self.Rinv, c.integration)
         self.x = filter_step(self.x, u, self.dt, self.A, self.K, C4, c.integration, self._u_prev)
         self._u_prev = u
-        if m.ok:
+        if m.ok and not gated:
             self._center_dir = m.center / m.center[2]
-        return self.target_step(float(self.x[0]), float(self.x[2]), self._center_dir * self.x[2], u is None)
+        return self.target_step(float(self.x[0]), float(self.x[2]), self._center_dir * self.x[2], u is None, gated)

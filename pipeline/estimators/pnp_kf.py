@@ -125,10 +125,14 @@ class PnPKFEstimator(TargetEstimator):
             self._center_dir = m.center / m.center[2]
             return self.target_step(m.alpha, m.distance, m.center, False)
         self.kf.predict()
-        if m.ok:
-            self.kf.update(np.array([[m.alpha], [m.distance]]))
+        u = np.array([m.alpha, m.distance])
+        kf = self.kf
+        gated = m.ok and self.gated_measurement(u, (kf.H @ kf.x).ravel(), kf.H @ kf.P @ kf.H.T + kf.R)
+        use = m.ok and not gated
+        if use:
+            kf.update(u.reshape(2, 1))
             self._center_dir = m.center / m.center[2]
-        x = self.kf.x.ravel()
-        nis = {"innovation": self.kf.y.ravel().copy(), "innovation_covariance": self.kf.S.copy()} if m.ok else {}
-        return self.target_step(float(x[0]), float(x[2]), self._center_dir * x[2], not m.ok, covariance=self.kf.P.copy(),
-                                **nis)
+        x = kf.x.ravel()
+        nis = {"innovation": kf.y.ravel().copy(), "innovation_covariance": kf.S.copy()} if use else {}
+        return self.target_step(float(x[0]), float(x[2]), self._center_dir * x[2], not use, float(gated),
+                                covariance=kf.P.copy(), **nis)
