@@ -68,6 +68,20 @@ def target_clip(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.fixture(scope="module")
+def detected_clip(tmp_path_factory) -> Path:
+    """The sample clip as a real rig ships it (videos + calib.yaml), detected and estimated: the
+    starting point of the bad-input tables (each case copies it)."""
+    from detectors.stage import detect_clip
+    from pipeline.estimate import estimate_clip
+    from tests.test_inputs import RED, real_copy
+
+    clip = real_copy(tmp_path_factory.mktemp("bad") / "clip")
+    detect_clip(clip, "blob", [RED])
+    estimate_clip(clip, ["triangulation"])
+    return clip
+
+
 @pytest.fixture(scope="session")
 def ball_reference() -> dict[int, tuple[float, float]]:
     """ball2.mp4's ball centre per left frame from a strict HSV range (confident frames only): the

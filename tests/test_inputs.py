@@ -48,6 +48,15 @@ def cli(monkeypatch, capsys, *args: str) -> tuple[int, str, str]:
     return int(exc.value.code or 0), cap.out, cap.err
 
 
+def assert_one_line_error(rc: int, out: str, err: str, expected: str, code: int = 2, case: str = "") -> None:
+    """A command that failed as a user error should: exit ``code``, one ``error:`` line holding
+    ``expected``, no traceback."""
+    errors = [line for line in err.splitlines() if line.startswith("error:")]
+    assert rc == code, (case, err)
+    assert len(errors) == 1 and expected in errors[0], (case, err)
+    assert "Traceback" not in err + out, case
+
+
 def snapshot(folder: Path) -> dict[str, str]:
     return {str(p.relative_to(folder)): hashlib.sha1(p.read_bytes()).hexdigest() if p.is_file() else "dir"
             for p in sorted(folder.rglob("*"))}
@@ -338,14 +347,6 @@ def _edit_truth(clip: Path) -> None:
         fh.write("40,1.3,red,0,0,2,0,0,0,1,1,1,1,1,1\n")
 
 
-@pytest.fixture(scope="module")
-def detected_clip(tmp_path_factory) -> Path:
-    clip = real_copy(tmp_path_factory.mktemp("bad") / "clip")
-    detect_clip(clip, "blob", [RED])
-    estimate_clip(clip, ["triangulation"])
-    return clip
-
-
 @pytest.mark.parametrize("case", list(BAD_INPUTS))
 def test_bad_input_is_one_line(case, detected_clip, tmp_path, monkeypatch, capsys):
     setup, extra, command, expected = BAD_INPUTS[case]
@@ -362,11 +363,7 @@ def test_bad_input_is_one_line(case, detected_clip, tmp_path, monkeypatch, capsy
         argv = ["batch", clip / "empty", "-o", tmp_path / "batch-out"]
     else:
         argv = [command, clip, *(["--markers", RED] if command in ("detect",) and "--markers" not in extra else []), *extra]
-    rc, out, err = cli(monkeypatch, capsys, *argv)
-    errors = [line for line in err.splitlines() if line.startswith("error:")]
-    assert rc == 2, (case, err)
-    assert len(errors) == 1 and expected in errors[0], (case, err)
-    assert "Traceback" not in err + out
+    assert_one_line_error(*cli(monkeypatch, capsys, *argv), expected, case=case)
     after = snapshot(tmp_path)
     assert {k: v for k, v in after.items() if not k.startswith("batch-out")} == before, case
 

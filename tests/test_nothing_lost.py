@@ -26,7 +26,7 @@ from pipeline.errors import StereotrackError
 from pipeline.io import read_csv
 from pipeline.manifest import MANIFEST, verify_manifest
 from tests.conftest import REPO
-from tests.test_inputs import RED, cli, real_copy, snapshot
+from tests.test_inputs import RED, assert_one_line_error, cli, real_copy, snapshot
 
 SAMPLE = REPO / "data" / "clips" / "sample_small"
 FUZZ = settings(max_examples=200, deadline=None, derandomize=True,
@@ -242,29 +242,16 @@ TRACEBACKS = {
 }
 
 
-@pytest.fixture(scope="module")
-def detected(tmp_path_factory) -> Path:
-    from detectors.stage import detect_clip
-    from pipeline.estimate import estimate_clip
-
-    clip = real_copy(tmp_path_factory.mktemp("tb") / "clip")
-    detect_clip(clip, "blob", [RED])
-    estimate_clip(clip, ["triangulation"])
-    return clip
-
-
 @pytest.mark.parametrize("case", list(TRACEBACKS))
-def test_former_tracebacks_are_one_line(case, detected, tmp_path, monkeypatch, capsys):
+def test_former_tracebacks_are_one_line(case, detected_clip, tmp_path, monkeypatch, capsys):
     setup, argv, code, text = TRACEBACKS[case]
     clip = tmp_path / "clip"
-    shutil.copytree(detected, clip)
+    shutil.copytree(detected_clip, clip)
     if setup is not None:
         setup(tmp_path, clip, monkeypatch)
     before = snapshot(clip)
     rc, out, err = cli(monkeypatch, capsys, *[a.format(clip=clip, tmp=tmp_path) for a in argv])
-    errors = [line for line in err.splitlines() if line.startswith("error:")]
-    assert rc == code and len(errors) == 1 and text in errors[0], (case, err)
-    assert "Traceback" not in out + err
+    assert_one_line_error(rc, out, err, text, code, case)
     assert snapshot(clip) == before, case
 
 

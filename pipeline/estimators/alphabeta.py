@@ -16,8 +16,6 @@ checks agreement with filterpy on complete data.
 
 from __future__ import annotations
 
-import math
-from collections import deque
 from typing import Literal
 
 import numpy as np
@@ -27,6 +25,7 @@ from pipeline.estimators.base import (
     NAN3,
     Estimator,
     EstimatorConfig,
+    RobustNISScale,
     Step,
     camera_gate,
     camera_nis,
@@ -34,10 +33,6 @@ from pipeline.estimators.base import (
     register,
 )
 from pipeline.estimators.kalman_common import update_gated_run
-
-#: innovations (per camera) whose median sets the α-β gate's robust scale
-SCALE_MEMORY = 30
-NIS_MEDIAN = math.log(4.0)  # the median of χ² with 2 degrees of freedom
 
 
 class ABFilter:
@@ -102,8 +97,7 @@ class AlphaBetaEstimator(Estimator):
         order = 2 if gamma is None else 3
         self.F1 = np.array([[1.0, self.dt, 0.5 * self.dt**2], [0.0, 1.0, self.dt], [0.0, 0.0, 1.0]])[:order, :order]
         self.K1 = np.array([cfg.alpha, cfg.beta / self.dt, 2.0 * (gamma or 0.0) / self.dt**2])[:order]
-        self.scale = 1.0  # the innovations' variance over the model's (≥ 1; lag raises it)
-        self.recent: deque = deque(maxlen=SCALE_MEMORY)
+        self.scale = RobustNISScale()  # the innovations' variance over the model's (≥ 1; lag raises it)
 
     def _begin(self, s) -> None:
         """Start the filter and its error covariance (per channel: position, rate(, acceleration))
@@ -144,10 +138,8 @@ class AlphaBetaEstimator(Estimator):
     def _gate(self, y: np.ndarray) -> tuple[np.ndarray, int]:
         """Drop the cameras whose innovation falls outside the χ² gate, on the filter's predicted
         error covariance (:meth:`_correct_covariance`; in 3-D seen through the cameras) times a
-        robust scale: the median of the last ``SCALE_MEMORY`` NIS values (gated ones included) over
-        χ²₂'s median, floored at 1 — an α-β filter lags a manoeuvre and its innovations grow with
-        the lag, which widens the gate within a few frames, while occasional outliers do not move a
-        median."""
+        robust scale (:class:`~pipeline.estimators.base.RobustNISScale`): an α-β filter lags a
+        manoeuvre, and its innovations grow with the lag."""
         assert self.f is not None
         if not np.isfinite(self.threshold):
             return y, 0
@@ -160,10 +152,8 @@ class AlphaBetaEstimator(Estimator):
             P[:3, :3] = np.diag(self.P[:, 0, 0])
             nis = camera_nis(self.model, np.r_[self.f.x, np.zeros(3)], P, y)
         with np.errstate(invalid="ignore"):
-            g = nis / self.scale > self.threshold
-        self.recent.extend(float(v) for v in nis[np.isfinite(nis)])
-        if self.recent:  # the median NIS of the last frames over χ²₂'s median (ln 4): robust, and quick to follow lag
-            self.scale = max(1.0, float(np.median(self.recent)) / NIS_MEDIAN)
+            g = nis / self.scale.value > self.threshold
+        self.scale.add(nis)
         kept = y.copy()
         for c in np.flatnonzero(g):
             kept[2 * c : 2 * c + 2] = np.nan

@@ -22,6 +22,7 @@ group ``stereotrack.estimators`` (see :func:`registry`).
 
 from __future__ import annotations
 
+import math
 import time
 import warnings
 from abc import ABC, abstractmethod
@@ -407,6 +408,25 @@ def camera_gate(sigma: float, gate: float) -> float:
     from scipy.special import chdtri
 
     return float(chdtri(2, 1.0 - gate))
+
+
+class RobustNISScale:
+    """The gate's scale for filters whose gains ignore their own lag (alpha-beta, ``spsa_stereo``):
+    the median of the last ``memory`` NIS values, gated ones included, over χ²₂'s median (ln 4),
+    floored at 1. A lagging filter's innovations grow and widen its gate within a few frames;
+    occasional outliers do not move a median. ``value`` is the scale from the innovations added
+    so far (use it, then :meth:`add` the new ones)."""
+
+    def __init__(self, memory: int = 30) -> None:
+        from collections import deque
+
+        self.recent: deque = deque(maxlen=memory)
+        self.value = 1.0
+
+    def add(self, nis) -> None:
+        self.recent.extend(float(v) for v in nis if np.isfinite(v))
+        if self.recent:
+            self.value = max(1.0, float(np.median(self.recent)) / math.log(4.0))
 
 
 def reprojection_residual(model: StereoMeasurementModel, X: np.ndarray, Y: np.ndarray) -> np.ndarray:

@@ -72,7 +72,6 @@ from __future__ import annotations
 
 import math
 import time
-from collections import deque
 
 import numpy as np
 from pydantic import Field
@@ -81,6 +80,7 @@ from pipeline.estimators.base import (
     Estimator,
     EstimatorConfig,
     InitConfig,
+    RobustNISScale,
     Step,
     Track,
     camera_gate,
@@ -182,7 +182,7 @@ class SPSAStereoEstimator(Estimator):
         self._gate = cfg.cost_gate
         self._nis_gate = camera_gate(cfg.pixel_sigma, cfg.gate)
         self._f2 = [float(c.K[0, 0] * c.K[1, 1]) for c in self.rig.cameras]  # px² per normalized unit²
-        self._recent: deque = deque(maxlen=30)
+        self._scale = RobustNISScale()
         self.p = [0.0, 0.0, 0.0]
         self.v = [0.0, 0.0, 0.0]
 
@@ -357,8 +357,8 @@ class SPSAStereoEstimator(Estimator):
 
     def _gate_cameras(self, pp: list[float], yn: tuple, use_l: bool, use_r: bool) -> tuple[bool, bool]:
         """Drop a camera whose observation lies too far from the prediction: its squared
-        reprojection residual (px²) over ``σ²`` times a robust scale — the median of the last 30
-        such values over χ²₂'s median (ln 4), floored at 1 — beyond the χ² gate (2 dof)."""
+        reprojection residual (px²) over ``σ²`` times the robust scale of
+        :class:`~pipeline.estimators.base.RobustNISScale`, beyond the χ² gate (2 dof)."""
         uv = self.model.function(np.array(pp)) if all(math.isfinite(c) for c in pp) else None
         if uv is None:
             return use_l, use_r
@@ -368,8 +368,8 @@ class SPSAStereoEstimator(Estimator):
         for c in (0, 1):
             if out[c]:
                 nis = ((un[2 * c] - yn[2 * c]) ** 2 + (un[2 * c + 1] - yn[2 * c + 1]) ** 2) * self._f2[c] / sigma2
-                scale = max(1.0, float(np.median(self._recent)) / math.log(4.0)) if self._recent else 1.0
-                self._recent.append(nis)
+                scale = self._scale.value
+                self._scale.add([nis])
                 if nis / scale > self._nis_gate:
                     out[c] = False
                     self._gated += 1
