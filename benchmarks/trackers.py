@@ -1,22 +1,23 @@
-"""Every point method over a scenario suite: seeds × scenarios (receding, maneuvering,
-accelerating, sine) × image noise × start error, simulated observations of each scenario's ground
-truth (300 frames, the scenario's rig). Prints 3-D RMSE per scenario, the final error, the
-divergence rate and steps/s per method, with the predict-only row (the same start, no update), then
-the same RMSE from frame 30 on (without the start transient).
+"""Every point method over simulated imperfect conditions and over the rendered imperfect-rig suite.
 
-    python benchmarks/trackers.py [--seeds 5] [--divergence-runs 200] [--suite clean|imperfect|all]
+    python benchmarks/trackers.py [--seeds 5] [--suite simulated|imperfect|all]
                                   [--imperfect-frames 90] [--out DIR | --write-docs]
 
-The imperfect-rig suite (``--suite imperfect``) renders each imperfect scenario of data/scenarios/
-and runs the whole pipeline on it (see :func:`imperfect_suite`); it writes trackers_imperfect.md.
+Simulated suite (``--suite simulated``, docs/trackers.md): the exact truth of four scenarios
+(receding, maneuvering, accelerating, sine; 300 frames at their own rig and frame rate) projected
+with 1 px Gaussian noise, under nine conditions: clean; 5 % of frames with one camera's detection
+replaced by a random pixel; the right camera half a frame late; 40 % of frames seen by one camera
+only; a 60-frame gap (both cameras, frames 120–179); and the second camera left, above, below or
+diagonal (rotated) instead of right. Every method runs as ``stereotrack estimate`` runs it: from the
+shared initiator on the observations (no truth, no true velocity), at its defaults (σ = 1 px, the
+default, is the simulated noise), with the time offset estimated from the observations and applied
+when its interval excludes zero (``--time-offset auto``). A run *diverged* when its RMSE from the
+second frame on is more than 5× the RMSE of triangulation on the same seed's clean observations
+(frames with an observation), or a started track is not finite. The predict-only row (the initiator's start,
+no update) is every method's baseline.
 
-Starts: every method but triangulation is given the true state at frame 0 with its position moved
-``start error`` metres in a random direction (velocity true), so all share one start and the
-predict-only row is every method's baseline. Methods that model pixel noise are told the true σ;
-everything else is at its defaults. A run *diverged* when its RMSE over the last 30 frames is more
-than 5× triangulation's on the same observations, or not finite. The divergence check of
-``spsa_stereo`` repeats the goal's setting: ``--divergence-runs`` runs per start error (0.3 and
-1 m), scenarios and noise levels (1, 1.5 px) in turn, fresh seeds.
+Rendered suite (``--suite imperfect``, docs/trackers_imperfect.md): each imperfect scenario of
+data/scenarios/ rendered and run through the pipeline itself (see :func:`imperfect_suite`).
 """
 
 from __future__ import annotations
@@ -28,44 +29,147 @@ from _common import LiveDoc, add_output_args, output_dir
 
 from pipeline.estimators import create, methods, registry
 from pipeline.io import write_text
+from pipeline.sync import resolve_sync
 from renderers.motion import simulate_truth
-from renderers.scenario import load_scenario
+from renderers.scenario import load_scenario, parse_scenario
 
 SCENARIOS = ("receding", "maneuvering", "accelerating", "sine")
-NOISE = (1.0, 1.5)
-STARTS = (0.3, 1.0)
 FRAMES = 300
-SETTLE = 30  # the settled RMSE leaves out the start transient: frames before this one
+LAYOUTS = {"left": {"position": [-0.3, 0, 0]}, "above": {"position": [0, -0.3, 0]}, "below": {"position": [0, 0.3, 0]},
+           "diagonal": {"position": [0.25, -0.2, 0.02], "rotation_deg": [0, -3, 4]}}
+CONDITIONS = ("clean", "outliers", "sync", "one_camera", "gap", *LAYOUTS)
+CONDITION_TEXT = {"clean": "clean", "outliers": "5 % outliers", "sync": "½ frame late", "one_camera": "40 % one camera",
+                  "gap": "60-frame gap", "left": "left", "above": "above", "below": "below", "diagonal": "diagonal"}
 
 
-def setup(name: str):
+def setup(name: str, layout: str | None = None):
+    """(rig, dt, fps, positions, positions half a frame later) of a scenario, with the second camera moved."""
     s = load_scenario(name).with_overrides(frames=FRAMES)
+    if layout is not None:
+        d = s.model_dump(mode="json")
+        d["rig"]["right"], d["rig"]["toe_in_deg"] = LAYOUTS[layout], 0.0
+        s = parse_scenario(d)
     tr = simulate_truth(s)
-    return s.rig.build(), s.dt, tr.positions[:, 0], tr.velocities[:, 0]
+    late = tr.at(tr.t + 0.5 * s.dt, [0])[0][:, 0]
+    return s.rig.build(), s.dt, 1.0 / s.dt, tr.positions[:, 0], late
 
 
-def start_state(X, V, error: float, rng) -> dict:
-    u = rng.normal(size=3)
-    state = np.r_[X[0] + error * u / np.linalg.norm(u), V[0]]
-    return {"mode": "given", "state": tuple(state.tolist()), "sigma_position": max(error, 0.05)}
+def observe(condition: str, rig, X, late, rng) -> tuple[np.ndarray, np.ndarray]:
+    """(observations under ``condition``, the same seed's clean observations)."""
+    noise = rng.normal(0, 1.0, (len(X), 4))
+    clean = rig.project(X) + noise
+    Y = clean.copy()
+    if condition == "outliers":
+        w, h = rig.image_size
+        for k in np.flatnonzero(rng.random(len(X)) < 0.05):
+            c = rng.integers(0, 2)
+            Y[k, 2 * c : 2 * c + 2] = rng.uniform([0, 0], [w, h])
+    elif condition == "sync":
+        Y[:, 2:] = rig.right.project(late) + noise[:, 2:]
+    elif condition == "one_camera":
+        for k in np.flatnonzero(rng.random(len(X)) < 0.4):
+            c = rng.integers(0, 2)
+            Y[k, 2 * c : 2 * c + 2] = np.nan
+    elif condition == "gap":
+        Y[120:180] = np.nan
+    return Y, clean
 
 
-def config(method: str, sigma: float, init: dict | None, seed: int) -> dict:
-    cfg: dict = {"seed": seed}
-    if init is not None and method != "triangulation":
-        cfg["init"] = init
-    if registry()[method].knows_pixel_noise():
-        cfg["pixel_sigma"] = sigma
-    return cfg
+def run_as_estimate(method: str, rig, dt: float, fps: float, Y: np.ndarray, sync) -> tuple:
+    """A method on one marker as ``stereotrack estimate`` runs it (``sync``: resolve_sync's answer)."""
+    est, aligned = sync
+    modelled = est.applied and registry()[method].models_time_offset
+    e = create(method, rig, dt, {"seed": 0}, time_offset=est.offset_s if modelled else 0.0)
+    return e.run(Y if modelled else aligned["m"])
 
 
-def one_run(method, rig, dt, X, Y, sigma, init, seed, tri_tail):
-    tr = create(method, rig, dt, config(method, sigma, init, seed)).run(Y)
-    e = np.linalg.norm(tr.position - X, axis=1)
-    tail = float(np.sqrt(np.mean(e[-30:] ** 2)))
-    diverged = not np.isfinite(tail) or tail > 5 * tri_tail
-    settled = float(np.sqrt(np.nanmean(e[SETTLE:] ** 2)))
-    return float(np.sqrt(np.nanmean(e**2))), float(e[-1]), diverged, tr.seconds_per_step, settled
+def simulated_suite(seeds: int, out_dir) -> None:
+    """The table of docs/trackers.md (see the module docstring)."""
+    names = [m for m in methods("point") if m != "predict_only"] + ["predict_only"]
+    runs = []  # (condition, scenario, rig, dt, truth, observations, clean triangulation RMSE, sync)
+    for cond in CONDITIONS:
+        for scen in SCENARIOS:
+            rig, dt, fps, X, late = setup(scen, cond if cond in LAYOUTS else None)
+            for seed in range(seeds):
+                rng = np.random.default_rng(1000 * seed + 17 * CONDITIONS.index(cond) + SCENARIOS.index(scen))
+                Y, clean = observe(cond, rig, X, late, rng)
+                tri = create("triangulation", rig, dt).run(clean).position
+                seen = np.isfinite(Y).any(axis=1)
+                seen[0] = False
+                tri_rmse = float(np.sqrt(np.nanmean(np.sum((tri[seen] - X[seen]) ** 2, axis=1))))
+                bad = np.any(np.isfinite(Y) & (Y != clean), axis=1) if cond == "outliers" else None
+                runs.append((cond, scen, rig, dt, fps, X, Y, tri_rmse, resolve_sync("auto", rig, {"m": Y}, fps), bad))
+    applied = sum(r[8][0].applied for r in runs if r[0] == "sync")
+    false_alarms = sum(r[8][0].applied for r in runs if r[0] != "sync")
+    by_cond = {c: sum(r[8][0].applied for r in runs if r[0] == c) for c in CONDITIONS if c != "sync"}
+    where = ", ".join(f"{CONDITION_TEXT[c]} {v}" for c, v in by_cond.items() if v) or "none"
+    n_cells = len(SCENARIOS) * seeds
+    md = LiveDoc(["# Trackers under simulated imperfect conditions", "",
+                  f"Generated by `python benchmarks/trackers.py --suite simulated --seeds {seeds}`; settings in its "
+                  f"docstring. Each cell is the mean 3-D RMSE in mm over {n_cells} runs (4 scenarios × {seeds} seeds, "
+                  f"{FRAMES} frames, 1 px noise), every method from the shared initiator at its defaults; "
+                  "(n) counts the runs that diverged. *steps/s* is the median of `seconds_per_step` over all runs.", "",
+                  f"Time offset: applied on {applied} of {n_cells} *½ frame late* runs and on {false_alarms} of "
+                  f"{len(runs) - n_cells} others ({where}). RMSE is over frames 1 to the end, coasting through gaps "
+                  "included; divergence is judged on the frames with an observation.", "",
+                  "| method | " + " | ".join(CONDITION_TEXT[c] for c in CONDITIONS) + " | diverged | steps/s |",
+                  "|---|" + "---:|" * (len(CONDITIONS) + 2)])
+    table: dict[str, dict[str, float]] = {}
+    gating: dict[str, list[int]] = {}
+    for m in names:
+        rms: dict[str, list] = {c: [] for c in CONDITIONS}
+        div: dict[str, int] = dict.fromkeys(CONDITIONS, 0)
+        sps = []
+        gating[m] = [0, 0, 0, 0, 0]  # outliers rejected, injected; clean observations rejected, observed; restarts
+        for cond, _scen, rig, dt, fps, X, Y, tri_rmse, sync, bad in runs:
+            tr = run_as_estimate(m, rig, dt, fps, Y, sync)
+            count_gating(gating[m], cond, tr, bad)
+            e = np.linalg.norm(tr.position - X, axis=1)
+            started = np.isfinite(tr.position).all(axis=1).argmax() if np.isfinite(tr.position).any() else len(X)
+            r = float(np.sqrt(np.nanmean(e[1:] ** 2)))
+            seen = np.isfinite(Y).any(axis=1)
+            seen[0] = False  # divergence from the second frame on, on frames with an observation
+            lost = not np.all(np.isfinite(e[started:])) or not np.sqrt(np.nanmean(e[seen] ** 2)) <= 5 * tri_rmse
+            div[cond] += int(lost)
+            rms[cond].append(r)
+            sps.append(tr.seconds_per_step)
+        table[m] = {c: float(np.mean(v)) for c, v in rms.items()}
+        cells = [f"{1000 * table[m][c]:.1f}" + (f" ({div[c]})" if div[c] else "") for c in CONDITIONS]
+        md.append(f"| {m} | " + " | ".join(cells) + f" | {sum(div.values())} of {len(runs)} | "
+                  f"{1 / np.median(sps):,.0f} |")
+    md += ["", summary(table), "", "## The outlier gate", "",
+           "Per method over the *5 % outliers* runs: the injected outliers its gate rejected; over the *clean* runs: "
+           "the clean camera observations it rejected; restarts (a camera gated 8 frames in a row) over all runs. "
+           "Methods without a gate are left out.", "",
+           "| method | outliers rejected | clean observations rejected | restarts |", "|---|---:|---:|---:|"]
+    for m, (rej, inj, false, seen, restarts) in gating.items():
+        if rej or false or restarts:
+            md.append(f"| {m} | {rej} of {inj} ({100 * rej / inj:.1f} %) | {false} of {seen} ({100 * false / seen:.2f} %) "
+                      f"| {restarts} |")
+    write_text(out_dir / "trackers.md", "\n".join(md) + "\n")
+    print(f"\nwrote {out_dir / 'trackers.md'}")
+
+
+def count_gating(acc: list[int], cond: str, tr, bad: np.ndarray | None) -> None:
+    """Add one run's gate counts to ``acc`` (see the gate table of :func:`simulated_suite`)."""
+    gated = np.nan_to_num(tr.extra.get("gated", np.zeros(len(tr.position))))
+    acc[4] += int(np.nansum(tr.extra.get("restart", [0])))
+    if cond == "outliers" and bad is not None:
+        acc[0] += int(np.minimum(gated[bad], 1).sum())  # one bad camera per bad frame
+        acc[1] += int(bad.sum())
+    elif cond == "clean":
+        acc[2] += int(gated.sum())
+        acc[3] += 2 * len(gated)
+
+
+def summary(table: dict[str, dict[str, float]]) -> str:
+    """The sentences the README quotes, computed from the table: spsa_stereo against the EKF and
+    triangulation per condition."""
+    ekf = [table["spsa_stereo"][c] / table["ekf"][c] for c in CONDITIONS]
+    tri = [table["triangulation"][c] / table["spsa_stereo"][c] for c in CONDITIONS]
+    worst = CONDITIONS[int(np.argmax(ekf))]
+    return (f"spsa_stereo's RMSE is {min(ekf):.2f}–{max(ekf):.2f}× the EKF's across the nine conditions (largest: "
+            f"{CONDITION_TEXT[worst]}), and triangulation's is {min(tri):.2f}–{max(tri):.2f}× spsa_stereo's.")
 
 
 #: The imperfect-rig suite (data/scenarios/), each rendered, detected and estimated end to end.
@@ -85,7 +189,6 @@ def imperfect_suite(frames: int, out_dir) -> None:
     from detectors.stage import detect_clip
     from pipeline.estimate import estimate_clip
     from renderers.render import render_clip
-    from renderers.scenario import parse_scenario
 
     ideal = load_scenario("sync_offset").model_dump(mode="json")
     ideal["rig"]["sync_offset_s"] = 0.0
@@ -118,90 +221,16 @@ def imperfect_suite(frames: int, out_dir) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, default=5)
-    ap.add_argument("--divergence-runs", type=int, default=200)
-    ap.add_argument("--suite", choices=("clean", "imperfect", "all"), default="all",
-                    help="the simulated clean suite, the rendered imperfect-rig suite, or both")
+    ap.add_argument("--suite", choices=("simulated", "imperfect", "all"), default="all",
+                    help="the simulated conditions, the rendered imperfect-rig suite, or both")
     ap.add_argument("--imperfect-frames", type=int, default=90)
     add_output_args(ap)
     args = ap.parse_args()
     out_dir = output_dir(args, "trackers")
+    if args.suite in ("simulated", "all"):
+        simulated_suite(args.seeds, out_dir)
     if args.suite in ("imperfect", "all"):
         imperfect_suite(args.imperfect_frames, out_dir)
-    if args.suite == "imperfect":
-        return
-    names = [m for m in methods("point") if m != "predict_only"] + ["predict_only"]
-    setups = {s: setup(s) for s in SCENARIOS}
-    runs = len(NOISE) * len(STARTS) * args.seeds
-    md = LiveDoc(["# Trackers on the scenario suite", "",
-                  f"Generated by `python benchmarks/trackers.py --seeds {args.seeds}`; settings in its docstring. "
-                  f"Each scenario cell is the mean 3-D RMSE (m) over {runs} runs (σ_img ∈ {NOISE} px × start "
-                  f"error ∈ {STARTS} m × {args.seeds} seeds, {FRAMES} frames); *final* is the mean final error "
-                  "over all runs; *diverged* the share of runs; *vs tri.* triangulation's mean RMSE over the "
-                  "method's, per scenario (min–max).", "",
-                  "| method | " + " | ".join(SCENARIOS) + " | final (m) | diverged | vs tri. | steps/s |",
-                  "|---|" + "---|" * (len(SCENARIOS) + 4)])
-    obs = {}
-    for s, (rig, dt, X, V) in setups.items():
-        for sigma in NOISE:
-            for err in STARTS:
-                for seed in range(args.seeds):
-                    rng = np.random.default_rng(1000 * seed + int(10 * err) + int(100 * sigma))
-                    Y = rig.project(X) + rng.normal(0, sigma, (FRAMES, 4))
-                    init = start_state(X, V, err, rng)
-                    tri = create("triangulation", rig, dt).run(Y).position
-                    tri_tail = float(np.sqrt(np.mean(np.sum((tri[-30:] - X[-30:]) ** 2, axis=1))))
-                    obs[(s, sigma, err, seed)] = (Y, init, tri_tail)
-    table: dict[str, dict] = {}
-    settled: dict[str, dict] = {}
-    for m in names:
-        per: dict[str, list] = {s: [] for s in SCENARIOS}
-        per_settled: dict[str, list] = {s: [] for s in SCENARIOS}
-        finals, div, sps = [], [], []
-        for (s, sigma, _err, seed), (Y, init, tri_tail) in obs.items():
-            rig, dt, X, _ = setups[s]
-            r, f, d, sec, settled_r = one_run(m, rig, dt, X, Y, sigma, init, seed, tri_tail)
-            per[s].append(r)
-            per_settled[s].append(settled_r)
-            finals.append(f)
-            div.append(d)
-            sps.append(sec)
-        table[m] = {s: float(np.nanmean(v)) for s, v in per.items()}
-        settled[m] = {s: float(np.nanmean(v)) for s, v in per_settled.items()}
-        ratios = [table["triangulation"][s] / table[m][s] for s in SCENARIOS] if "triangulation" in table else []
-        vs = f"{min(ratios):.2f}–{max(ratios):.2f}×" if ratios else "—"
-        md.append(f"| {m} | " + " | ".join(f"{table[m][s]:.3f}" for s in SCENARIOS)
-                  + f" | {np.nanmean(finals):.3f} | {100 * np.mean(div):.0f} % | {vs} | {1 / np.median(sps):,.0f} |")
-    md += ["", f"## Settled: 3-D RMSE from frame {SETTLE} on", "",
-           f"The same runs without the start transient (frames 0–{SETTLE - 1}), where a start error of 0.3 or 1 m "
-           "weighs on every filter and not on triangulation. *vs tri.* as above.", "",
-           "| method | " + " | ".join(SCENARIOS) + " | vs tri. |", "|---|" + "---|" * (len(SCENARIOS) + 1)]
-    for m in names:
-        ratios = [settled["triangulation"][s] / settled[m][s] for s in SCENARIOS]
-        md.append(f"| {m} | " + " | ".join(f"{settled[m][s]:.3f}" for s in SCENARIOS)
-                  + f" | {min(ratios):.2f}–{max(ratios):.2f}× |")
-    md += ["", "## spsa_stereo: divergence from wrong starts", "",
-           f"{args.divergence_runs} runs per start error, fresh seeds; scenarios and σ_img ∈ {NOISE} in turn.", "",
-           "| start error (m) | runs | diverged | mean 3-D RMSE (m) | mean RMSE / triangulation's |", "|---|---|---|---|---|"]
-    for err in STARTS:
-        n_div, rms, rel = 0, [], []
-        for i in range(args.divergence_runs):
-            s = SCENARIOS[i % len(SCENARIOS)]
-            sigma = NOISE[(i // len(SCENARIOS)) % len(NOISE)]
-            rig, dt, X, V = setups[s]
-            rng = np.random.default_rng(10_000 + i + int(1000 * err))
-            Y = rig.project(X) + rng.normal(0, sigma, (FRAMES, 4))
-            tri = create("triangulation", rig, dt).run(Y).position
-            et = np.linalg.norm(tri - X, axis=1)
-            r, _, d, _, _ = one_run("spsa_stereo", rig, dt, X, Y, sigma, start_state(X, V, err, rng), i,
-                                    float(np.sqrt(np.mean(et[-30:] ** 2))))
-            n_div += d
-            rms.append(r)
-            rel.append(r / float(np.sqrt(np.mean(et**2))))
-        md.append(f"| {err:g} | {args.divergence_runs} | {n_div} ({100 * n_div / args.divergence_runs:.1f} %) | "
-                  f"{np.mean(rms):.3f} | {np.mean(rel):.2f} |")
-    out = out_dir / "trackers.md"
-    write_text(out, "\n".join(md) + "\n")
-    print(f"\nwrote {out}")
 
 
 if __name__ == "__main__":

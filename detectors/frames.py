@@ -166,9 +166,11 @@ class StereoFrame:
 
 
 class StereoFrameSource:
-    """Synchronized stereo pairs of a clip folder; unequal left/right lengths are an error unless
-    ``allow_unequal`` (then truncated to the shorter, with a warning). A path to a single video
-    is a one-camera clip."""
+    """Stereo pairs of a clip folder, frame k of each camera together; unequal left/right lengths
+    are an error unless ``allow_unequal`` (then truncated to the shorter, with a warning) or the
+    clip has per-camera frame times (``timestamps.csv``: cameras that dropped frames have
+    different lengths, and every frame of both is kept; the estimate stage pairs them by time).
+    A path to a single video is a one-camera clip."""
 
     def __init__(self, clip: str | Path, allow_unequal: bool = False, fps: float | None = None,
                  prefetch: bool = True) -> None:
@@ -189,8 +191,9 @@ class StereoFrameSource:
         self.clip = clip
         self.allow_unequal = allow_unequal
         counts = [r.count for r in self.readers]
-        self.count = min(counts)
-        if len(self.readers) == 2 and counts[0] != counts[1] and min(counts) > 0:
+        self.keep_all = len(self.readers) == 2 and clip.is_dir() and (clip / "timestamps.csv").is_file()
+        self.count = max(counts) if self.keep_all else min(counts)
+        if len(self.readers) == 2 and counts[0] != counts[1] and min(counts) > 0 and not self.keep_all:
             self._unequal(counts)
         self.fps = fps or self.readers[0].fps or 30.0
         self.size = self.readers[0].size
@@ -221,7 +224,7 @@ class StereoFrameSource:
                     break
                 if k >= self.count and any(i is end for i in got):
                     break  # truncated to the shorter camera
-                if any(i is end for i in got):
+                if any(i is end for i in got) and not self.keep_all:
                     n_left = k if got[0] is end else k + 1
                     if not self.allow_unequal:
                         raise ClipError(f"left and right videos end at different frames (around frame {n_left})", self.clip)

@@ -154,7 +154,7 @@ def detect_clip(
     """
     clip_ = Clip.open(clip)
     clip = clip_.path
-    source = StereoFrameSource(clip, allow_unequal=allow_unequal)
+    source = StereoFrameSource(clip, allow_unequal=allow_unequal, fps=clip_.fps)
     out_dir = Path(out_dir) if out_dir else clip_.folder / "out"
     rig: StereoRig | None = None
     checks: list[Check] = []
@@ -295,12 +295,14 @@ def summarize(rows: list[tuple], clip: Clip, n_frames: int, n_cams: int) -> list
     """Frames, detections, misses and pixel errors against truth (when ``truth.csv`` exists)."""
     truth = clip.truth_table()
     out = []
+    grid = _footage_to_grid(clip) if truth is not None else None
     for c in range(n_cams):
         cam = CAMERAS[c]
         mine = [r for r in rows if r[1] == cam]
         s = CameraSummary(cam, n_frames, len(mine))
         if truth is not None:
-            det = {(int(r[0]), r[2]): (r[3], r[4]) for r in mine}
+            place = grid[cam] if grid is not None else None  # truth rows are grid frames
+            det = {(int(r[0]) if place is None else int(place[int(r[0])]), r[2]): (r[3], r[4]) for r in mine}
             errs, misses, false = [], 0, 0
             # detections are undistorted: compare with the pinhole truth where the clip has it
             us, vs = (truth.get(f"{a}_{cam}_pinhole", truth[f"{a}_{cam}"]) for a in ("u", "v"))
@@ -318,3 +320,14 @@ def summarize(rows: list[tuple], clip: Clip, n_frames: int, n_cams: int) -> list
                 s.err_median, s.err_p95, s.err_max = float(np.median(e)), float(np.percentile(e, 95)), float(e.max())
         out.append(s)
     return out
+
+
+def _footage_to_grid(clip: Clip) -> dict[str, np.ndarray] | None:
+    """Per camera, each footage frame's frame on the clip's grid (a video that dropped frames is
+    shorter than the truth), from timestamps.csv; None without one."""
+    from pipeline.sync import nominal_frames, read_timestamps
+
+    path = clip.folder / "timestamps.csv"
+    if not clip.path.is_dir() or not path.is_file():
+        return None
+    return {cam: nominal_frames(t, clip.fps) for cam, t in read_timestamps(path).items()}

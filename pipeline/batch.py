@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import json
+import math
 import multiprocessing as mp
 import os
 import shutil
@@ -125,7 +126,7 @@ def _process_one(clip: str, key: str, out_root: str, settings: dict[str, Any],
             process_clip(clip_p, partial, detector=settings["detector"], methods=settings.get("methods"),
                          images_in_recording=settings.get("images", True), marker_specs=specs,
                          calib_units=settings.get("calib_units"), lock=False, configs=settings.get("configs"),
-                         time_offset=settings.get("time_offset", "auto"))
+                         time_offset=settings.get("time_offset", "auto"), fps=settings.get("fps"))
         (partial / ATTEMPT).unlink()
         write_manifest(partial, settings, inputs)
         if parent_pid is not None and not still_parented(parent_pid):
@@ -172,6 +173,7 @@ def run_batch(
     configs: dict[str, dict] | None = None,
     images: bool = True,
     time_offset: str | float | None = "auto",
+    fps: float | None = None,
 ) -> list[ClipOutcome]:
     """Process every clip under ``input_dir``; write ``summary.csv`` and ``summary.md``.
 
@@ -195,6 +197,8 @@ def run_batch(
 
     input_dir = Path(input_dir)
     out_root = Path(output_dir)
+    if fps is not None and not (math.isfinite(fps) and fps > 0):
+        raise StereotrackError(f"--fps must be a positive number of frames per second, not {fps:g}")
     clips = find_clips(input_dir, skip=out_root.resolve())
     if not clips:
         raise StereotrackError("no clip folders here (a clip holds left/right videos or frame folders and a calibration)",
@@ -202,6 +206,8 @@ def run_batch(
     root_markers = read_markers_file(input_dir / MARKERS_FILE) if (input_dir / MARKERS_FILE).is_file() else None
     settings = {"detector": detector, "methods": methods, "markers": marker_specs, "root_markers": root_markers,
                 "calib_units": calib_units, "configs": configs, "images": images, "time_offset": time_offset}
+    if fps is not None:  # recorded only when given, so manifests of earlier batches stay valid
+        settings["fps"] = fps
     keys = {c: clip_key(c, input_dir) for c in clips}
     ensure_dir(out_root)
     with OutputLock(out_root, f"stereotrack batch {input_dir}"):

@@ -127,6 +127,10 @@ CalibUnitsOption = Annotated[str | None, typer.Option(
 TimeOffsetOption = Annotated[str, typer.Option(
     "--time-offset", help="The right camera's delay behind the left (s): 'auto' estimates it from the detections "
     "and applies it when its 95 % interval excludes 0; 'off'; or seconds. A clip's timestamps.csv wins.")]
+FpsOption = Annotated[float | None, typer.Option(
+    "--fps", help="Frames per second of the footage. Wins over the clip's clip.yaml 'fps', a rendered clip's "
+    "clip.json, timestamps.csv and the video header; frame folders with none of these are taken as 30 fps, "
+    "with a warning.")]
 ConfigOption = Annotated[Path | None, typer.Option(
     "--config", help="YAML file mapping a method name to its settings, e.g. 'ekf: {process_noise: 2.0}' "
     "(see `stereotrack methods`); the resolved settings are recorded in metrics.json.")]
@@ -151,16 +155,21 @@ def detect_cmd(
     allow_unequal: Annotated[bool, typer.Option("--allow-unequal", help="Truncate unequal left/right lengths.")] = False,
     output: Annotated[Path | None, typer.Option("-o", "--output", help="Output folder (default CLIP/out).")] = None,
     calib_units: CalibUnitsOption = None,
+    fps: FpsOption = None,
 ) -> None:
     """Find the markers in every frame; write detections.csv and print a per-camera summary."""
     from detectors.stage import detect_clip
+    from pipeline.clip import Clip
+
+    clip_ = Clip(clip, fps)
 
     with progress_bar() as bar:
         task = bar.add_task(f"detect ({detector})", total=None)
-        result = detect_clip(clip, detector, _specs(markers), _parse_roi(roi), allow_unequal, output,  # type: ignore[arg-type]
+        result = detect_clip(clip_, detector, _specs(markers), _parse_roi(roi), allow_unequal, output,  # type: ignore[arg-type]
                              progress=lambda done, total: bar.update(task, completed=done, total=total or None),
                              calib_units=calib_units)
     _print_learned(result.learned)
+    _print_time(clip_.fps, clip_.fps_source)
     table = Table("camera", "frames", "detections", "misses", "false (hidden)", "px err median", "p95", "max",
                   title=str(result.path))
     for s in result.summaries:
@@ -186,6 +195,11 @@ def _print_learned(learned: dict[str, str]) -> None:
 
 def _methods(methods: str | None) -> list[str] | None:
     return [m.strip() for m in methods.split(",") if m.strip()] if methods else None
+
+
+def _print_time(fps: float, source: str) -> None:
+    """The frame rate in use and where it came from (every estimate's dt follows from it)."""
+    out.print(f"frame rate: {fps:g} fps (dt {1000 / fps:.2f} ms), from {source}", highlight=False)
 
 
 def _print_sync(metrics: dict) -> None:
@@ -218,8 +232,10 @@ def estimate_cmd(
     calib_units: CalibUnitsOption = None,
     config: ConfigOption = None,
     time_offset: TimeOffsetOption = "auto",
+    fps: FpsOption = None,
 ) -> None:
     """Estimate 3-D tracks with each method; write estimates/<method>.csv and metrics.json."""
+    from pipeline.clip import Clip
     from pipeline.estimate import estimate_clip
     from pipeline.sync import parse_time_offset
 
@@ -227,11 +243,54 @@ def estimate_cmd(
     offset = parse_time_offset(time_offset)
     with progress_bar() as bar:
         task = bar.add_task("estimate", total=None)
-        res = estimate_clip(clip, _methods(methods), output, configs=configs, in_dir=clip / "out",
+        res = estimate_clip(Clip(clip, fps), _methods(methods), output, configs=configs, in_dir=clip / "out",
                             progress=lambda d, t: bar.update(task, completed=d, total=t), calib_units=calib_units,
                             time_offset=offset)
+    _print_time(res.metrics["time"]["fps"], res.metrics["time"]["source"])
     _print_sync(res.metrics)
     out.print(_metrics_table(res.metrics, str(res.out_dir / "metrics.json")))
+
+
+@app.command("calibrate")
+def calibrate_cmd(
+    images: Annotated[Path, typer.Argument(help="Folder of image pairs (left*/right* numbered alike, or left/ and "
+                                           "right/ folders) or of two videos left.* and right.*.")],
+    board: Annotated[str, typer.Option(help="chessboard:COLSxROWS (inner corners) or charuco:COLSxROWS:DICT "
+                                       "(squares; DICT e.g. 4X4_50).")],
+    square: Annotated[str, typer.Option(help="Side of a square with its unit: 24mm, 2.4cm, 0.024 (metres).")],
+    marker: Annotated[str | None, typer.Option(help="ChArUco: side of a marker, with its unit.")] = None,
+    output: Annotated[Path, typer.Option("-o", "--output", help="The calibration to write.")] = Path("calib.yaml"),
+) -> None:
+    """Calibrate a stereo rig from board pairs: calib.yaml (metres) and a report beside it."""
+    from pipeline.calibrate import calibrate_folder, parse_board, parse_length
+
+    b = parse_board(board, parse_length(square), parse_length(marker, "--marker") if marker else None)
+    with progress_bar() as bar:
+        bar.add_task("calibrate", total=None)
+        cal, report, _ = calibrate_folder(images, b, output)
+    for name, why in cal.rejected.items():
+        out.print(f"left out {name}: {why}", highlight=False)
+    out.print(f"{len(cal.used)} pairs; RMS left {cal.rms_left:.3f} px, right {cal.rms_right:.3f} px, stereo "
+              f"{cal.rms_stereo:.3f} px; baseline {cal.baseline:.4f} m; second camera on the {cal.second_camera_side}",
+              highlight=False)
+    out.print(f"wrote {output} and {report}")
+
+
+@app.command("export")
+def export_cmd(
+    clip: Annotated[Path, typer.Argument(help="Clip folder whose out/ holds estimates (after estimate or run).")],
+    fmt: Annotated[str, typer.Option("--format", help="trc (OpenSim), c3d (motion capture) or csv (one row per "
+                                     "frame).")] = "trc",
+    methods: Annotated[str | None, typer.Option(help="Comma-separated methods (default: every one with "
+                                                "estimates).")] = None,
+    output: Annotated[Path | None, typer.Option("-o", "--output", help="Folder for the files (default "
+                                                "CLIP/out/export).")] = None,
+) -> None:
+    """Write each method's 3-D tracks as <method>.<format>: marker names, frame rate, metres."""
+    from pipeline.export import export_clip
+
+    for path in export_clip(clip, fmt.lower(), _methods(methods), output):
+        out.print(f"wrote {path}")
 
 
 @app.command("report")
@@ -265,6 +324,7 @@ def run_cmd(
     calib_units: CalibUnitsOption = None,
     config: ConfigOption = None,
     time_offset: TimeOffsetOption = "auto",
+    fps: FpsOption = None,
 ) -> None:
     """Run every stage on one clip: (render), detect, estimate, metrics, report, recording.
 
@@ -303,8 +363,9 @@ def run_cmd(
         res = process_clip(clip, detector=detector, methods=_methods(methods), stage=stage,
                            progress=lambda d, t: bar.update(task, completed=d, total=t),
                            marker_specs=_specs(markers), calib_units=calib_units, configs=configs,
-                           time_offset=offset)
+                           time_offset=offset, fps=fps)
     _print_learned(res.detect.learned)
+    _print_time(res.estimate.metrics["time"]["fps"], res.estimate.metrics["time"]["source"])
     _print_sync(res.estimate.metrics)
     out.print(_metrics_table(res.estimate.metrics, f"{clip} — {res.estimate.n_frames} frames"))
     out.print(f"outputs in {res.out_dir}: detections.csv, estimates/, metrics.json, report.md, run.rrd")
@@ -350,6 +411,7 @@ def batch_cmd(
     config: ConfigOption = None,
     no_images: Annotated[bool, typer.Option("--no-images", help="Leave the frames out of each clip's recording.")] = False,
     time_offset: TimeOffsetOption = "auto",
+    fps: FpsOption = None,
 ) -> None:
     """Process every clip folder under INPUT_DIR; exit code 1 if any clip failed.
 
@@ -368,7 +430,7 @@ def batch_cmd(
         outcomes = run_batch(input_dir, output, workers, sched, force, detector, _methods(methods),
                              progress=lambda d, t: bar.update(task, completed=d, total=t),
                              marker_specs=_specs(markers), calib_units=calib_units, scheduler_file=scheduler_file,
-                             configs=configs, images=not no_images, time_offset=offset)
+                             configs=configs, images=not no_images, time_offset=offset, fps=fps)
     from pipeline.batch import clip_warnings
 
     table = Table("clip", "status", "attempts", "warnings", "error", title=str(output / "summary.csv"))

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 import yaml
+from pydantic import BaseModel, ConfigDict, Field
 
 from pipeline.camera import CALIB_NAMES, EXTRINSICS_NAMES, INTRINSICS_NAMES, StereoRig, has_calibration, load_calibration
 from pipeline.checks import Check
@@ -32,6 +33,7 @@ IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 CLIP_INFO = "clip.json"
 DETECT_INFO = "detect.json"
 MARKERS_FILE = "markers.yaml"
+CLIP_SETTINGS = "clip.yaml"
 
 # -- table schemas ------------------------------------------------------------------------------
 TRUTH_COLUMNS = [
@@ -49,9 +51,19 @@ TARGET_TRUTH_COLUMNS = ["frame", "t", "alpha", "alpha_dot", "distance", "distanc
 ]
 DETECTION_COLUMNS = ["frame", "camera", "marker", "u", "v", "area", "score"]
 #: per frame: position, velocity, and for filters the NIS of the update (with its degrees of
-#: freedom) and the position NEES against the truth (empty where there is none)
-ESTIMATE_COLUMNS = ["frame", "t", "marker", "x", "y", "z", "vx", "vy", "vz", "nis", "nis_dof", "nees"]
+#: freedom) and the position NEES against the truth (empty where there is none); ``predicted`` is
+#: 1 where the method used no measurement that frame (a gap, a gated frame, before the start: the
+#: position is held or coasted), 0 where it did
+ESTIMATE_COLUMNS = ["frame", "t", "marker", "x", "y", "z", "vx", "vy", "vz", "nis", "nis_dof", "nees", "predicted"]
 TARGET_COLUMNS = [*ESTIMATE_COLUMNS, "alpha", "distance"]
+
+
+class ClipSettings(BaseModel):
+    """``clip.yaml`` in a clip folder: what the footage cannot say about itself."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    #: frames per second of both cameras (frame folders have no rate of their own)
+    fps: float | None = Field(None, gt=0)
 
 
 @dataclass(frozen=True)
@@ -88,16 +100,21 @@ class TargetInfo:
 class Clip:
     """One clip folder (or a single stereo video file), each piece loaded once when first asked."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, fps: float | None = None) -> None:
         self.path = Path(path)
         self.folder = self.path if self.path.is_dir() else self.path.parent
+        if fps is not None and not (np.isfinite(fps) and fps > 0):
+            raise StereotrackError(f"--fps must be a positive number of frames per second, not {fps:g}")
+        self.given_fps = fps  # --fps: wins over everything the clip says
         self._rigs: dict[str | None, StereoRig] = {}
         self._truth: dict[int | None, ClipTruth | None] = {}
 
     @classmethod
-    def open(cls, clip: str | Path | Clip) -> Clip:
-        """A :class:`Clip` for a path (a Clip is returned as it is)."""
-        return clip if isinstance(clip, Clip) else cls(clip)
+    def open(cls, clip: str | Path | Clip, fps: float | None = None) -> Clip:
+        """A :class:`Clip` for a path (a Clip is returned as it is, unless ``fps`` changes it)."""
+        if isinstance(clip, Clip) and (fps is None or fps == clip.given_fps):
+            return clip
+        return cls(clip.path if isinstance(clip, Clip) else clip, fps)
 
     def __repr__(self) -> str:
         return f"Clip({str(self.path)!r})"
@@ -128,18 +145,72 @@ class Clip:
         return [MarkerInfo(m["name"], tuple(m["rgb"]), m.get("group")) for m in self.info.get("markers", [])]
 
     @cached_property
+    def settings(self) -> ClipSettings:
+        """``clip.yaml``: the user's settings for this clip (today its frame rate), or defaults."""
+        path = self.folder / CLIP_SETTINGS
+        if not (self.path.is_dir() and path.is_file()):
+            return ClipSettings()
+        from pydantic import ValidationError
+
+        from pipeline.io import read_yaml_mapping
+
+        try:
+            return ClipSettings.model_validate(read_yaml_mapping(path))
+        except ValidationError as exc:
+            err = exc.errors()[0]
+            raise StereotrackError(f"{'.'.join(str(p) for p in err['loc'])}: {err['msg']}", path) from None
+
+    @property
     def fps(self) -> float:
-        """Frame rate: the clip description's, else the left video's header, else 30."""
+        """Frame rate (see :attr:`fps_source` for where it came from)."""
+        return self._frame_rate[0]
+
+    @property
+    def fps_source(self) -> str:
+        """Where :attr:`fps` came from: ``--fps``, ``clip.yaml``, ``clip.json``, ``timestamps.csv``,
+        ``video header`` or ``default``."""
+        return self._frame_rate[1]
+
+    @cached_property
+    def _frame_rate(self) -> tuple[float, str]:
+        """``--fps``, else clip.yaml's ``fps``, else clip.json's (rendered clips), else the left
+        camera's median frame period in timestamps.csv, else the left video's header, else 30
+        (with a warning: a frame folder has no rate of its own)."""
+        if self.given_fps is not None:
+            return float(self.given_fps), "--fps"
+        if self.settings.fps is not None:
+            return float(self.settings.fps), CLIP_SETTINGS
         if "fps" in self.info:
-            return float(self.info["fps"])
+            return float(self.info["fps"]), CLIP_INFO
+        stamped = self._timestamps_rate()
+        if stamped is not None:
+            return stamped, TIMESTAMPS
         from detectors.frames import CameraReader
 
         try:
             reader = CameraReader(self.camera_source("left") if self.path.is_dir() else self.path)
+            reader.close()
         except StereotrackError:
-            return 30.0
-        reader.close()
-        return reader.fps or 30.0
+            reader = None
+        if reader is not None and reader.fps:
+            return float(reader.fps), "video header"
+        warnings.warn(f"{self.path}: no frame rate given (frame folders have none): assuming 30 fps; "
+                      f"give --fps or `fps:` in {CLIP_SETTINGS}", stacklevel=2)
+        return 30.0, "default"
+
+    def _timestamps_rate(self) -> float | None:
+        """1 / the median period between consecutive left frames in timestamps.csv, if any."""
+        path = self.folder / TIMESTAMPS
+        if not (self.path.is_dir() and path.is_file()):
+            return None
+        from pipeline.sync import read_timestamps
+
+        t = read_timestamps(path)["left"]
+        frames = np.flatnonzero(np.isfinite(t))
+        if len(frames) < 2:
+            return None
+        period = float(np.median(np.diff(t[frames]) / np.diff(frames)))
+        return 1.0 / period if period > 0 else None
 
     def camera_source(self, name: str) -> Path:
         """``<name>.<video ext>`` or a ``<name>/`` folder of frames inside the clip folder."""
@@ -226,7 +297,7 @@ def find_camera_source(clip_dir: Path, name: str) -> Path:
 
 
 #: Files of a clip folder that a run reads besides the footage (each only where present).
-INPUT_FILES = (*CALIB_NAMES, *INTRINSICS_NAMES, *EXTRINSICS_NAMES, MARKERS_FILE, CLIP_INFO, "scenario.yaml",
+INPUT_FILES = (*CALIB_NAMES, *INTRINSICS_NAMES, *EXTRINSICS_NAMES, MARKERS_FILE, CLIP_SETTINGS, CLIP_INFO, "scenario.yaml",
                TIMESTAMPS, "truth.csv", "target_truth.csv")
 
 

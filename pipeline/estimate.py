@@ -32,7 +32,7 @@ from pipeline.estimators.base import is_builtin, origin
 from pipeline.io import write_csv, write_json
 from pipeline.manifest import stereotrack_version
 from pipeline.metrics import compute_metrics
-from pipeline.sync import SyncEstimate
+from pipeline.sync import SyncEstimate, grid_length, read_timestamps, resolve_sync
 
 
 @dataclass
@@ -113,17 +113,20 @@ def estimate_clip(
         rig, size_check = rig_for_frames(rig, footage.frame_size, clip)
         checks += [size_check] if size_check else []
     elif any(c.name == "image_size" for c in checks) and footage.frame_size is not None:
-        rig = rig.scaled_to(footage.frame_size)
+        rig = rig.scaled_to(footage.frame_size)  # as the detect stage did: say so here too
+        warn_failed([c for c in checks if c.name == "image_size"])
     dt = 1.0 / clip_.fps
-    truth = clip_.truth(footage.frames)
+    ts = _timestamps(clip_, time_offset)
+    grid = grid_length(ts, clip_.fps) if ts is not None else None  # videos that dropped frames are shorter
+    truth = clip_.truth(max(footage.frames, grid) if footage.frames is not None and grid is not None else footage.frames)
     obs = detections[0] if detections is not None else load_detections(det_path, footage.frames)
     if not obs:
         raise StereotrackError("no detections in this clip", det_path)
-    n = max(len(v) for v in obs.values())
+    n = max(max(len(v) for v in obs.values()), grid or 0)
     if truth is not None:
         n = max(n, truth.n_frames)
     obs = {k: np.vstack([v, np.full((n - len(v), 4), np.nan)]) for k, v in obs.items()}
-    sync, aligned = _sync(clip_, rig, obs, time_offset)
+    sync, aligned = resolve_sync(time_offset, rig, obs, clip_.fps, ts)
     new_checks = [_sync_check(sync), *stereo_checks(rig, aligned, clip_.calibration_name),
                   *jump_checks(obs, rig.image_size[0] or 640)]
     warn_failed(new_checks)
@@ -131,7 +134,7 @@ def estimate_clip(
     target = find_target(clip_, target_radius, obs)
     methods = methods or registered_methods("point") + (registered_methods("target") if target else [])
     configs = {k: dict(v) for k, v in (configs or {}).items()}
-    sigma = estimate_pixel_sigma(rig, obs)
+    sigma = estimate_pixel_sigma(rig, aligned)
     if sigma is not None:  # the measurement noise of methods that model it, unless configured
         for m in methods:
             if reg[m].knows_pixel_noise():
@@ -172,6 +175,7 @@ def estimate_clip(
     result.metrics["calibration_units"] = calib_units
     result.metrics["checks"] = [c.as_dict() for c in checks]
     result.metrics["sync"] = sync.as_dict()
+    result.metrics["time"] = {"fps": clip_.fps, "dt_s": dt, "source": clip_.fps_source}
     if footage.cameras:
         result.metrics["detection"] = footage.cameras
     result.metrics["stereotrack_version"] = stereotrack_version()
@@ -181,19 +185,17 @@ def estimate_clip(
     return result
 
 
-def _sync(clip: Clip, rig: StereoRig, obs: dict[str, np.ndarray], setting: str | float | None) -> tuple:
-    """The cameras' time offset for this clip and the observations aligned to the left camera's
-    instants (see :mod:`pipeline.sync`): from timestamps.csv when the clip has one, else from the
-    detections (or as given)."""
+def _timestamps(clip: Clip, setting: str | float | None) -> dict[str, np.ndarray] | None:
+    """The clip's per-camera frame times (timestamps.csv), unless ``--time-offset`` says otherwise:
+    ``off`` ignores them, a number of seconds wins over them (with a warning)."""
     from pipeline.clip import TIMESTAMPS
-    from pipeline.sync import read_timestamps, resolve_sync
 
     ts_path = clip.folder / TIMESTAMPS
     ts = read_timestamps(ts_path) if setting != "off" and clip.path.is_dir() and ts_path.is_file() else None
     if ts is not None and isinstance(setting, float):  # the command line wins over the clip's own file
         warnings.warn(f"{ts_path}: --time-offset {setting:g} s used instead of this file's frame times", stacklevel=3)
         ts = None
-    return resolve_sync(setting, rig, obs, clip.fps, ts)
+    return ts
 
 
 def _sync_check(sync: SyncEstimate) -> Check:
@@ -234,7 +236,7 @@ def _write_estimates(path: Path, tracks: dict[str, Track], dt: float, truth: Cli
             T = truth.positions.get(marker) if truth is not None else None
             cons = _consistency_columns(tr, T)
             for k in range(len(tr.position)):
-                yield (k, k * dt, marker, *tr.position[k], *tr.velocity[k], *cons[k])
+                yield (k, k * dt, marker, *tr.position[k], *tr.velocity[k], *cons[k], int(tr.predicted[k]))
 
     write_csv(path, ESTIMATE_COLUMNS, rows())
 
@@ -244,7 +246,7 @@ def _write_target_estimates(path: Path, name: str, tr: Track, dt: float) -> None
 
     def rows():
         for k in range(len(tr.position)):
-            yield (k, k * dt, name, *tr.position[k], *tr.velocity[k], *cons[k], tr.extra["alpha"][k],
+            yield (k, k * dt, name, *tr.position[k], *tr.velocity[k], *cons[k], int(tr.predicted[k]), tr.extra["alpha"][k],
                    tr.extra["distance"][k])
 
     write_csv(path, TARGET_COLUMNS, rows())

@@ -23,13 +23,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     The temporary name keeps the suffix (OpenCV and matplotlib pick the format from it), so an
     interrupted write leaves at worst a hidden ``.*.partial*`` file, never a half-written target.
     """
-    path = Path(path)
-    fd, tmp = _mkstemp_beside(path)
-    os.close(fd)
-    tmp_path = Path(tmp)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp_path, 0o666 & ~umask)
+    tmp_path = partial_beside(Path(path))
     try:
         yield tmp_path
         os.replace(tmp_path, path)
@@ -66,6 +60,18 @@ def check_replaceable(folder: str | Path, ours: tuple[str, ...], what: str = "ou
     if any(True for _ in folder.iterdir()) and not any((folder / n).exists() for n in ours):
         raise StereotrackError(f"folder exists, is not empty and was not written by stereotrack (no {' or '.join(ours)}); "
                                f"choose an empty or new folder for the {what}", folder)
+
+
+def partial_beside(path: Path) -> Path:
+    """A new empty temporary file beside ``path`` (a hidden ``.*.partial*`` name) with the
+    permissions an ordinary new file gets (0666 less the umask, not mkstemp's 0600): whatever is
+    renamed into place from it is readable like every other output."""
+    fd, tmp = _mkstemp_beside(path)
+    os.close(fd)
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)
+    return Path(tmp)
 
 
 def _mkstemp_beside(path: Path) -> tuple[int, str]:

@@ -15,13 +15,13 @@ built in code and saved as the file's default.
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.camera import StereoRig
+from pipeline.io import partial_beside
 from pipeline.metrics import errors_per_frame
 from pipeline.style import TRUTH_RGB, marker_rgb, method_rgb
 
@@ -66,9 +66,7 @@ class Recorder:
 
         self.path, self.dt = Path(path), float(dt)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.name}.partial-", dir=self.path.parent)
-        os.close(fd)
-        self.tmp = Path(tmp)
+        self.tmp = partial_beside(self.path)  # readable like every other output once renamed
         self.quality, self.image_every = int(jpeg_quality), max(1, int(image_every))
         self.rec = None
         try:

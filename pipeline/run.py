@@ -43,32 +43,34 @@ def process_clip(
     lock: bool = True,
     configs: dict[str, dict] | None = None,
     time_offset: str | float | None = "auto",
+    fps: float | None = None,
 ) -> RunResult:
     """Detect, estimate, report and record one clip folder into ``out_dir`` (default CLIP/out).
 
     ``marker_specs`` (``--markers`` syntax) name the markers of real footage; without them the
-    clip's ``markers.yaml``, else its ``scenario.yaml``, gives the colours.
+    clip's ``markers.yaml``, else its ``scenario.yaml``, gives the colours. ``fps`` (``--fps``)
+    wins over every frame rate the clip states (see :attr:`pipeline.clip.Clip.fps`).
 
     With ``lock`` the output folder is locked for the run (a second run on it fails at once,
     naming the holder) and temporary files left there by a killed run are removed first."""
-    out_dir = Path(out_dir) if out_dir else Path(clip) / "out"
+    out_dir = Path(out_dir) if out_dir else Clip.open(clip).folder / "out"
     if not lock:
-        return _process_clip(Path(clip), out_dir, detector, methods, marker_specs, recording, images_in_recording,
-                             stage, progress, calib_units, configs, time_offset)
+        return _process_clip(Clip.open(clip, fps), out_dir, detector, methods, marker_specs, recording,
+                             images_in_recording, stage, progress, calib_units, configs, time_offset)
     with OutputLock(out_dir, f"stereotrack run {clip}"):
         for stale in list(out_dir.rglob(".*.partial-*")):
             stale.unlink(missing_ok=True) if stale.is_file() else shutil.rmtree(stale, ignore_errors=True)
-        return _process_clip(Path(clip), out_dir, detector, methods, marker_specs, recording, images_in_recording,
-                             stage, progress, calib_units, configs, time_offset)
+        return _process_clip(Clip.open(clip, fps), out_dir, detector, methods, marker_specs, recording,
+                             images_in_recording, stage, progress, calib_units, configs, time_offset)
 
 
-def _process_clip(clip: Path, out_dir: Path, detector: str, methods: list[str] | None, marker_specs: list[str] | None,
+def _process_clip(clip_: Clip, out_dir: Path, detector: str, methods: list[str] | None, marker_specs: list[str] | None,
                   recording: bool, images_in_recording: bool, stage: Callable[[str], None] | None,
                   progress: Callable[[int, int], None] | None, calib_units: str | None,
                   configs: dict[str, dict] | None = None, time_offset: str | float | None = "auto") -> RunResult:
     t0 = time.perf_counter()
     say = stage or (lambda s: None)
-    clip_ = Clip.open(clip)  # read once, handed to every stage
+    clip = clip_.path  # the clip is read once, handed to every stage
     recorder = Recorder(out_dir / "run.rrd", 1.0 / clip_.fps) if recording else None
     try:
         say("detect")

@@ -235,6 +235,9 @@ def test_bad_inputs(tmp_path, png_clip):
     shutil.rmtree(clip / "right")
     shutil.copytree(png_clip / "right", clip / "right")
     (clip / "right" / "000023.png").unlink()
+    res = detect_clip(clip, out_dir=tmp_path / "stamped")  # with timestamps.csv both cameras are read whole
+    assert res.summaries[0].frames == 24
+    (clip / "timestamps.csv").unlink()  # without: unequal lengths are an error
     with pytest.raises(ClipError, match="left has 24 frames, right has 23"):
         detect_clip(clip)
     with pytest.warns(UserWarning, match="truncating"):

@@ -206,7 +206,8 @@ def test_checks_fire_on_bad_clips_and_stay_silent_on_clean(tmp_path, png_clip):
     save_calibration(load_calibration(SAMPLE).scaled_to((640, 480)), big / "calib.yaml")
     with pytest.warns(UserWarning, match="640×480 images but the frames are 320×240"):
         detect_clip(big, "blob", [RED])
-    res = estimate_clip(big, ["triangulation"])
+    with pytest.warns(UserWarning, match="640×480 images but the frames are 320×240"):  # estimate says it too
+        res = estimate_clip(big, ["triangulation"])
     assert "image_size" in failed_checks(big / "out")
     assert res.metrics["methods"]["triangulation"]["rmse"] < 0.02
 

@@ -71,6 +71,11 @@ def test_measurement_model_function_jacobian_inverse():
         np.testing.assert_allclose(J[:, :, j], (model.function(x + d) - model.function(x - d)) / (2 * eps), atol=1e-5)
     assert np.all(J[:, :, 3:] == 0)
     np.testing.assert_allclose(model.covar(), 0.64 * np.eye(4))
+    for offset in (0.0, 0.013):  # linearize (the EKF's one-pass h and H) is function and jacobian
+        m = StereoMeasurementModel(RIG, 0.8, time_offset=offset)
+        h, H = m.linearize(x[0])
+        np.testing.assert_allclose(h, m.function(x[0]), rtol=1e-14)
+        np.testing.assert_allclose(H, m.jacobian(x[0]), rtol=1e-14, atol=1e-16)
     # the triangulation's covariance is the inverse-Fisher information of the two views
     C = model.inverse_covariance(x[0, :3])
     Jp = J[0, :, :3]

@@ -128,8 +128,8 @@ def test_spsa_stereo_gate_skips_an_outlier_detection(receding):
     for seed in range(3):
         Y = noisy(rig, X, 1.0, seed)
         Y[150, 1] += 60.0
-        plain = create("spsa_stereo", rig, dt).run(Y)
-        gated = create("spsa_stereo", rig, dt, {"cost_gate": 1e-4}).run(Y)
+        plain = create("spsa_stereo", rig, dt, {"gate": 0}).run(Y)  # the cost gate alone, the χ² gate off
+        gated = create("spsa_stereo", rig, dt, {"cost_gate": 1e-4, "gate": 0}).run(Y)
         assert gated.predicted[150] and not plain.predicted[150]
         assert not gated.predicted[1:150].any() and not gated.predicted[151:].any()
         plain_e.append(err(plain.position, X)[150])

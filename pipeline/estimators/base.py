@@ -23,9 +23,11 @@ group ``stereotrack.estimators`` (see :func:`registry`).
 from __future__ import annotations
 
 import math
+import statistics
 import time
 import warnings
 from abc import ABC, abstractmethod
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
@@ -106,12 +108,16 @@ class Step:
     innovation: np.ndarray | None = None
     innovation_covariance: np.ndarray | None = None
     extra: dict[str, float] = field(default_factory=dict)
+    #: ``yᵀ S⁻¹ y`` when the filter already has ``S⁻¹`` (saves solving again in :attr:`nis`)
+    known_nis: float | None = None
 
     @property
     def nis(self) -> float:
         """Normalized innovation squared ``yᵀ S⁻¹ y`` (NaN without an update)."""
         if self.innovation is None or self.innovation_covariance is None:
             return float("nan")
+        if self.known_nis is not None:
+            return self.known_nis
         y = np.ravel(self.innovation)
         return float(y @ np.linalg.solve(self.innovation_covariance, y))
 
@@ -222,14 +228,18 @@ class Initiator:
             return None
         return self._fit(np.array(self._frames), np.array(self._points))
 
-    def restart(self, frame: int, y: np.ndarray) -> Start | None:
-        """A new start from this frame's detections alone (a track gated for too long), or None
-        when they do not triangulate plausibly."""
-        y = np.asarray(y, dtype=float)
-        X = self.model.inverse_function(y[None])[0]
-        if not self._valid(X, y):
+    def restart(self, frame: int, recent: np.ndarray) -> Start | None:
+        """A new start for a track gated for too long, from its recent detections alone (``recent``:
+        the observations of the frames up to and including ``frame``, oldest first): a line through
+        the plausible triangulations among them, so the new track starts with the velocity of what it
+        now follows; None when this frame's detections do not triangulate plausibly."""
+        Y = np.asarray(recent, dtype=float).reshape(-1, 4)
+        X = self.model.inverse_function(Y)
+        ok = self._valid(X, Y)
+        if not ok[-1]:
             return None
-        return self._fit(np.array([frame]), X[None])
+        frames = frame - len(Y) + 1 + np.arange(len(Y))
+        return self._fit(frames[ok], X[ok])
 
     def first(self, Y: np.ndarray) -> Start | None:
         """The start over a whole clip's observations (frames × 4); None if it never starts."""
@@ -314,6 +324,7 @@ class Estimator(ABC):
         self.initiator = Initiator(self.config.init, self.model, self.dt, propagate=self.knows_pixel_noise(),
                                    gate=self.config.gate)
         self.gated_run = 0  # frames in a row with a camera gated
+        self.recent: deque = deque(maxlen=self.config.restart_after)  # what a restart fits
 
     def start(self, y: np.ndarray) -> Start | None:
         """Offer this frame to the initiator (point methods)."""
@@ -329,9 +340,15 @@ class Estimator(ABC):
 
     def step(self, obs: np.ndarray) -> Step:
         """Consume one frame's observation (NaN = missing) and return this frame's estimate."""
-        s = self._step(np.asarray(obs, dtype=float))
+        y = np.asarray(obs, dtype=float)
+        self.recent.append(y)
+        s = self._step(y)
         self.frame += 1
         return s
+
+    def recent_observations(self) -> np.ndarray:
+        """The last ``restart_after`` observations, this frame's last (what a restart fits)."""
+        return np.array(self.recent)
 
     def check(self, Y: np.ndarray, source: str = "observations") -> np.ndarray:
         """Validate a clip's observations for this method's kind (NaN = missing, inf = error)."""
@@ -401,6 +418,21 @@ def plausible_residual(sigma: float, gate: float) -> float:
     return float(sigma**2 * chdtri(1, 1.0 - gate))
 
 
+def stereo_consistent(model: StereoMeasurementModel, y: np.ndarray, sigma: float, gate: float) -> bool:
+    """Whether both cameras' detections of one frame are one point: they triangulate in front of
+    both cameras with a reprojection residual within the χ² gate of a noise of ``sigma`` px (at
+    least :data:`GATE_FLOOR_PX`). A wrong blob in one camera is off the other's epipolar line; two
+    detections far from a fixed-gain filter's prediction that agree are its lag (or a real jump,
+    which a restart would follow anyway), not an outlier its gate can tell."""
+    y = np.asarray(y, dtype=float)[None]
+    if not np.isfinite(y).all():
+        return False
+    X = model.inverse_function(y)
+    if not np.isfinite(X).all() or np.any(model.rig.depths(X) <= 0):
+        return False
+    return bool(reprojection_residual(model, X, y)[0] <= plausible_residual(max(sigma, GATE_FLOOR_PX), gate))
+
+
 def camera_gate(sigma: float, gate: float) -> float:
     """The χ² gate on one camera's normalized innovation squared (2 degrees of freedom)."""
     if gate <= 0:
@@ -410,23 +442,29 @@ def camera_gate(sigma: float, gate: float) -> float:
     return float(chdtri(2, 1.0 - gate))
 
 
+LN4 = math.log(4.0)  # the median of χ²₂
+#: the smallest detection noise (px) the robust gates assume (see :class:`RobustNISScale`)
+GATE_FLOOR_PX = 1.0
+
+
 class RobustNISScale:
     """The gate's scale for filters whose gains ignore their own lag (alpha-beta, ``spsa_stereo``):
     the median of the last ``memory`` NIS values, gated ones included, over χ²₂'s median (ln 4),
-    floored at 1. A lagging filter's innovations grow and widen its gate within a few frames;
-    occasional outliers do not move a median. ``value`` is the scale from the innovations added
-    so far (use it, then :meth:`add` the new ones)."""
+    floored at ``(GATE_FLOOR_PX / σ)²`` (at least 1). A lagging filter's innovations grow and widen
+    its gate within a few frames; occasional outliers do not move a median. The floor keeps a gate
+    from assuming detections more precise than ``GATE_FLOOR_PX``: lossless renders give σ of a few
+    hundredths of a pixel, against which a fixed-gain filter's lag of a pixel is hundreds of σ.
+    ``value`` is the scale from the innovations added so far (use it, then :meth:`add` the new ones)."""
 
-    def __init__(self, memory: int = 30) -> None:
-        from collections import deque
-
+    def __init__(self, sigma: float = 1.0, memory: int = 30) -> None:
         self.recent: deque = deque(maxlen=memory)
-        self.value = 1.0
+        self.minimum = max(1.0, (GATE_FLOOR_PX / sigma) ** 2)
+        self.value = self.minimum
 
     def add(self, nis) -> None:
-        self.recent.extend(float(v) for v in nis if np.isfinite(v))
+        self.recent.extend(float(v) for v in nis if math.isfinite(v))
         if self.recent:
-            self.value = max(1.0, float(np.median(self.recent)) / math.log(4.0))
+            self.value = max(self.minimum, statistics.median(self.recent) / LN4)
 
 
 def reprojection_residual(model: StereoMeasurementModel, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
@@ -436,15 +474,19 @@ def reprojection_residual(model: StereoMeasurementModel, X: np.ndarray, Y: np.nd
 
 
 def camera_nis(model: StereoMeasurementModel, x: np.ndarray, P: np.ndarray, Y: np.ndarray,
-               R: np.ndarray | None = None, h: np.ndarray | None = None, H: np.ndarray | None = None) -> np.ndarray:
+               R: np.ndarray | None = None, h: np.ndarray | None = None, H: np.ndarray | None = None,
+               S: np.ndarray | None = None) -> np.ndarray:
     """Each camera's normalized innovation squared ``rᵀ S⁻¹ r`` (…×2; NaN where it has no
     observation), ``r = y_c − h_c(x)``, ``S = H_c P H_cᵀ + R_c`` at the predicted state ``x`` (…×d)
-    and covariance ``P`` (…×d×d); ``R`` (4×4) defaults to the model's ``σ² I``; ``h``, ``H``: the
-    model at ``x`` when the caller has them already."""
+    and covariance ``P`` (…×d×d); ``R`` (4×4) defaults to the model's ``σ² I``; ``h``, ``H``, ``S``:
+    the model at ``x`` and the 4×4 innovation covariance when the caller has them already."""
     R = model.covar() if R is None else R
     h = model.function(x) if h is None else h
     H = model.jacobian(x) if H is None else H
-    S = H @ P @ np.swapaxes(H, -1, -2) + R  # both cameras at once; each camera's own is its 2×2 block
+    if S is None:
+        S = H @ P @ np.swapaxes(H, -1, -2) + R  # both cameras at once; each camera's own is its 2×2 block
+    if np.ndim(Y) == 1:
+        return _camera_nis_one(S, Y - h)
     with np.errstate(invalid="ignore"):
         r = Y - h
     out = np.full((*np.shape(Y)[:-1], 2), np.nan)
@@ -456,15 +498,25 @@ def camera_nis(model: StereoMeasurementModel, x: np.ndarray, P: np.ndarray, Y: n
     return out
 
 
+def _camera_nis_one(S: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """:func:`camera_nis` of one track in Python floats (the same closed form; NaN stays NaN)."""
+    s, (u1, v1, u2, v2) = S.tolist(), r.tolist()
+    out = []
+    for i, u, v in ((0, u1, v1), (2, u2, v2)):
+        a, b, d = s[i][i], s[i][i + 1], s[i + 1][i + 1]
+        out.append((d * u * u - 2.0 * b * u * v + a * v * v) / (a * d - b * b))
+    return np.array(out)
+
+
 def gated_cameras(model: StereoMeasurementModel, x: np.ndarray, P: np.ndarray, Y: np.ndarray,
                   threshold: float, R: np.ndarray | None = None, h: np.ndarray | None = None,
-                  H: np.ndarray | None = None) -> np.ndarray:
+                  H: np.ndarray | None = None, S: np.ndarray | None = None) -> np.ndarray:
     """Which cameras' observations fall outside the χ² gate (…×2 booleans), each camera on its own
     (a bad blob in one camera never discards the other's): :func:`camera_nis` above ``threshold``."""
     if not np.isfinite(threshold):
         return np.zeros((*np.shape(Y)[:-1], 2), dtype=bool)
     with np.errstate(invalid="ignore"):
-        return camera_nis(model, x, P, Y, R, h, H) > threshold
+        return camera_nis(model, x, P, Y, R, h, H, S) > threshold
 
 
 def reprojection_errors(rig: StereoRig, positions: np.ndarray, Y: np.ndarray, velocities: np.ndarray | None = None,

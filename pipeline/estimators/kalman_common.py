@@ -36,9 +36,15 @@ class KalmanConfig(EstimatorConfig):
     r_scale: float = Field(1.0, gt=0)
 
 
+_ALL_ROWS = np.arange(4)
+_ALL_ROWS.flags.writeable = False
+
+
 def available_rows(y: np.ndarray) -> np.ndarray:
     """Indices of the observation rows present (both coordinates of a camera go together)."""
     ok = np.isfinite(y)
+    if ok.all():
+        return _ALL_ROWS
     ok[:2] = ok[:2].all()
     ok[2:] = ok[2:].all()
     return np.flatnonzero(ok)
@@ -70,26 +76,33 @@ class GatedFilter:
 
     def gate_threshold(self) -> float:
         cfg = self.config  # type: ignore[attr-defined]
-        return camera_gate(cfg.pixel_sigma, cfg.gate)
+        key = (cfg.pixel_sigma, cfg.gate)
+        if getattr(self, "_gate_key", None) != key:  # chdtri costs more than a filter step
+            self._gate_key, self._gate_value = key, camera_gate(cfg.pixel_sigma, cfg.gate)
+        return self._gate_value
 
     def gate_covariance(self) -> np.ndarray:
         """The pixel noise the gate assumes: the model's ``σ² I``, times ``r_scale``."""
         return self.model.covar() * self.config.r_scale  # type: ignore[attr-defined]
 
     def gate(self, y: np.ndarray, x: np.ndarray, P: np.ndarray, h: np.ndarray | None = None,
-             H: np.ndarray | None = None) -> tuple[np.ndarray, int, Start | None]:
+             H: np.ndarray | None = None, S: np.ndarray | None = None) -> tuple[np.ndarray, int, Start | None]:
         """(the observation with gated cameras missing, how many were gated, a restart or None):
         after ``restart_after`` frames in a row with a camera gated, the track restarts from this
-        frame's detections (when they triangulate plausibly). ``h``, ``H``: the model at ``x``."""
-        g = gated_cameras(self.model, x, P, y, self.gate_threshold(), self.gate_covariance(), h, H)  # type: ignore[attr-defined]
-        kept = y.copy()
-        for c in np.flatnonzero(g):
-            kept[2 * c : 2 * c + 2] = np.nan
-        had, gated = bool(np.isfinite(y).any()), bool(g.any())  # one track: plain Python, as update_gated_run
+        frame's detections (when they triangulate plausibly). ``h``, ``H``, ``S``: the model at
+        ``x`` and the innovation covariance under the gate's noise, when the caller has them."""
+        g = gated_cameras(self.model, x, P, y, self.gate_threshold(), self.gate_covariance(), h, H, S)  # type: ignore[attr-defined]
+        gated = bool(g[0] or g[1])
+        kept = y
+        if gated:
+            kept = y.copy()
+            for c in np.flatnonzero(g):
+                kept[2 * c : 2 * c + 2] = np.nan
+        had = gated or bool(np.isfinite(y).any())  # one track: plain Python, as update_gated_run
         self.gated_run = self.gated_run + 1 if gated else (0 if had else self.gated_run)  # type: ignore[has-type]
         restart = None
         if self.gated_run >= self.config.restart_after:  # type: ignore[attr-defined]
-            restart = self.initiator.restart(self.frame, y)  # type: ignore[attr-defined]
+            restart = self.initiator.restart(self.frame, self.recent_observations())  # type: ignore[attr-defined]
             if restart is not None:
                 self.gated_run = 0
         return kept, int(g.sum()), restart
@@ -160,7 +173,7 @@ def _restart_batch(est: Estimator, idx: np.ndarray, k: int, Y: np.ndarray, run_g
     fresh = np.zeros(len(idx), dtype=bool)
     for i in np.flatnonzero(run_gated[idx] >= est.config.restart_after):
         m = idx[i]
-        s = est.initiator.restart(k, Y[m, k])
+        s = est.initiator.restart(k, Y[m, max(0, k + 1 - est.config.restart_after) : k + 1])
         if s is not None:
             x[m], P[m] = s.state, s.covariance
             run_gated[m] = 0

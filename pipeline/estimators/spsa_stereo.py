@@ -1,6 +1,6 @@
 """``spsa_stereo``: an SPSA tracker that tracks — Algorithm 1's ingredients (simultaneous ±1
 perturbations, a few cost evaluations per frame, a linear motion prediction, no noise statistics, no
-matrix inversion) rearranged so that the update acts on a stereo rig (issue 12). The perturbations
+matrix inversion) rearranged so that the update acts on a stereo rig. The perturbations
 are a deterministic ±1 sequence, as in Bhatnagar, Fu, Marcus & Wang (2003), *Two-timescale
 simultaneous perturbation stochastic approximation using deterministic perturbation sequences*,
 ACM TOMACS 13(2): a full cycle of them estimates the gradient without the random cross terms.
@@ -61,7 +61,19 @@ What this method does instead, every frame k with observation ``y_k``:
    per coordinate: the memory halves after ``run`` innovations ``ŝ − s⁻`` in a row with the same
    sign (the estimate lags a manoeuvre); white noise alternates in sign.
 
-A prediction behind the left camera restarts the track from the frame's own minimum. A frame whose
+What the constants encode. There are no noise statistics, but the floors are not free of them: a
+floor α fixes the memory n at which α_n reaches it (``alpha_min`` 0.5 → n = 2 frames), and a memory
+counted in frames is an assumption about motion against noise *per frame*: the same floor is a
+memory of n/30 s at 30 fps and n/120 s at 120 fps, so a faster camera smooths over a shorter time
+and a slower one lags more. The disparity's floor ``alpha_depth_per_disparity · b/z`` encodes how
+fast depth may change against the disparity noise; ``run`` (Kesten) how many same-signed
+innovations in a row count as a manoeuvre. Change the frame rate and these are what to revisit.
+
+Outliers: each camera's squared reprojection residual at the prediction, over σ² and the robust
+scale of :class:`~pipeline.estimators.base.RobustNISScale` (a floor-gain tracker lags manoeuvres,
+and the median of its recent residuals widens the gate with the lag), is gated at the χ²₂ quantile
+``gate``; ``restart_after`` frames in a row with a camera gated restart the track from its recent
+detections. A prediction behind the left camera restarts the track from the frame's own minimum. A frame whose
 minimised cost stays above ``cost_gate`` (normalized units² per camera) is treated as a gap: that catches
 a detection off the epipolar line (a wrong blob at another height), not one shifted along it, which
 the frame's own cost reads as a change of depth. The floors are the tuning knobs, as α is Algorithm 1's: small for
@@ -87,6 +99,7 @@ from pipeline.estimators.base import (
     not_started,
     register,
     reprojection_errors,
+    stereo_consistent,
 )
 from pipeline.estimators.spsa import normalized_rows
 
@@ -99,9 +112,9 @@ DIAGONALS = ((1.0, 1.0, 1.0), (1.0, 1.0, -1.0), (1.0, -1.0, 1.0), (-1.0, 1.0, 1.
 class SPSAStereoConfig(EstimatorConfig):
     """Gain floors, Newton steps per frame, perturbation size and outlier gates of ``spsa_stereo``."""
 
-    #: the per-camera χ² gate on the prediction's reprojection (see :meth:`SPSAStereoEstimator._gate`):
-    #: off by default, as for the alpha-beta filters (floor gains lag a manoeuvre systematically)
-    gate: float = Field(0.0, ge=0.0, lt=1.0)
+    #: the per-camera χ² gate on the prediction's reprojection (see :meth:`SPSAStereoEstimator._gate_cameras`;
+    #: 0 turns it off); a track gated ``restart_after`` frames in a row restarts from the detections
+    gate: float = Field(0.9995, ge=0.0, lt=1.0)
 
     init: InitConfig = InitConfig(frames=2)
     #: the floor of the gain α_n of the image coordinates x/z, y/z (the memory stops growing there)
@@ -182,7 +195,9 @@ class SPSAStereoEstimator(Estimator):
         self._gate = cfg.cost_gate
         self._nis_gate = camera_gate(cfg.pixel_sigma, cfg.gate)
         self._f2 = [float(c.K[0, 0] * c.K[1, 1]) for c in self.rig.cameras]  # px² per normalized unit²
-        self._scale = RobustNISScale()
+        self._poses = [(c.R.ravel().tolist(), c.t.ravel().tolist()) for c in self.rig.cameras]  # for the gate
+        self._scale = RobustNISScale(cfg.pixel_sigma)
+        self._gated_run = 0  # frames in a row with a camera gated (restart after cfg.restart_after)
         self.p = [0.0, 0.0, 0.0]
         self.v = [0.0, 0.0, 0.0]
 
@@ -358,22 +373,33 @@ class SPSAStereoEstimator(Estimator):
     def _gate_cameras(self, pp: list[float], yn: tuple, use_l: bool, use_r: bool) -> tuple[bool, bool]:
         """Drop a camera whose observation lies too far from the prediction: its squared
         reprojection residual (px²) over ``σ²`` times the robust scale of
-        :class:`~pipeline.estimators.base.RobustNISScale`, beyond the χ² gate (2 dof)."""
-        uv = self.model.function(np.array(pp)) if all(math.isfinite(c) for c in pp) else None
-        if uv is None:
+        :class:`~pipeline.estimators.base.RobustNISScale`, beyond the χ² gate (2 dof). The
+        prediction is projected in Python floats (normalized coordinates: ``R p + t``, divided)."""
+        if not all(math.isfinite(c) for c in pp):
             return use_l, use_r
-        un = self.rig.normalize(uv)
         out = [use_l, use_r]
         sigma2 = self.config.pixel_sigma**2  # type: ignore[attr-defined]
         for c in (0, 1):
             if out[c]:
-                nis = ((un[2 * c] - yn[2 * c]) ** 2 + (un[2 * c + 1] - yn[2 * c + 1]) ** 2) * self._f2[c] / sigma2
+                R, t = self._poses[c]
+                x = R[0] * pp[0] + R[1] * pp[1] + R[2] * pp[2] + t[0]
+                y = R[3] * pp[0] + R[4] * pp[1] + R[5] * pp[2] + t[1]
+                z = R[6] * pp[0] + R[7] * pp[1] + R[8] * pp[2] + t[2]
+                nis = ((x / z - yn[2 * c]) ** 2 + (y / z - yn[2 * c + 1]) ** 2) * self._f2[c] / sigma2
                 scale = self._scale.value
                 self._scale.add([nis])
                 if nis / scale > self._nis_gate:
                     out[c] = False
                     self._gated += 1
+        if self._gated == 2 and self._consistent(yn):  # both far but one point: lag, not an outlier
+            self._gated = 0
+            return use_l, use_r
         return out[0], out[1]
+
+    def _consistent(self, yn: tuple) -> bool:
+        """:func:`~pipeline.estimators.base.stereo_consistent` of a normalized observation."""
+        y = np.concatenate([(c.K @ [yn[2 * i], yn[2 * i + 1], 1.0])[:2] for i, c in enumerate(self.rig.cameras)])
+        return stereo_consistent(self.model, y, self.config.pixel_sigma, self.config.gate)  # type: ignore[attr-defined]
 
     def _step(self, y: np.ndarray) -> Step:
         if not self.initialized:
@@ -384,12 +410,27 @@ class SPSAStereoEstimator(Estimator):
             return Step(np.array(self.p), np.array(self.v))
         yn = tuple(self.rig.normalize(y).tolist())
         self._gated = 0
-        pred, cost, gain = self._update(yn, math.isfinite(yn[0]) and math.isfinite(yn[1]),
-                                        math.isfinite(yn[2]) and math.isfinite(yn[3]))
-        return Step(np.array(self.p), np.array(self.v), predicted=pred,
-                    extra={"cost": cost, "gain": gain, "gated": float(self._gated)})
+        use_l, use_r = math.isfinite(yn[0]) and math.isfinite(yn[1]), math.isfinite(yn[2]) and math.isfinite(yn[3])
+        pred, cost, gain = self._update(yn, use_l, use_r)
+        restarted = self._restart_if_lost(self.frame, self.recent_observations(), use_l or use_r)
+        return Step(np.array(self.p), np.array(self.v), predicted=pred and not restarted,
+                    extra={"cost": cost, "gain": gain, "gated": float(self._gated), "restart": float(restarted)})
 
-    def _fast(self, Y: np.ndarray) -> tuple[list, list, list, list, list]:
+    def _restart_if_lost(self, frame: int, recent: np.ndarray, had: bool) -> bool:
+        """After ``restart_after`` frames in a row with a camera gated (a track that has lost its
+        marker, not occasional outliers), start again from this frame's detections when they
+        triangulate plausibly; frames without observations leave the count as it is."""
+        self._gated_run = self._gated_run + 1 if self._gated else (0 if had else self._gated_run)
+        if self._gated_run < self.config.restart_after:
+            return False
+        s = self.initiator.restart(frame, recent)
+        if s is None:
+            return False
+        self._gated_run = 0
+        self._begin(s.state.tolist(), self._start_memory())
+        return True
+
+    def _fast(self, Y: np.ndarray) -> tuple[list, list, list, list, list, list]:
         """Every frame from a fresh state in one loop without per-frame objects (observations
         normalized at once): the same arithmetic as repeated :meth:`step`."""
         self.reset()
@@ -406,24 +447,27 @@ class SPSAStereoEstimator(Estimator):
             k += 1
         update = self._update
         gated = [math.nan] * (k + 1 if start is not None else n) + [0.0] * (n - k - 1 if start is not None else 0)
+        restarts = [math.nan] * len(gated)
         for j in range(k, n):
             self._gated = 0
             pred[j], costs[j], gains[j] = update(tuple(rows[j]), okl[j], okr[j])
+            restarted = self._restart_if_lost(j, Y[max(0, j + 1 - self.config.restart_after) : j + 1], okl[j] or okr[j])
+            pred[j] = pred[j] and not restarted
             states[j] = self.p + self.v
-            gated[j] = float(self._gated)
+            gated[j], restarts[j] = float(self._gated), float(restarted)
         self.frame = n
-        return states, pred, costs, gains, gated
+        return states, pred, costs, gains, gated, restarts
 
     def run(self, Y: np.ndarray) -> Track:
         """The clip through :meth:`_fast` (a warm-up on the first frames outside the timing)."""
         Y = self.check(Y)
         self._fast(Y[: self.warmup_frames])
         t0 = time.perf_counter()
-        states, pred, costs, gains, gated = self._fast(Y)
+        states, pred, costs, gains, gated, restarts = self._fast(Y)
         elapsed = time.perf_counter() - t0
         n = len(Y)
         S = np.array(states, dtype=float).reshape(n, 6)
         extra = {"cost": np.array(costs, dtype=float), "gain": np.array(gains, dtype=float),
-                 "gated": np.array(gated, dtype=float)}
+                 "gated": np.array(gated, dtype=float), "restart": np.array(restarts, dtype=float)}
         return Track(self.name, S[:, :3], S[:, 3:], reprojection_errors(self.rig, S[:, :3], Y), np.full(n, np.nan),
                      np.array(pred, dtype=bool), elapsed / max(n, 1), extra)

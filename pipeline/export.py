@@ -1,0 +1,121 @@
+"""``stereotrack export``: the estimated 3-D tracks of a clip for the tools of motion capture and
+biomechanics — OpenSim's TRC (tab-separated text with a marker header), C3D (through ezc3d, the
+maintained open C3D library) and a wide CSV — with the marker names, the frame rate and the units
+(metres). Frames a method never estimated (before its start) are gaps: empty cells in TRC, ``nan``
+in CSV, NaN in C3D with the point's residual set to −1 (C3D's "invalid" mark)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import StereotrackError
+from pipeline.io import atomic_path, read_csv, write_csv
+
+FORMATS = ("trc", "c3d", "csv")
+
+
+@dataclass
+class Tracks:
+    """One method's estimates as an array: frames × markers × 3 (metres, NaN where none)."""
+
+    method: str
+    markers: list[str]
+    positions: np.ndarray
+    fps: float
+
+
+def read_tracks(out_dir: Path, method: str, fps: float) -> Tracks:
+    """``out_dir/estimates/<method>.csv`` as frames × markers × 3."""
+    path = out_dir / "estimates" / f"{method}.csv"
+    cols = read_csv(path, ["frame", "marker", "x", "y", "z"], numeric=["x", "y", "z"], finite=["frame"])
+    markers = list(dict.fromkeys(str(m) for m in cols["marker"]))
+    frames = cols["frame"].astype(int)
+    pos = np.full((int(frames.max()) + 1 if len(frames) else 0, len(markers), 3), np.nan)
+    index = {m: i for i, m in enumerate(markers)}
+    col = np.array([index[str(m)] for m in cols["marker"]], dtype=int)
+    pos[frames, col] = np.column_stack([cols["x"], cols["y"], cols["z"]])
+    return Tracks(method, markers, pos, fps)
+
+
+def clip_fps(out_dir: Path) -> float:
+    """The frame rate the estimates were made at (metrics.json's ``time``), else 30."""
+    path = out_dir / "metrics.json"
+    try:
+        return float(json.loads(path.read_text())["time"]["fps"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return 30.0
+
+
+def write_trc(path: Path, t: Tracks) -> None:
+    """OpenSim's TRC (PathFileType 4): a header naming the rate, frames, markers and units, then one
+    row per frame (``Frame#`` from 1, ``Time`` in s, X/Y/Z per marker; gaps are empty cells)."""
+    n, m = t.positions.shape[:2]
+    head = [
+        f"PathFileType\t4\t(X/Y/Z)\t{path.name}",
+        "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame\tOrigNumFrames",
+        f"{t.fps:g}\t{t.fps:g}\t{n}\t{m}\tm\t{t.fps:g}\t1\t{n}",
+        "Frame#\tTime\t" + "\t\t\t".join(t.markers) + "\t\t",
+        "\t\t" + "\t".join(f"X{i}\tY{i}\tZ{i}" for i in range(1, m + 1)),
+    ]
+    with atomic_path(path) as tmp, open(tmp, "w", newline="\n") as f:
+        f.write("\n".join(head) + "\n\n")
+        for k in range(n):
+            cells = ["" if not np.isfinite(v) else repr(float(v)) for v in t.positions[k].ravel()]
+            f.write(f"{k + 1}\t{k / t.fps:.6f}\t" + "\t".join(cells) + "\n")
+
+
+def write_c3d(path: Path, t: Tracks) -> None:
+    """C3D through ezc3d: POINT:LABELS the marker names, POINT:RATE the frame rate, POINT:UNITS m;
+    a missing point is NaN with residual −1."""
+    import ezc3d
+
+    c = ezc3d.c3d()
+    c["parameters"]["POINT"]["RATE"]["value"] = [float(t.fps)]
+    c["parameters"]["POINT"]["LABELS"]["value"] = tuple(t.markers)
+    c["parameters"]["POINT"]["UNITS"]["value"] = ["m"]
+    pts = np.ones((4, len(t.markers), len(t.positions)))
+    pts[:3] = t.positions.transpose(2, 1, 0)
+    c["data"]["points"] = pts
+    residuals = np.where(np.isfinite(t.positions).all(axis=2).T, 0.0, -1.0)[None]
+    c["data"]["meta_points"]["residuals"] = residuals
+    with atomic_path(path) as tmp:
+        c.write(str(tmp))
+
+
+def write_wide_csv(path: Path, t: Tracks) -> None:
+    """One row per frame: ``frame, t`` and ``<marker>_x, _y, _z`` in metres (``nan`` where none, as
+    in every CSV stereotrack writes)."""
+    cols = ["frame", "t", *[f"{m}_{a}" for m in t.markers for a in "xyz"]]
+    write_csv(path, cols, ((k, k / t.fps, *t.positions[k].ravel()) for k in range(len(t.positions))))
+
+
+WRITERS = {"trc": write_trc, "c3d": write_c3d, "csv": write_wide_csv}
+
+
+def export_clip(clip: str | Path, fmt: str, methods: list[str] | None = None, out: str | Path | None = None,
+                in_dir: str | Path | None = None) -> list[Path]:
+    """Write each method's tracks (default: every method with estimates) as ``<out>/<method>.<fmt>``
+    (default ``CLIP/out/export``); the paths written."""
+    if fmt not in FORMATS:
+        raise StereotrackError(f"unknown export format {fmt!r} (known: {', '.join(FORMATS)})")
+    in_dir = Path(in_dir) if in_dir else Path(clip) / "out"
+    est = in_dir / "estimates"
+    have = sorted(p.stem for p in est.glob("*.csv")) if est.is_dir() else []
+    if not have:
+        raise StereotrackError("no estimates here: run `stereotrack estimate` (or `run`) first", est)
+    for m in methods or []:
+        if m not in have:
+            raise StereotrackError(f"no estimates of method {m!r} (have: {', '.join(have)})", est)
+    out_dir = Path(out) if out else in_dir / "export"
+    fps = clip_fps(in_dir)
+    written = []
+    for m in methods or have:
+        path = out_dir / f"{m}.{fmt}"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        WRITERS[fmt](path, read_tracks(in_dir, m, fps))
+        written.append(path)
+    return written

@@ -1,0 +1,309 @@
+"""A user's own rig, from footage to export: the frame rate of footage that does not state one
+(``--fps``, ``clip.yaml``, ``timestamps.csv``), recorded and used; held frames marked in the
+estimates; exports for motion-capture tools."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from detectors.stage import detect_clip
+from pipeline.clip import Clip
+from pipeline.estimate import estimate_clip
+from tests.test_inputs import RED, assert_one_line_error, cli, real_copy
+
+
+def frame_folders(dest: Path, frames: int = 30) -> Path:
+    """The sample clip as numbered PNG folders (no frame rate anywhere) with its calibration."""
+    src = real_copy(dest.parent / f"{dest.name}-videos")
+    dest.mkdir(parents=True)
+    shutil.copy(src / "calib.yaml", dest / "calib.yaml")
+    for cam in ("left", "right"):
+        (dest / cam).mkdir()
+        cap = cv2.VideoCapture(str(src / f"{cam}.mp4"))
+        for k in range(frames):
+            ok, img = cap.read()
+            assert ok
+            cv2.imwrite(str(dest / cam / f"{k:06d}.png"), img)
+        cap.release()
+    return dest
+
+
+def test_frame_rate_from_every_source_recorded_and_used(tmp_path):
+    """The video header; clip.yaml over it; --fps over both. The dt follows: the same detections
+    give the same positions and velocities scaled by the frame rate."""
+    clip = real_copy(tmp_path / "clip")
+    detect_clip(clip, "blob", [RED])
+    header = estimate_clip(clip, ["triangulation", "ekf"], out_dir=tmp_path / "a", in_dir=clip / "out")
+    assert header.metrics["time"]["source"] == "video header"
+    fps0 = header.metrics["time"]["fps"]
+    (clip / "clip.yaml").write_text(f"fps: {2 * fps0}\n")
+    doubled = estimate_clip(clip, ["triangulation", "ekf"], out_dir=tmp_path / "b", in_dir=clip / "out")
+    assert doubled.metrics["time"] == {"fps": 2 * fps0, "dt_s": 1 / (2 * fps0), "source": "clip.yaml"}
+    given = estimate_clip(Clip(clip, fps=3 * fps0), ["triangulation"], out_dir=tmp_path / "c", in_dir=clip / "out")
+    assert given.metrics["time"]["source"] == "--fps" and given.metrics["time"]["fps"] == 3 * fps0
+    written = json.loads((tmp_path / "b" / "metrics.json").read_text())["time"]
+    assert written["source"] == "clip.yaml"
+    a, b = header.tracks["triangulation"], doubled.tracks["triangulation"]
+    for m in a:
+        np.testing.assert_allclose(a[m].position, b[m].position, equal_nan=True)
+    va, vb = header.tracks["ekf"]["red"].velocity, doubled.tracks["ekf"]["red"].velocity
+    ok = np.isfinite(va).all(axis=1) & np.isfinite(vb).all(axis=1) & (np.linalg.norm(va, axis=1) > 0.01)
+    ratio = np.median(np.linalg.norm(vb[ok], axis=1) / np.linalg.norm(va[ok], axis=1))
+    assert 1.6 < ratio < 2.4, ratio  # twice the rate: the same steps in half the time
+
+
+def test_frame_folders_without_a_rate_warn_and_say_so(tmp_path, monkeypatch, capsys):
+    clip = frame_folders(tmp_path / "frames", 20)
+    with pytest.warns(UserWarning, match="assuming 30 fps"):
+        assert Clip(clip).fps == 30.0
+    rc, out, err = cli(monkeypatch, capsys, "detect", clip, "--markers", RED, "--fps", "60")
+    assert rc == 0 and "frame rate: 60 fps (dt 16.67 ms), from --fps" in out, out + err
+    assert "assuming 30" not in err
+    rc, out, err = cli(monkeypatch, capsys, "estimate", clip, "--methods", "triangulation", "--fps", "60")
+    assert rc == 0 and "from --fps" in out
+    assert json.loads((clip / "out" / "metrics.json").read_text())["time"]["fps"] == 60.0
+
+
+@pytest.mark.parametrize("text, expected", [("fps: -2\n", "fps: Input should be greater than 0"),
+                                            ("fsp: 30\n", "fsp: Extra inputs are not permitted"),
+                                            ("fps: fast\n", "fps: Input should be a valid number")])
+def test_bad_clip_settings_are_one_line(tmp_path, monkeypatch, capsys, text, expected):
+    clip = real_copy(tmp_path / "clip")
+    (clip / "clip.yaml").write_text(text)
+    rc, out, err = cli(monkeypatch, capsys, "detect", clip, "--markers", RED)
+    assert_one_line_error(rc, out, err, "clip.yaml: " + expected)
+    rc, out, err = cli(monkeypatch, capsys, "run", real_copy(tmp_path / "other"), "--markers", RED, "--fps", "0")
+    assert_one_line_error(rc, out, err, "--fps must be a positive number")
+
+
+def read_trc(path: Path) -> tuple[dict, list[str], np.ndarray]:
+    """An independent TRC reader (the layout OpenSim documents): header values, marker names,
+    frames × markers × 3 (NaN for empty cells)."""
+    lines = path.read_text().split("\n")
+    keys, values = lines[1].split("\t"), lines[2].split("\t")
+    head = dict(zip(keys, values, strict=True))
+    names = [n for n in lines[3].split("\t")[2:] if n]
+    rows = [ln.split("\t") for ln in lines[5:] if ln.strip()]
+    data = np.array([[float(c) if c else np.nan for c in r[2:]] for r in rows])
+    return head, names, data.reshape(len(rows), len(names), 3)
+
+
+@pytest.fixture(scope="module")
+def estimated(tmp_path_factory) -> Path:
+    clip = real_copy(tmp_path_factory.mktemp("export") / "clip", with_truth=True)
+    (clip / "clip.yaml").write_text("fps: 25\n")
+    detect_clip(clip, "blob", [RED])
+    estimate_clip(clip, ["triangulation", "ekf"])
+    return clip
+
+
+def test_export_round_trip_trc_c3d_csv(estimated, monkeypatch, capsys):
+    """TRC (read back by an independent parser) and C3D (read back by ezc3d) hold the estimate
+    CSVs' positions to 1e-6 m, the marker names, the frame rate and the unit; gaps stay gaps."""
+    import ezc3d
+
+    from pipeline.clip import read_positions
+
+    for fmt in ("trc", "c3d", "csv"):
+        rc, _out, err = cli(monkeypatch, capsys, "export", estimated, "--format", fmt)
+        assert rc == 0, err
+    for method in ("triangulation", "ekf"):
+        want, _ = read_positions(estimated / "out" / "estimates" / f"{method}.csv")
+        head, names, trc = read_trc(estimated / "out" / "export" / f"{method}.trc")
+        assert head["DataRate"] == "25" and head["Units"] == "m" and names == list(want)
+        c3d = ezc3d.c3d(str(estimated / "out" / "export" / f"{method}.c3d"))
+        assert list(c3d["parameters"]["POINT"]["LABELS"]["value"]) == list(want)
+        assert c3d["parameters"]["POINT"]["RATE"]["value"][0] == 25.0
+        assert c3d["parameters"]["POINT"]["UNITS"]["value"] == ["m"]
+        pts = c3d["data"]["points"][:3].transpose(2, 1, 0)
+        for i, name in enumerate(want):
+            np.testing.assert_allclose(trc[: len(want[name]), i], want[name], atol=1e-6, equal_nan=True)
+            np.testing.assert_allclose(pts[: len(want[name]), i], want[name], atol=1e-6, equal_nan=True)
+            gaps = ~np.isfinite(want[name]).all(axis=1)
+            assert np.all(c3d["data"]["meta_points"]["residuals"][0, i, : len(gaps)][gaps] == -1)
+    wide = (estimated / "out" / "export" / "ekf.csv").read_text().splitlines()
+    assert wide[0] == "frame,t,red_x,red_y,red_z"
+
+
+def test_estimates_say_which_frames_were_held(estimated, tmp_path):
+    """Triangulation holds its last point through frames without both cameras: `predicted` says so,
+    on exactly those frames."""
+    from pipeline.io import read_csv
+
+    clip = tmp_path / "clip"
+    shutil.copytree(estimated, clip)
+    det = (clip / "out" / "detections.csv").read_text().splitlines()
+    gone = {f"{k}" for k in range(10, 15)}
+    kept = [ln for ln in det if not (ln.split(",")[0] in gone and ln.split(",")[1] == "left")]
+    (clip / "out" / "detections.csv").write_text("\n".join(kept) + "\n")
+    estimate_clip(clip, ["triangulation"], time_offset="off")
+    cols = read_csv(clip / "out" / "estimates" / "triangulation.csv", ["frame", "predicted", "x"])
+    held = np.flatnonzero(cols["predicted"] == 1)
+    assert list(held) == list(range(10, 15)), held
+    x = cols["x"]
+    assert np.all(x[10:15] == x[9])  # held, not invented
+
+
+@pytest.mark.parametrize("args, expected", [
+    (["--format", "fbx"], "unknown export format 'fbx'"),
+    (["--methods", "ukf"], "no estimates of method 'ukf'"),
+])
+def test_export_errors_are_one_line(estimated, monkeypatch, capsys, args, expected):
+    rc, out, err = cli(monkeypatch, capsys, "export", estimated, *args)
+    assert_one_line_error(rc, out, err, expected)
+
+
+def test_export_before_estimating_says_what_to_run(tmp_path, monkeypatch, capsys):
+    rc, out, err = cli(monkeypatch, capsys, "export", real_copy(tmp_path / "clip"))
+    assert_one_line_error(rc, out, err, "no estimates here: run `stereotrack estimate`")
+
+
+def test_every_output_is_readable_like_the_others(tmp_path):
+    """run.rrd used to be written 0600 (mkstemp) while every other output is 0666 less the umask."""
+    import stat
+
+    from pipeline.run import process_clip
+
+    clip = real_copy(tmp_path / "clip")
+    process_clip(clip, marker_specs=[RED], methods=["triangulation"])
+    modes = {p.name: stat.S_IMODE(p.stat().st_mode) for p in (clip / "out").rglob("*") if p.is_file()}
+    assert len(set(modes.values())) == 1, modes
+
+
+# -- calibrate ------------------------------------------------------------------------------------
+
+def board_rig():
+    """A held-out rig for calibration: strong barrel distortion, second camera on the LEFT, rotated."""
+    from renderers.scenario import load_scenario, parse_scenario
+
+    d = load_scenario("distortion").model_dump(mode="json")
+    d["rig"]["right"] = {"position": [-0.12, 0.01, 0.005], "rotation_deg": [1.0, 2.0, -1.5]}
+    d["rig"]["toe_in_deg"] = 0.0
+    return parse_scenario(d).rig.build()
+
+
+def distortion_error(est, true, hulls) -> np.ndarray:
+    """Pixel difference of the estimated and the true distortion (both through the true K) at the
+    pixels of a grid inside the area the board covered."""
+    mask = np.zeros(true.K[:2, 2].astype(int)[::-1] * 2 + 1, np.uint8)
+    h, w = mask.shape
+    for hull in hulls:
+        cv2.fillConvexPoly(mask, np.round(hull).astype(np.int32), 1)
+    grid = np.stack(np.meshgrid(np.arange(5, w - 5, 10.0), np.arange(5, h - 5, 10.0)), -1).reshape(-1, 2)
+    grid = grid[mask[grid[:, 1].astype(int), grid[:, 0].astype(int)] > 0]
+    from pipeline.camera import UNDISTORT_CRITERIA
+
+    xy = cv2.undistortPoints(grid.reshape(-1, 1, 2), true.K, np.asarray(true.D), criteria=UNDISTORT_CRITERIA).reshape(-1, 2)
+    X = np.column_stack([xy, np.ones(len(xy))])
+    a = cv2.projectPoints(X, np.zeros(3), np.zeros(3), true.K, np.asarray(true.D))[0].reshape(-1, 2)
+    b = cv2.projectPoints(X, np.zeros(3), np.zeros(3), true.K, np.asarray(est.D))[0].reshape(-1, 2)
+    return np.linalg.norm(a - b, axis=1)
+
+
+@pytest.fixture(scope="module")
+def chessboard_pairs(tmp_path_factory) -> Path:
+    from renderers.board import Board, render_board_pairs
+
+    out = tmp_path_factory.mktemp("boards") / "chessboard"
+    render_board_pairs(board_rig(), Board("chessboard", 9, 6, 0.025), out, pairs=20, seed=3, depth=(0.4, 0.9))
+    return out
+
+
+def test_calibrate_recovers_the_rendered_rig(chessboard_pairs, tmp_path, monkeypatch, capsys):
+    """Chessboard pairs rendered through a known, distorted, left-handed rig: focal lengths and the
+    baseline within 0.5 %, the distortion within 0.1 px over the area the board covered (median;
+    under 0.2 px at the 95th percentile, near the coverage's edge), the second camera named as on
+    the left; calib.yaml in metres with the image size."""
+    from pipeline.calibrate import calibrate, find_pairs
+    from pipeline.camera import load_calibration
+    from renderers.board import Board
+
+    truth = board_rig()
+    out = tmp_path / "calib.yaml"
+    rc, text, err = cli(monkeypatch, capsys, "calibrate", chessboard_pairs, "--board", "chessboard:9x6", "--square",
+                        "25mm", "-o", out)
+    assert rc == 0, err
+    assert "second camera on the left" in text and "poor calibration" in err  # 32 % coverage: said so
+    rig = load_calibration(out)
+    assert "units: m" in out.read_text() and rig.image_size == truth.image_size
+    for est, true in zip(rig.cameras, truth.cameras, strict=True):
+        np.testing.assert_allclose(np.diag(est.K)[:2], np.diag(true.K)[:2], rtol=0.005)
+    assert abs(rig.baseline / truth.baseline - 1) < 0.005
+    cal = calibrate(find_pairs(chessboard_pairs), Board("chessboard", 9, 6, 0.025))
+    for est, true, hulls in zip(cal.rig.cameras, truth.cameras, cal.hulls, strict=True):
+        e = distortion_error(est, true, hulls)  # measured: median 0.03 / 0.01 px, 95th percentile 0.10 / 0.07 px
+        assert np.median(e) < 0.1 and np.percentile(e, 95) < 0.2
+    assert (out.parent / "calib_report.md").is_file() and (out.parent / "calib_coverage.png").is_file()
+
+
+def test_calibrate_agrees_with_opencv_on_the_same_corners(chessboard_pairs):
+    """stereotrack's calibration against OpenCV's stereoCalibrate run directly, intrinsics and all,
+    on the same corners: the same baseline to 0.1 %."""
+    from pipeline.calibrate import calibrate, find_corners, find_pairs
+    from renderers.board import Board
+
+    board = Board("chessboard", 9, 6, 0.025)
+    pairs = find_pairs(chessboard_pairs)
+    cal = calibrate(pairs, board)
+    obj, il, ir = [], [], []
+    for _, gl, gr in pairs:
+        a, b = find_corners(board, gl), find_corners(board, gr)
+        obj.append(a[0])
+        il.append(a[1].astype(np.float32))
+        ir.append(b[1].astype(np.float32))
+    size = pairs[0][1].shape[::-1]
+    res = cv2.stereoCalibrate(obj, il, ir, None, None, None, None, size, flags=cv2.CALIB_FIX_K3)
+    assert abs(np.linalg.norm(res[6]) / cal.baseline - 1) < 0.001
+
+
+def test_calibrate_charuco(tmp_path):
+    from pipeline.calibrate import calibrate_folder, parse_board
+    from renderers.board import render_board_pairs
+
+    truth = board_rig()
+    board = parse_board("charuco:7x5:4X4_50", 0.04, 0.03)
+    render_board_pairs(truth, board, tmp_path / "pairs", pairs=16, seed=5, depth=(0.45, 0.9))
+    with pytest.warns(UserWarning, match="poor calibration"):
+        cal, _, _ = calibrate_folder(tmp_path / "pairs", board, tmp_path / "calib.yaml")
+    for est, true in zip(cal.rig.cameras, truth.cameras, strict=True):
+        np.testing.assert_allclose(np.diag(est.K)[:2], np.diag(true.K)[:2], rtol=0.005)
+    assert abs(cal.baseline / truth.baseline - 1) < 0.005 and cal.second_camera_side == "left"
+
+
+def test_calibrate_says_which_pairs_it_left_out(chessboard_pairs, tmp_path):
+    """A pair whose right image shows no board, and one whose right image is another pair's: the
+    first is left out as 'not found', the second as a reprojection outlier, each named."""
+    from pipeline.calibrate import calibrate, find_pairs
+    from renderers.board import Board
+
+    pairs = find_pairs(chessboard_pairs)
+    blank = np.full_like(pairs[0][2], 110)
+    pairs = [*pairs, ("pair 98", pairs[0][1], blank), ("pair 99", pairs[1][1], pairs[2][2])]
+    cal = calibrate(pairs, Board("chessboard", 9, 6, 0.025))
+    assert "board not found in the right image" in cal.rejected["pair 98"]
+    assert "reprojection error" in cal.rejected["pair 99"] and "pair 99" not in cal.used
+
+
+@pytest.mark.parametrize("args, expected", [
+    (["--board", "chessboard:9x6", "--square", "24 furlongs"], "--square '24 furlongs' is not a length"),
+    (["--board", "chess:9x6", "--square", "24mm"], "expected chessboard:COLSxROWS or charuco:COLSxROWS:DICT"),
+    (["--board", "charuco:7x5:4X4_50", "--square", "4cm"], "needs --marker"),
+    (["--board", "chessboard:7x7", "--square", "24mm"], "the board was found in both images of 0 pair(s)"),
+])
+def test_calibrate_errors_are_one_line(chessboard_pairs, tmp_path, monkeypatch, capsys, args, expected):
+    rc, out, err = cli(monkeypatch, capsys, "calibrate", chessboard_pairs, *args, "-o", tmp_path / "c.yaml")
+    assert_one_line_error(rc, out, err, expected)
+    assert not (tmp_path / "c.yaml").exists()
+
+
+def test_calibrate_names_an_unreadable_image(tmp_path, monkeypatch, capsys):
+    (tmp_path / "left_01.png").write_bytes(b"not a png")
+    (tmp_path / "right_01.png").write_bytes(b"not a png")
+    rc, out, err = cli(monkeypatch, capsys, "calibrate", tmp_path, "--board", "chessboard:9x6", "--square", "24mm")
+    assert_one_line_error(rc, out, err, "left_01.png: cannot read this image")
