@@ -11,7 +11,7 @@ DOCS = Path(__file__).resolve().parent.parent / "docs"
 
 def add_output_args(ap: argparse.ArgumentParser) -> None:
     """``--out DIR`` (default: a new temporary folder) and ``--write-docs`` (write into docs/, the
-    tracked copy the README links to)."""
+    tracked copy the docs link to)."""
     ap.add_argument("--out", type=Path, default=None, help="folder for the report and figures (default: a temporary one)")
     ap.add_argument("--write-docs", action="store_true", help="write into docs/ (the tracked report)")
 

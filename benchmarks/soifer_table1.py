@@ -164,7 +164,7 @@ def end_to_end() -> list[str]:
               + "; z RMSE: " + ", ".join(f"{m} {v[1]:.4f}" for m, v in mean.items()) + ".",
               f"Lowest α error here: **{best_a}**. Kalman–Bucy vs its own raw measurement: "
               f"{mean['four_point'][0] / mean['kalman_bucy'][0]:.2f}× lower α RMSE. (On simulated pixel noise of "
-              "0.5–1 px (README, four-point notes) the Kalman–Bucy filter is ahead of "
+              "0.5–1 px (methods page, four-point notes) the Kalman–Bucy filter is ahead of "
               "PnP + KF on α and behind it on z.)", ""]
     return lines
 

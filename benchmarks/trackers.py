@@ -163,7 +163,7 @@ def count_gating(acc: list[int], cond: str, tr, bad: np.ndarray | None) -> None:
 
 
 def summary(table: dict[str, dict[str, float]]) -> str:
-    """The sentences the README quotes, computed from the table: spsa_stereo against the EKF and
+    """The sentences the docs quote, computed from the table: spsa_stereo against the EKF and
     triangulation per condition."""
     ekf = [table["spsa_stereo"][c] / table["ekf"][c] for c in CONDITIONS]
     tri = [table["triangulation"][c] / table["spsa_stereo"][c] for c in CONDITIONS]

@@ -1,4 +1,4 @@
-"""Colour blob detection with sub-pixel centroids (SPEC §4.7).
+"""Colour blob detection with sub-pixel centroids.
 
 Per marker: an HSV range → ``cv2.inRange`` mask → ``cv2.connectedComponentsWithStats`` → size and
 roundness filters → the centroid of the component weighted by colour strength (chroma above the
@@ -64,31 +64,72 @@ class MarkerColor:
         return cls(m.group(1), vals[0], vals[1], vals[2] if vals[2] is not None else 80, vals[3] if vals[3] is not None else 60)  # type: ignore[arg-type]
 
     @classmethod
-    def learn(cls, name: str, bgr: np.ndarray, roi: tuple[int, int, int, int], source: str = "") -> MarkerColor:
-        """The HSV range of the object in window ``roi`` (x, y, w, h) of a frame — the CamShift
-        tutorial's workflow. Coloured pixels (S ≥ 50, V ≥ 40) vote in a hue histogram; the range
-        spans the 2nd–98th percentile of hue around its peak, widened by 3; S and V minima are
-        the 5th percentiles of those pixels, relaxed by 30 % so shading on the object still passes."""
+    def learn(cls, name: str, bgr: np.ndarray, roi: tuple[int, int, int, int], source: str = "",
+              force: bool = False) -> MarkerColor:
+        """The HSV range of the marker in window ``roi`` (x, y, w, h) of a frame, learned by contrast
+        with its surroundings, so that a window drawn loosely (the marker's bounding box, or up to
+        1.5× it) does not learn the wall behind it. The window's centre (an ellipse of half its
+        size: inside the marker however the window was drawn) and its surround (outside the
+        window's inscribed ellipse, out to twice the window) vote in hue–saturation histograms; the
+        marker's colours are the bins the centre has at least ``CONTRAST`` times as often as the
+        surround (the back-projection idea of Swain & Ballard, *Color indexing*, IJCV 7(1), 1991).
+        Skin hues are left out unless the centre is mostly skin. The range spans those pixels'
+        hues (2nd–98th percentile around the peak, widened by 3); S and V minima sit above what the
+        surround has at those hues, and below nearly all of the marker's own pixels.
+
+        The range is then tried on the whole frame: one that selects far more outside the window
+        than inside it (the background, or many objects) is an error telling the user to draw the
+        window tighter or give a range, unless ``force``."""
         H, W = bgr.shape[:2]
         x, y, w, h = roi
         if w <= 0 or h <= 0 or x < 0 or y < 0 or x + w > W or y + h > H:
             raise StereotrackError(f"marker window {name}@{x},{y},{w},{h} lies outside the {W}×{H} frame{source}")
-        hsv = cv2.cvtColor(bgr[y : y + h, x : x + w], cv2.COLOR_BGR2HSV).reshape(-1, 3).astype(int)
-        coloured = hsv[(hsv[:, 1] >= 50) & (hsv[:, 2] >= 40)]
-        if len(coloured) < max(12, 0.05 * w * h):
+        centre, surround = _window_regions(bgr, roi)
+        coloured = centre[(centre[:, 1] >= 25) & (centre[:, 2] >= 40)]
+        if len(coloured) < max(12, 0.05 * len(centre)):
             raise StereotrackError(f"marker window {name}@{x},{y},{w},{h} holds almost no coloured pixels{source}: "
                                    "put the window on the marker")
-        hist = np.bincount(coloured[:, 0], minlength=180).astype(float)
+        mine = _contrast_pixels(coloured, surround)
+        if len(mine) < max(8, 0.1 * len(coloured)):
+            raise StereotrackError(f"marker window {name}@{x},{y},{w},{h}: its centre has no colour its surroundings "
+                                   f"lack{source}: draw the window around the marker, or give a range NAME:HLO-HHI")
+        mk = cls._range_of(name, mine, surround)
+        if not force:
+            mk._selects_one(bgr, roi, source)
+        return mk
+
+    def _selects_one(self, bgr: np.ndarray, roi: tuple[int, int, int, int], source: str) -> None:
+        """Raise when this range selects over ``OUTSIDE_TO_INSIDE`` times as many pixels outside
+        the window as inside it, and over 1 % of the frame."""
+        x, y, w, h = roi
+        mask = self.mask(cv2.cvtColor(bgr, cv2.COLOR_BGR2HSV)) > 0
+        inside = int(mask[y : y + h, x : x + w].sum())
+        outside = int(mask.sum()) - inside
+        if outside > OUTSIDE_TO_INSIDE * max(inside, 1) and outside > 0.01 * mask.size:
+            raise StereotrackError(
+                f"marker window {self.name}@{x},{y},{w},{h}: the colour learned from it ({self.spec()}) selects "
+                f"{100 * mask.mean():.0f} % of the frame, {outside / max(inside, 1):.0f}× more outside the window than "
+                f"inside{source}: draw the window tighter around the marker, or give a range "
+                f"(--markers {self.name}:HLO-HHI:SMIN:VMIN); --force uses it anyway")
+
+    @classmethod
+    def _range_of(cls, name: str, mine: np.ndarray, surround: np.ndarray) -> MarkerColor:
+        """The range spanning the marker's pixels ``mine`` (N×3 HSV) above the surround's S and V."""
+        hist = np.bincount(mine[:, 0], minlength=180).astype(float)
         hist = np.convolve(np.concatenate([hist[-3:], hist, hist[:3]]), np.ones(7), "valid")
         peak = int(np.argmax(hist))
-        rel = (coloured[:, 0] - peak + 90) % 180 - 90  # hue relative to the peak, wrapped to −90..89
+        rel = (mine[:, 0] - peak + 90) % 180 - 90  # hue relative to the peak, wrapped to −90..89
         near = np.abs(rel) <= 25
         lo, hi = np.percentile(rel[near], [2, 98])
         h_lo, h_hi = int(np.floor(peak + lo - 3)) % 180, int(np.ceil(peak + hi + 3)) % 180
-        sv = coloured[near]
-        s_min = int(max(40, 0.7 * np.percentile(sv[:, 1], 5)))
-        v_min = int(max(30, 0.7 * np.percentile(sv[:, 2], 5)))
-        return cls(name, h_lo, h_hi, s_min, v_min)
+        sv = mine[near]
+        s_own, v_own = np.percentile(sv[:, 1], [5, 10]), np.percentile(sv[:, 2], [5, 10])
+        srel = (surround[:, 0] - peak + 90) % 180 - 90
+        same_hue = surround[(srel >= lo - 3) & (srel <= hi + 3)]
+        s_min, v_min = 0.7 * s_own[0], 0.7 * v_own[0]
+        if len(same_hue) >= 20:  # stay above the surround's pixels of the marker's hues, below most of the marker's
+            s_min = max(s_min, min(np.percentile(same_hue[:, 1], 99) + 5, s_own[1]))
+        return cls(name, h_lo, h_hi, int(max(25, s_min)), int(max(30, v_min)))
 
     def display_rgb(self) -> tuple[int, int, int]:
         """The colour this range selects, for drawing: its centre hue at high saturation and value."""
@@ -107,6 +148,75 @@ class MarkerColor:
         a = cv2.inRange(hsv, (self.h_lo, self.s_min, self.v_min), (179, 255, 255))
         b = cv2.inRange(hsv, (0, self.s_min, self.v_min), (self.h_hi, 255, 255))
         return cv2.bitwise_or(a, b)
+
+
+#: a blob elongated up to this ratio (a ball smeared along its motion within one exposure) is
+#: still the marker if it fills its ellipse of inertia
+MAX_BLUR_ELONGATION = 4.0
+
+
+def _blurred_roundness(comp: np.ndarray, area: float) -> float:
+    """How round a motion-blurred marker is: the share of its ellipse of inertia it fills (1 for a
+    filled ellipse of any elongation), or 0 when it is elongated beyond ``MAX_BLUR_ELONGATION``,
+    ragged, or not centrally symmetric. A ball smeared along its motion is an ellipse, symmetric
+    about its centre; a line is too long, and a ball half hidden behind an edge is a half disc,
+    which its own half-turn about its centroid overlaps by well under ``BLUR_SYMMETRY``."""
+    c = np.pad(comp.astype(np.uint8), 2)
+    m = cv2.moments(c, binaryImage=True)
+    if m["m00"] <= 0:
+        return 0.0
+    cov = np.array([[m["mu20"], m["mu11"]], [m["mu11"], m["mu02"]]]) / m["m00"]
+    lo, hi = np.linalg.eigvalsh(cov)
+    if lo <= 0 or hi / lo > MAX_BLUR_ELONGATION**2:
+        return 0.0
+    fill = area / (np.pi * 4.0 * np.sqrt(lo * hi))  # semi-axes 2σ
+    cx, cy = m["m10"] / m["m00"], m["m01"] / m["m00"]
+    turned = cv2.warpAffine(c, np.array([[-1.0, 0.0, 2 * cx], [0.0, -1.0, 2 * cy]]), c.shape[::-1], flags=cv2.INTER_NEAREST)
+    overlap = np.logical_and(c, turned).sum() / max(np.logical_or(c, turned).sum(), 1)
+    return float(fill) if fill >= 0.8 and overlap >= BLUR_SYMMETRY else 0.0
+
+
+#: how much of a blurred blob its half-turn about its centroid must overlap (an ellipse: ~1)
+BLUR_SYMMETRY = 0.85
+
+
+#: a learned range selecting this many times more pixels outside its window than inside is refused
+OUTSIDE_TO_INSIDE = 4.0
+#: a hue–saturation bin is the marker's when the window's centre has it this many times as often
+#: (per pixel) as the window's surround
+CONTRAST = 3.0
+#: skin: warm hues (OpenCV hue 0–25 of 180) at low to middle saturation, left out of learned ranges
+SKIN_HUE, SKIN_S = (0, 25), (30, 170)
+
+
+def _window_regions(bgr: np.ndarray, roi: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """HSV pixels (N×3 int) of the window's centre (inside an ellipse of half the window's size)
+    and of its surround (outside 1.3× the window's inscribed ellipse, within twice the window)."""
+    H, W = bgr.shape[:2]
+    x, y, w, h = roi
+    cx, cy = x + w / 2.0, y + h / 2.0
+    x0, x1 = int(max(0, cx - w)), int(min(W, cx + w))
+    y0, y1 = int(max(0, cy - h)), int(min(H, cy + h))
+    hsv = cv2.cvtColor(bgr[y0:y1, x0:x1], cv2.COLOR_BGR2HSV).astype(int)
+    yy, xx = np.mgrid[y0:y1, x0:x1]
+    d = ((xx + 0.5 - cx) / (w / 2.0)) ** 2 + ((yy + 0.5 - cy) / (h / 2.0)) ** 2
+    return hsv[d <= 0.25], hsv[d > 1.3**2]  # a guard band: the marker's blurred edge is neither
+
+
+def _contrast_pixels(centre: np.ndarray, surround: np.ndarray) -> np.ndarray:
+    """The centre's pixels in hue–saturation bins it has ``CONTRAST`` times as often as the
+    surround; skin bins dropped unless skin is most of the centre."""
+    def hist(p: np.ndarray) -> np.ndarray:
+        return np.histogram2d(p[:, 0], p[:, 1], bins=(30, 8), range=((0, 180), (0, 256)))[0] / max(len(p), 1)
+
+    c, b = hist(centre), hist(surround)
+    keep = (c > 0.005) & (c > CONTRAST * b)
+    hb, sb = np.minimum(centre[:, 0] // 6, 29), np.minimum(centre[:, 1] // 32, 7)
+    mine = centre[keep[hb, sb]]
+    skin = (mine[:, 0] >= SKIN_HUE[0]) & (mine[:, 0] <= SKIN_HUE[1]) & (mine[:, 1] >= SKIN_S[0]) & (mine[:, 1] <= SKIN_S[1])
+    if skin.mean() < 0.5 if len(mine) else False:
+        mine = mine[~skin]
+    return mine
 
 
 @dataclass
@@ -231,7 +341,9 @@ class BlobDetector:
                     continue
             roundness = area / (np.pi * (max(w, h) / 2.0) ** 2)
             if roundness < self.min_roundness or min(w, h) < 0.5 * max(w, h):
-                continue
+                roundness = _blurred_roundness(labels[y : y + h, x : x + w] == i, area)
+                if roundness < self.min_roundness:
+                    continue
             u, v = self._refine(labels, i, bgr, hsv, x, y, w, h, mk)
             found.append(Detection(mk.name, u + ox, v + oy, float(area), float(min(roundness, 1.0))))
         found.sort(key=lambda d: (-d.score * d.area))

@@ -1,4 +1,5 @@
-"""Meanshift and CamShift tracking (lecture 002; SPEC §4.7).
+"""Meanshift and CamShift tracking (Comaniciu & Meer, *Mean shift*, IEEE TPAMI 24(5), 2002;
+Bradski, *Computer vision face tracking*, Intel Technology Journal, 1998).
 
 A hue histogram of the marker, taken from an initial window (the blob detector's first
 detection, or a user ROI), is back-projected onto every frame; ``cv2.meanShift`` (fixed window) or

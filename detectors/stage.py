@@ -1,4 +1,4 @@
-"""The detect stage: a clip folder (or a single video) → ``out/detections.csv`` (SPEC §3) and a
+"""The detect stage: a clip folder (or a single video) → ``out/detections.csv`` and a
 per-camera summary, with pixel errors against ``truth.csv`` when the clip has one."""
 
 from __future__ import annotations
@@ -65,12 +65,14 @@ class DetectResult:
 
 
 def markers_for_clip(clip: Clip, specs: list[str] | None, left_frame: Callable[[int], np.ndarray | None] | None = None,
-                     learned: dict[str, str] | None = None) -> tuple[list[MarkerColor], dict[str, list[str]]]:
+                     learned: dict[str, str] | None = None,
+                     force: bool = False) -> tuple[list[MarkerColor], dict[str, list[str]]]:
     """Marker colour ranges (from ``--markers`` specs, else ``markers.yaml``, else the clip's
     description of a rendered clip) and, for four-point targets whose points share one colour, the group name →
     its four point names. A ``NAME@x,y,w,h[@FRAME]`` spec learns its range from that window of
     the left camera's frame FRAME (default the first), read through ``left_frame``; the ranges
-    chosen go into ``learned``."""
+    chosen go into ``learned``; ``force`` keeps a learned range that selects far more than the
+    marker (see :meth:`MarkerColor.learn`)."""
     specs = resolve_marker_specs(clip.path, specs)
     if specs:
         colors = []
@@ -83,7 +85,7 @@ def markers_for_clip(clip: Clip, specs: list[str] | None, left_frame: Callable[[
             if frame is None:
                 raise StereotrackError(f"marker {spec!r} learns its colour from left frame {win[2]}, which is missing",
                                        clip.path)
-            mk = MarkerColor.learn(win[0], frame, win[1], f" (left frame {win[2]} of {clip.path})")
+            mk = MarkerColor.learn(win[0], frame, win[1], f" (left frame {win[2]} of {clip.path})", force)
             colors.append(mk)
             if learned is not None:
                 learned[mk.name] = mk.spec()
@@ -110,7 +112,7 @@ def markers_for_clip(clip: Clip, specs: list[str] | None, left_frame: Callable[[
 
 
 def label_four_points(points: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
-    """Order four image points as SPEC §4.8 numbers them: 2 and 4 on the rotation axis (the pair
+    """Order four image points as Soifer, Fursov & Kharitonov number them: 2 and 4 on the rotation axis (the pair
     2R apart, not foreshortened, i.e. the longer diagonal), 2 to the right; 1 above the axis.
     With the previous frame's labelled points, keep labels by optimal assignment instead, so
     labels never swap while the target moves."""
@@ -141,12 +143,14 @@ def detect_clip(
     progress: Callable[[int, int], None] | None = None,
     calib_units: str | None = None,
     frame_sink: Callable[[int, np.ndarray | None, np.ndarray | None], None] | None = None,
+    force: bool = False,
 ) -> DetectResult:
     """Detect every marker in every frame of both cameras and write ``detections.csv`` and
     ``detect.json`` (frames, frame size, the marker ranges used, the colour checks).
 
     ``frame_sink(index, left, right)`` receives every decoded frame (``run`` records them as they
-    go by, so a clip is decoded once and never held in memory).
+    go by, so a clip is decoded once and never held in memory). ``force`` keeps a colour learned
+    from a window even when it selects far more than the marker.
 
     Coordinates written are undistorted with the clip's calibration when it has one (real rigs
     have lens distortion; estimators need pinhole coordinates); a calibration for another image
@@ -163,7 +167,7 @@ def detect_clip(
         checks += [size_check] if size_check else []
     learned: dict[str, str] = {}
     specs = resolve_marker_specs(clip, marker_specs)
-    markers, groups = markers_for_clip(clip_, specs, lambda k: _left_frame(source, k), learned)
+    markers, groups = markers_for_clip(clip_, specs, lambda k: _left_frame(source, k), learned, force)
     n_cams = 2 if source.stereo else 1
     if detector == "blob":
         blob = BlobDetector(markers, max_per_marker=4)
@@ -254,11 +258,14 @@ def _sample_colours(sampler: BlobDetector, img: np.ndarray, cam: str, skip: set[
     for mk in sampler.markers:
         if mk.name in skip:
             continue
-        mask_px = int(cv2.countNonZero(mk.mask(hsv))) * scale
+        mask = mk.mask(hsv)
+        mask_px = int(cv2.countNonZero(mask)) * scale
         found = sampler._detect_one(mk, small, hsv, 0, 0)
         areas = [*sorted((d.area * scale for d in found), reverse=True), 0.0, 0.0]
+        stats = cv2.connectedComponentsWithStats(mask, connectivity=8)[2]
+        one = float(stats[1:, cv2.CC_STAT_AREA].max()) * scale / mask_px if len(stats) > 1 and mask_px else 0.0
         samples.setdefault((mk.name, cam), []).append((mask_px / (img.shape[0] * img.shape[1]), mask_px, areas[0],
-                                                      areas[1]))
+                                                      areas[1], one))
 
 
 def _window(d: Detection, shape: tuple[int, ...]) -> tuple[int, int, int, int]:

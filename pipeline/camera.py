@@ -1,5 +1,5 @@
 """The one camera model: pinhole projection, its Jacobian, the stereo rig, OpenCV<->OpenGL poses
-and the calibration files (SPEC §2, §3).
+and the calibration files.
 
 Conventions: world frame = the left camera's frame, OpenCV axes (x right, y down, z forward),
 metres; pixel (0, 0) is the centre of the top-left pixel. ``P = K [R | t]`` and
@@ -125,7 +125,7 @@ class Camera:
         """``(fx, fy, cx, cy)`` to hand to ``pyrender.IntrinsicsCamera``.
 
         OpenGL puts pixel centres at +0.5, OpenCV at integers, so OpenCV's ``cx, cy`` are shifted by
-        half a pixel (SPEC §2, the half-pixel trap); without it every render is (0.5, 0.5) px off.
+        half a pixel; without it every render is (0.5, 0.5) px off.
         """
         K = self.K
         return float(K[0, 0]), float(K[1, 1]), float(K[0, 2]) + 0.5, float(K[1, 2]) + 0.5

@@ -29,6 +29,8 @@ MASK_TO_BLOB = 8.0
 #: A colour range selecting more than this fraction of a frame matches the background (a marker
 #: that close fills the view and cannot be tracked as a point anyway).
 MASK_FRACTION = 0.25
+#: a mask with this share of its pixels in one connected part is one object, not the background
+ONE_OBJECT = 0.8
 
 
 @dataclass
@@ -58,7 +60,9 @@ def rig_for_frames(rig: StereoRig, frame_size: tuple[int, int], calib: str | Pat
     ratio, e.g. a 1280×720 calibration on 640×360 video); an error naming both sizes otherwise."""
     cw, ch = rig.image_size
     fw, fh = frame_size
-    if (cw, ch) == (0, 0) or (cw, ch) == (fw, fh):
+    if (cw, ch) == (0, 0):
+        return rig, unsized_calibration_check(rig, frame_size, calib)
+    if (cw, ch) == (fw, fh):
         return rig, None
     if abs(cw / ch - fw / fh) > 1e-3 * (fw / fh):
         raise ClipError(f"the calibration is for {cw}×{ch} images but the frames are {fw}×{fh} "
@@ -66,6 +70,27 @@ def rig_for_frames(rig: StereoRig, frame_size: tuple[int, int], calib: str | Pat
     msg = (f"{calib}: the calibration is for {cw}×{ch} images but the frames are {fw}×{fh}; "
            f"scaled K by {fw / cw:g} (same aspect ratio)")
     return rig.scaled_to((fw, fh)), Check("image_size", False, msg, fw / cw, str(calib))
+
+
+def unsized_calibration_check(rig: StereoRig, frame_size: tuple[int, int], calib: str | Path) -> Check | None:
+    """For a calibration that does not record its image size (OpenCV's ``stereo_calib`` layout):
+    a principal point sitting where the centre of an image ``s`` times the frames' size would be
+    (the same ``s`` in x and y, for both cameras, ``s`` not near 1) names the likely size it was
+    made at. Without this, a 320×240 calibration on 640×480 frames reads as "left/right swapped"."""
+    fw, fh = frame_size
+    ratios = []
+    for cam in rig.cameras:
+        cx, cy = cam.K[0, 2], cam.K[1, 2]
+        ratios += [(cx + 0.5) / (fw / 2), (cy + 0.5) / (fh / 2)]
+    s = float(np.median(ratios))
+    if abs(s - 1) < 0.2 or max(abs(r / s - 1) for r in ratios) > 0.1:
+        return None
+    common = min((0.25, 1 / 3, 0.5, 2 / 3, 0.75, 1.5, 2.0, 3.0, 4.0), key=lambda c: abs(c / s - 1))
+    s = common if abs(common / s - 1) < 0.05 else s  # principal points are never exactly central
+    msg = (f"{calib}: the calibration does not say its image size, and its principal points sit at the centre of "
+           f"a {fw * s:.0f}×{fh * s:.0f} image, not of these {fw}×{fh} frames: it was likely made at that size "
+           f"(recalibrate at this size, or add image_width/image_height to the file so that K is scaled)")
+    return Check("calibration_size", False, msg, s, str(calib))
 
 
 def stereo_checks(rig: StereoRig, observations: dict[str, np.ndarray], calib: str = "calib.yaml") -> list[Check]:
@@ -125,10 +150,12 @@ def jump_checks(observations: dict[str, np.ndarray], image_width: int) -> list[C
     return out
 
 
-def colour_checks(samples: dict[tuple[str, str], list[tuple[float, int, float, float]]]) -> list[Check]:
+def colour_checks(samples: dict[tuple[str, str], list[tuple[float, ...]]]) -> list[Check]:
     """Per marker and camera, from sampled whole frames: (mask fraction of the frame, mask pixels,
-    largest blob area, second-largest blob area). A range whose mask is far larger than the blob it
-    finds matches the background; two blobs of comparable size in most frames mean a second
+    largest blob area, second-largest blob area, the largest connected part's share of the mask).
+    A range whose mask is far larger than the blob it finds matches the background, unless the
+    mask is one object (``ONE_OBJECT`` of it in one connected part: a large marker, a tray, that
+    the blob filters measure smaller); two blobs of comparable size in most frames mean a second
     object of the marker's colour."""
     out = []
     for (name, cam), rows in samples.items():
@@ -136,7 +163,8 @@ def colour_checks(samples: dict[tuple[str, str], list[tuple[float, int, float, f
             continue
         a = np.array(rows, dtype=float)
         frac, mask_px, big = (np.median(a[:, i]) for i in range(3))
-        if frac > MASK_FRACTION or (frac > 0.02 and mask_px > MASK_TO_BLOB * max(big, 1.0)):
+        one_object = a.shape[1] > 4 and np.median(a[:, 4]) >= ONE_OBJECT
+        if frac > MASK_FRACTION or (frac > 0.02 and mask_px > MASK_TO_BLOB * max(big, 1.0) and not one_object):
             out.append(Check("colour_range", False,
                              f"marker '{name}': its colour range selects {frac:.0%} of the {cam} frame ({mask_px:,.0f} px "
                              f"against a blob of {big:,.0f} px): it matches the background; narrow the range",

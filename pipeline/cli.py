@@ -122,11 +122,14 @@ MarkersOption = Annotated[list[str] | None, typer.Option(
     "the range from that window of the first left frame; repeatable or comma-separated. Default: the clip's "
     "markers.yaml, else the colours of a rendered clip (clip.json).")]
 CalibUnitsOption = Annotated[str | None, typer.Option(
-    "--calib-units", help="Length unit of the calibration's T (m, cm or mm). It overrides a 'units' the file "
-    "declares, with a warning naming both when they differ; outputs are in metres.")]
+    "--calib-units", help="Length unit of the calibration's T (m, cm or mm). Default: the 'units' the file declares, "
+    "else metres. Given, it overrides the file's, with a warning naming both when they differ; outputs are in metres.")]
 TimeOffsetOption = Annotated[str, typer.Option(
     "--time-offset", help="The right camera's delay behind the left (s): 'auto' estimates it from the detections "
     "and applies it when its 95 % interval excludes 0; 'off'; or seconds. A clip's timestamps.csv wins.")]
+ForceWindowOption = Annotated[bool, typer.Option(
+    "--force", help="Keep a colour learned from a NAME@x,y,w,h window even when it selects far more of the first "
+    "frame than the marker (by default that stops the command).")]
 FpsOption = Annotated[float | None, typer.Option(
     "--fps", help="Frames per second of the footage. Wins over the clip's clip.yaml 'fps', a rendered clip's "
     "clip.json, timestamps.csv and the video header; frame folders with none of these are taken as 30 fps, "
@@ -156,6 +159,7 @@ def detect_cmd(
     output: Annotated[Path | None, typer.Option("-o", "--output", help="Output folder (default CLIP/out).")] = None,
     calib_units: CalibUnitsOption = None,
     fps: FpsOption = None,
+    force: ForceWindowOption = False,
 ) -> None:
     """Find the markers in every frame; write detections.csv and print a per-camera summary."""
     from detectors.stage import detect_clip
@@ -167,7 +171,7 @@ def detect_cmd(
         task = bar.add_task(f"detect ({detector})", total=None)
         result = detect_clip(clip_, detector, _specs(markers), _parse_roi(roi), allow_unequal, output,  # type: ignore[arg-type]
                              progress=lambda done, total: bar.update(task, completed=done, total=total or None),
-                             calib_units=calib_units)
+                             calib_units=calib_units, force=force)
     _print_learned(result.learned)
     _print_time(clip_.fps, clip_.fps_source)
     table = Table("camera", "frames", "detections", "misses", "false (hidden)", "px err median", "p95", "max",
@@ -325,6 +329,7 @@ def run_cmd(
     config: ConfigOption = None,
     time_offset: TimeOffsetOption = "auto",
     fps: FpsOption = None,
+    force: ForceWindowOption = False,
 ) -> None:
     """Run every stage on one clip: (render), detect, estimate, metrics, report, recording.
 
@@ -363,7 +368,7 @@ def run_cmd(
         res = process_clip(clip, detector=detector, methods=_methods(methods), stage=stage,
                            progress=lambda d, t: bar.update(task, completed=d, total=t),
                            marker_specs=_specs(markers), calib_units=calib_units, configs=configs,
-                           time_offset=offset, fps=fps)
+                           time_offset=offset, fps=fps, force=force)
     _print_learned(res.detect.learned)
     _print_time(res.estimate.metrics["time"]["fps"], res.estimate.metrics["time"]["source"])
     _print_sync(res.estimate.metrics)

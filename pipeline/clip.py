@@ -1,4 +1,4 @@
-"""The clip folder (SPEC §3), read in one place: which files a clip has and what they mean, and
+"""The clip folder, read in one place: which files a clip has and what they mean, and
 the schemas of every table a clip or its ``out/`` folder holds (Kubric's one folder per scene,
 with its settings written beside it).
 

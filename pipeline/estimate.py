@@ -1,5 +1,5 @@
 """The estimate stage: ``out/detections.csv`` + ``calib.yaml`` → ``out/estimates/<method>.csv`` and,
-when the clip has truth, ``out/metrics.json`` (SPEC §3)."""
+when the clip has truth, ``out/metrics.json`` (schemas in :mod:`pipeline.clip`)."""
 
 from __future__ import annotations
 
@@ -109,12 +109,16 @@ def estimate_clip(
     footage = detections[1] if detections is not None else footage_info(clip, in_dir)
     rig = clip_.rig(calib_units)
     checks = list(footage.checks)
-    if footage.frame_size is not None and not any(c.name == "image_size" for c in checks):
+    sized = [c for c in checks if c.name in ("image_size", "calibration_size")]  # the detect stage's verdict
+    if footage.frame_size is not None and not sized:
         rig, size_check = rig_for_frames(rig, footage.frame_size, clip)
         checks += [size_check] if size_check else []
-    elif any(c.name == "image_size" for c in checks) and footage.frame_size is not None:
-        rig = rig.scaled_to(footage.frame_size)  # as the detect stage did: say so here too
-        warn_failed([c for c in checks if c.name == "image_size"])
+        warn_failed([size_check] if size_check else [])
+    elif footage.frame_size is not None:
+        if any(c.name == "image_size" for c in sized):
+            rig = rig.scaled_to(footage.frame_size)  # as the detect stage did
+        if detections is None:  # `estimate` on its own says so too (`run`'s detect stage already has)
+            warn_failed(sized)
     dt = 1.0 / clip_.fps
     ts = _timestamps(clip_, time_offset)
     grid = grid_length(ts, clip_.fps) if ts is not None else None  # videos that dropped frames are shorter

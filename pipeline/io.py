@@ -1,4 +1,4 @@
-"""Atomic file output and the CSV tables of the clip-folder contract (SPEC §3)."""
+"""Atomic file output and the CSV tables of the clip-folder contract (:mod:`pipeline.clip`)."""
 
 from __future__ import annotations
 

@@ -44,6 +44,7 @@ def process_clip(
     configs: dict[str, dict] | None = None,
     time_offset: str | float | None = "auto",
     fps: float | None = None,
+    force: bool = False,
 ) -> RunResult:
     """Detect, estimate, report and record one clip folder into ``out_dir`` (default CLIP/out).
 
@@ -56,18 +57,19 @@ def process_clip(
     out_dir = Path(out_dir) if out_dir else Clip.open(clip).folder / "out"
     if not lock:
         return _process_clip(Clip.open(clip, fps), out_dir, detector, methods, marker_specs, recording,
-                             images_in_recording, stage, progress, calib_units, configs, time_offset)
+                             images_in_recording, stage, progress, calib_units, configs, time_offset, force)
     with OutputLock(out_dir, f"stereotrack run {clip}"):
         for stale in list(out_dir.rglob(".*.partial-*")):
             stale.unlink(missing_ok=True) if stale.is_file() else shutil.rmtree(stale, ignore_errors=True)
         return _process_clip(Clip.open(clip, fps), out_dir, detector, methods, marker_specs, recording,
-                             images_in_recording, stage, progress, calib_units, configs, time_offset)
+                             images_in_recording, stage, progress, calib_units, configs, time_offset, force)
 
 
 def _process_clip(clip_: Clip, out_dir: Path, detector: str, methods: list[str] | None, marker_specs: list[str] | None,
                   recording: bool, images_in_recording: bool, stage: Callable[[str], None] | None,
                   progress: Callable[[int, int], None] | None, calib_units: str | None,
-                  configs: dict[str, dict] | None = None, time_offset: str | float | None = "auto") -> RunResult:
+                  configs: dict[str, dict] | None = None, time_offset: str | float | None = "auto",
+                  force: bool = False) -> RunResult:
     t0 = time.perf_counter()
     say = stage or (lambda s: None)
     clip = clip_.path  # the clip is read once, handed to every stage
@@ -76,7 +78,7 @@ def _process_clip(clip_: Clip, out_dir: Path, detector: str, methods: list[str] 
         say("detect")
         sink = recorder.log_frame if recorder is not None and images_in_recording else None
         det = detect_clip(clip_, detector, marker_specs, out_dir=out_dir, progress=progress,  # type: ignore[arg-type]
-                          calib_units=calib_units, frame_sink=sink)
+                          calib_units=calib_units, frame_sink=sink, force=force)
         say("estimate")
         est = estimate_clip(clip_, methods, out_dir=out_dir, progress=progress, calib_units=calib_units,
                             configs=configs, detections=(det.observations, det.footage), time_offset=time_offset)

@@ -1,4 +1,4 @@
-"""The experiment of Soifer, Fursov & Kharitonov §4 (Table 1 and Fig. 3; SPEC §5 R3).
+"""The experiment of Soifer, Fursov & Kharitonov §4 (Table 1 and Fig. 3).
 
 f = R = 0.5 m, the target centre on the optical axis at z = f, the plate turning with the closed
 loop ``A_α = [[0, 1], [−1, −1.73]]`` from α0 ∈ {π/6, π/3}, samples every 0.05 s over 2.5 s, white
@@ -88,7 +88,7 @@ def true_alpha(alpha0: float, euler: bool = True) -> np.ndarray:
 
 
 def y_coordinates(alpha: np.ndarray, z: float = Z_) -> tuple[np.ndarray, np.ndarray]:
-    """Noise-free y1, y3 of SPEC §4.8."""
+    """Noise-free y1, y3 of the four-point geometry (Soifer, Fursov & Kharitonov §2)."""
     return F_ * R_ * np.cos(alpha) / (z + R_ * np.sin(alpha)), F_ * R_ * np.cos(alpha) / (z - R_ * np.sin(alpha))
 
 

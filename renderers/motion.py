@@ -23,7 +23,7 @@ from renderers.scenario import (
 
 @dataclass
 class TargetTruth:
-    """Four-point target state per frame (SPEC §3 ``target_truth.csv``)."""
+    """Four-point target state per frame (``target_truth.csv``)."""
 
     name: str
     alpha: np.ndarray
@@ -159,7 +159,7 @@ def target_rotation(axis_angle: float) -> np.ndarray:
 def target_points(center: np.ndarray, alpha: np.ndarray, radius: float, axis_angle: float) -> tuple[np.ndarray, np.ndarray]:
     """The four target points (frames × 4 × 3) and the plate normal (frames × 3).
 
-    Numbering (SPEC §4.8): 2 and 4 lie on the rotation axis ``b`` (image x for ``axis_angle = 0``),
+    Numbering (Soifer, Fursov & Kharitonov): 2 and 4 lie on the rotation axis ``b`` (image x for ``axis_angle = 0``),
     1 and 3 on the in-plane axis ``a`` that turns by α: ``a = (0, −cos α, sin α)`` before the
     in-image rotation, so point 1 (upper) recedes as α grows and point 3 approaches. The plate
     normal faces the camera (``−z`` at α = 0).

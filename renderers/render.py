@@ -1,4 +1,4 @@
-"""Render a scenario into one clip folder (SPEC §3): videos or PNG frames, ``calib.yaml``,
+"""Render a scenario into one clip folder: videos or PNG frames, ``calib.yaml``,
 ``scenario.yaml``, ``truth.csv`` and, for the four-point target, ``target_truth.csv``.
 
 Like Kubric's workers: one seeded job renders one scene into one folder with all its ground

@@ -1,7 +1,7 @@
 """Declarative scenarios: YAML validated with pydantic (an invalid value names the field and file).
 
 A scenario holds the rig, frame count, fps, seed, image noise/blur, background and one or more
-objects, each with a motion model (SPEC §1; the built-ins live in ``data/scenarios/``).
+objects, each with a motion model (the built-ins live in ``data/scenarios/``).
 """
 
 from __future__ import annotations
@@ -182,7 +182,7 @@ class Sinusoid(_Model):
 
 
 class FourPointTarget(_Model):
-    """The Soifer et al. planar target (SPEC §4.8): four markers at ``radius`` from the plate centre,
+    """The Soifer et al. planar target (Soifer, Fursov & Kharitonov): four markers at ``radius`` from the plate centre,
     1 and 3 on one axis, 2 and 4 on the rotation axis; the plate turns by α about the 2–4 axis with
     ``[α, α̇]' = alpha_matrix [α, α̇] + noise``; its centre moves along the left optical axis with
     ``z̈ = a_z ż + noise``.

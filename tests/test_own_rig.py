@@ -15,6 +15,7 @@ import pytest
 from detectors.stage import detect_clip
 from pipeline.clip import Clip
 from pipeline.estimate import estimate_clip
+from tests.conftest import BALL
 from tests.test_inputs import RED, assert_one_line_error, cli, real_copy
 
 
@@ -307,3 +308,187 @@ def test_calibrate_names_an_unreadable_image(tmp_path, monkeypatch, capsys):
     (tmp_path / "right_01.png").write_bytes(b"not a png")
     rc, out, err = cli(monkeypatch, capsys, "calibrate", tmp_path, "--board", "chessboard:9x6", "--square", "24mm")
     assert_one_line_error(rc, out, err, "left_01.png: cannot read this image")
+
+
+# -- colours learned from a loose window ------------------------------------------------------------
+
+def window_around(u: float, v: float, radius: float, scale: float) -> str:
+    half = radius * scale
+    return f"{int(u - half)},{int(v - half)},{int(2 * half)},{int(2 * half)}"
+
+
+@pytest.mark.skipif(not BALL.is_file(), reason=f"real footage not present at {BALL} (shared/realdata)")
+@pytest.mark.parametrize("scale", [1.0, 1.5])
+def test_loose_window_on_real_footage(tmp_path, ball_reference, scale):
+    """ball2.mp4: a window drawn as the ball's bounding box, or 1.5× it, learns a range that finds
+    the ball on ≥ 90 % of the reference's frames, within 3 px (median) of the strict-HSV reference.
+    (The range learned from every pixel of the window: 1.5× gave a median of 3.1 px.)"""
+    from pipeline.clip import load_detections
+
+    u, v = ball_reference[100]
+    spec = f"ball@{window_around(u, v, 20.6, scale)}@100"  # the ball's radius at frame 100: 20.6 px
+    detect_clip(BALL, "blob", [spec], out_dir=tmp_path)
+    det = load_detections(tmp_path / "detections.csv", 1004)["ball"]
+    err = [np.hypot(det[k, 0] - a, det[k, 1] - b) for k, (a, b) in ball_reference.items() if np.isfinite(det[k, 0])]
+    assert len(err) >= 0.9 * len(ball_reference) and np.median(err) <= 3.0, (len(err), np.median(err))
+
+
+@pytest.fixture(scope="module")
+def skin_wall(tmp_path_factory) -> Path:
+    from renderers.render import render_clip
+    from renderers.scenario import load_scenario
+
+    clip = tmp_path_factory.mktemp("skin") / "clip"
+    render_clip(load_scenario("skin_wall").with_overrides(frames=45), clip, fmt="png", workers=1)
+    return clip
+
+
+def test_loose_window_on_an_orange_ball_before_a_brown_wall(skin_wall, tmp_path):
+    """The rendered clip built like the failing real one (orange ball, brown textured wall of nearby
+    hue, a skin-toned hand, motion blur), window = the ball's bounding box in frame 0: found on
+    ≥ 90 % of the frames where truth shows it, within 3 px (median). The range learned from every
+    pixel of the window selected 98 % of the frame and found the ball on no frame."""
+    from pipeline.clip import load_detections
+    from pipeline.io import read_csv
+
+    truth = read_csv(skin_wall / "truth.csv")
+    u, v, z = truth["u_left"][0], truth["v_left"][0], truth["z"][0]
+    spec = f"ball@{window_around(u, v, 600 * 0.045 / z, 1.0)}"
+    res = detect_clip(skin_wall, "blob", [spec], out_dir=tmp_path)
+    det = load_detections(tmp_path / "detections.csv", len(truth["u_left"]))["ball"]
+    vis = np.flatnonzero(truth["visible_left"] > 0)
+    err = np.hypot(det[vis, 0] - truth["u_left_pinhole"][vis], det[vis, 1] - truth["v_left_pinhole"][vis])
+    found = np.isfinite(err)
+    assert found.mean() >= 0.9 and np.median(err[found]) <= 3.0, (found.mean(), np.nanmedian(err))
+    assert res.learned["ball"].startswith("ball:")
+
+
+def test_window_on_the_background_stops(skin_wall, monkeypatch, capsys):
+    rc, out, err = cli(monkeypatch, capsys, "detect", skin_wall, "--markers", "wall@60,60,40,40")
+    assert_one_line_error(rc, out, err, "its centre has no colour its surroundings lack")
+
+
+def test_window_whose_colour_is_everywhere_stops_unless_forced():
+    """A red disc in the window and eight like it elsewhere: the range selects 8× more outside the
+    window than inside, which stops with the advice; --force keeps it."""
+    from detectors.blob import MarkerColor
+    from pipeline.errors import StereotrackError
+
+    img = np.full((240, 320, 3), 180, np.uint8)
+    for k in range(9):
+        cv2.circle(img, (30 + 35 * k, 60 if k else 150), 12, (30, 30, 220), -1)
+    with pytest.raises(StereotrackError, match="draw the window tighter"):
+        MarkerColor.learn("red", img, (14, 134, 32, 32))
+    assert MarkerColor.learn("red", img, (14, 134, 32, 32), force=True).spec().startswith("red:")
+
+
+def test_a_ball_smeared_by_motion_is_still_found():
+    """An ellipse 3.3 times as long as wide (a ball blurred along its motion) is the marker; a line
+    of its colour is not, nor a ball half hidden behind an edge (a half disc: its centroid is not
+    the ball's)."""
+    from detectors.blob import BlobDetector, MarkerColor
+
+    img = np.full((200, 300, 3), 200, np.uint8)
+    cv2.ellipse(img, (80, 100), (30, 9), 20, 0, 360, (30, 30, 230), -1)
+    cv2.line(img, (150, 50), (290, 60), (30, 30, 230), 4)
+    cv2.ellipse(img, (220, 150), (22, 22), 0, 0, 180, (30, 30, 230), -1)  # the lower half of a ball
+    found = BlobDetector([MarkerColor.parse("r:170-10:99:80")]).detect(img)
+    assert len(found) == 1 and abs(found[0].u - 80) < 0.5 and abs(found[0].v - 100) < 0.5
+
+
+# -- checks that do not cry wolf --------------------------------------------------------------------
+
+def stereo_calib_layout(clip: Path, rig) -> None:
+    """Write ``rig`` in OpenCV's stereo_calib layout (intrinsics.yml + extrinsics.yml: no image size)."""
+    (clip / "calib.yaml").unlink(missing_ok=True)
+    fs = cv2.FileStorage(str(clip / "intrinsics.yml"), cv2.FILE_STORAGE_WRITE)
+    for k, v in dict(M1=rig.left.K, D1=rig.left.D.reshape(1, -1), M2=rig.right.K, D2=rig.right.D.reshape(1, -1)).items():
+        fs.write(k, np.asarray(v, dtype=float))
+    fs.release()
+    fs = cv2.FileStorage(str(clip / "extrinsics.yml"), cv2.FILE_STORAGE_WRITE)
+    fs.write("R", rig.R)
+    fs.write("T", rig.T.reshape(3, 1))
+    fs.release()
+
+
+@pytest.mark.parametrize("factor, named", [(2.0, "640×480"), (0.5, "160×120"), (1.0, None)])
+def test_unsized_calibration_made_at_another_size_is_named(tmp_path, factor, named):
+    """The stereo_calib layout records no image size: a calibration made at twice or half the
+    frames' size is named as such (it used to read as "left/right swapped" or an epipolar
+    warning), and one made at the frames' size stays silent."""
+    from pipeline.camera import load_calibration
+    from tests.test_inputs import SAMPLE, failed_checks
+
+    clip = real_copy(tmp_path / "clip")
+    rig = load_calibration(SAMPLE)
+    stereo_calib_layout(clip, rig.scaled_to((int(320 * factor), int(240 * factor))))
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        detect_clip(clip, "blob", [RED])
+        estimate_clip(clip, ["triangulation"])
+    said = [str(w.message) for w in caught if "centre of a" in str(w.message)]
+    checks = failed_checks(clip / "out")
+    if named is None:
+        assert not said and "calibration_size" not in checks, said
+    else:
+        assert said and f"centre of a {named} image" in said[0] and "calibration_size" in checks
+
+
+def test_colour_check_tells_one_large_object_from_the_background():
+    """The colour-range rule itself: a mask 10× the blob the filters found is the background when it
+    is scattered, and one large object (a tray the roundness filter measures smaller) when 90 % of
+    it is one connected part."""
+    from pipeline.checks import colour_checks
+
+    scattered = [(0.05, 15000.0, 1500.0, 200.0, 0.3)] * 10
+    one_tray = [(0.05, 15000.0, 1500.0, 200.0, 0.9)] * 10
+    assert [c.name for c in colour_checks({("m", "left"): scattered})] == ["colour_range"]
+    assert colour_checks({("m", "left"): one_tray}) == []
+
+
+def test_colour_check_on_rendered_clips(tmp_path):
+    """A rendered marker that fills a good part of the view stays silent; a range that matches the
+    rendered background fires."""
+    import warnings
+
+    from renderers.render import render_clip
+    from renderers.scenario import parse_scenario
+
+    scen = {"name": "tray", "frames": 8, "fps": 30, "seed": 1,
+            "rig": {"width": 320, "height": 240, "focal": 300.0, "baseline": 0.2},
+            "render": {"shading": "flat", "noise_std": 2.0, "blur_sigma": 0.6, "background_color": [60, 90, 160]},
+            "objects": [{"name": "tray", "color": [230, 120, 30], "radius": 0.16,
+                         "motion": {"type": "constant_velocity", "start": [-0.1, 0.0, 1.3], "velocity": [0.2, 0.0, 0.1]}}]}
+    render_clip(parse_scenario(scen), tmp_path / "clip", fmt="png", workers=1)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        big = detect_clip(tmp_path / "clip", out_dir=tmp_path / "a")
+    assert not [c for c in big.checks if c.name == "colour_range"], [str(w.message) for w in caught]
+    with pytest.warns(UserWarning, match="matches the background"):
+        detect_clip(tmp_path / "clip", "blob", ["sky:0-179:0:0"], out_dir=tmp_path / "b")
+
+
+def test_calibrate_from_two_videos(chessboard_pairs, tmp_path):
+    """The same pairs as two videos left.avi/right.avi (frames sampled): the same rig to 0.5 %."""
+    from pipeline.calibrate import calibrate_folder
+    from renderers.board import Board
+
+    folder = tmp_path / "videos"
+    folder.mkdir()
+    for cam in ("left", "right"):
+        frames = sorted(chessboard_pairs.glob(f"{cam}_*.png"))
+        w = cv2.VideoWriter(str(folder / f"{cam}.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 10, (640, 480))
+        w.set(cv2.VIDEOWRITER_PROP_QUALITY, 100)
+        for f in frames:
+            w.write(cv2.imread(str(f)))
+        w.release()
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        cal, _, _ = calibrate_folder(folder, Board("chessboard", 9, 6, 0.025), tmp_path / "calib.yaml")
+    truth = board_rig()
+    assert len(cal.used) >= 18 and abs(cal.baseline / truth.baseline - 1) < 0.005
+    np.testing.assert_allclose(np.diag(cal.rig.left.K)[:2], np.diag(truth.left.K)[:2], rtol=0.005)

@@ -1,4 +1,5 @@
-"""Alpha-beta and alpha-beta-gamma filters (lecture 002; SPEC §4.6), on triangulated 3-D positions
+"""Alpha-beta and alpha-beta-gamma filters (Kalata, *The tracking index*, IEEE TAES 20(2), 1984;
+Brookner, *Tracking and Kalman Filtering Made Easy*, ch. 1), on triangulated 3-D positions
 or on each camera's image coordinates (then triangulated). Tracks start through the shared
 :class:`~pipeline.estimators.base.Initiator` (position and velocity; in image space their
 projection ``h(p₀)`` and rate ``J(p₀) v₀``).

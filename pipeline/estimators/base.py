@@ -1,6 +1,6 @@
 """The one estimator protocol, the one track initiator and the one registry.
 
-State model for a moving point (SPEC §4.2, thesis ch. II)::
+State model for a moving point (Krivokon 2011, ch. II)::
 
     x = [p; v] ∈ R⁶,   x_k = A x_{k−1} + w_k,   A = [[I, dt·I], [0, I]]
     y_k = h(x_k) + v_k,   h(x) = [proj(P1, p); proj(P2, p)] ∈ R⁴  (pixels)

@@ -1,4 +1,4 @@
-"""Extended Kalman filter on the stereo reprojection (thesis App. I; SPEC §4.5).
+"""Extended Kalman filter on the stereo reprojection (Krivokon 2011, App. I).
 
 Model of :mod:`pipeline.estimators.base`; with ``H_k = ∂h/∂x`` at the prediction (the measurement
 model's analytic ``jacobian``, zeros for the velocity)::

@@ -1,5 +1,5 @@
 """Four-point planar target: angle α and distance z from the image (Soifer, Fursov & Kharitonov;
-SPEC §4.8), and the raw-measurement estimator.
+Soifer, Fursov & Kharitonov §2), and the raw-measurement estimator.
 
 Points 1 and 3 lie on one plate axis, 2 and 4 on the rotation axis, all at radius R from the
 centre. With the centre on the optical axis at distance z and the plate turned by α, the image

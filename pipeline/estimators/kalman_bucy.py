@@ -1,4 +1,4 @@
-"""Continuous-time Kalman–Bucy filter for the four-point target (Soifer et al. §3; SPEC §4.8).
+"""Continuous-time Kalman–Bucy filter for the four-point target (Soifer, Fursov & Kharitonov §3).
 
 Per channel (α, then z) the model is ``ẍ = a ẋ + q``; with feedback ``L`` the closed loop is
 ``A = [[0, 1], [−L₀, a − L₁]]`` (the paper: a_α = −1, L = [1, 0.73] → [[0, 1], [−1, −1.73]]).

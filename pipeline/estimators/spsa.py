@@ -1,4 +1,4 @@
-"""Algorithm 1 of Krivokon (2011): nonstationary SPSA with linear extremum prediction (SPEC §4.4).
+"""Algorithm 1 of Krivokon (2011): nonstationary SPSA with linear extremum prediction.
 
 State ``θ ∈ R⁶`` (position, velocity); random perturbation ``Δ_k`` with components ±1/√6. For
 iteration k, consuming frames 2k−1 and 2k::
@@ -50,7 +50,7 @@ class SPSAConfig(EstimatorConfig):
     triangulations (``init.frames = 5``) instead of a zero velocity. The thesis gives no values for
     our units; α = 0.1, th = 0.03 are the largest in a grid (α 0.01–10, th 0.003–∞) that stayed
     bounded on the ``receding`` and ``maneuvering`` scenarios at 1.5 px. The earlier α = 0.03,
-    th = 0.003 capped a step at 3.7e-5 m per iteration: the update was inert (issue 12).
+    th = 0.003 capped a step at 3.7e-5 m per iteration: the update was inert.
     """
 
     init: InitConfig = InitConfig(frames=5)

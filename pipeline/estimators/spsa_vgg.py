@@ -1,4 +1,4 @@
-"""The unmodified nonstationary SPSA of Vakhitov, Granichin & Gurevich (2009) (SPEC §4.3): the
+"""The unmodified nonstationary SPSA of Vakhitov, Granichin & Gurevich (2009): the
 baseline Algorithm 1 improves on. State = position only; Δ_n components ±1/√3::
 
     x_{2n−1} = θ_{2n−2} − βΔ_n,   x_{2n} = θ_{2n−2} + βΔ_n
