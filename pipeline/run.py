@@ -65,6 +65,22 @@ def process_clip(
                              images_in_recording, stage, progress, calib_units, configs, time_offset, force)
 
 
+def run_description(clip: Path, detector: str, metrics: dict) -> str:
+    """What a run was, in Markdown, for the recording's text panel: the clip, frames and rate,
+    detector, methods, the time offset and the checks that failed."""
+    t = metrics.get("time", {})
+    failed = [c["message"] for c in metrics.get("checks", []) if not c.get("ok", True)]
+    lines = [f"# {clip.name}", "", f"- clip: `{clip}`", f"- frames: {metrics.get('frames', '?')} at {t.get('fps', 0):g} fps "
+             f"(from {t.get('source', '?')})", f"- detector: {detector}",
+             f"- methods: {', '.join(metrics.get('methods', {}))}"]
+    sync = metrics.get("sync") or {}
+    if sync:
+        lines.append(f"- time offset: {1000 * sync.get('offset_s', 0.0):+.2f} ms, "
+                     f"{'applied' if sync.get('applied') else 'not applied'} ({sync.get('source', '?')})")
+    lines += ["", "## Checks", "", *([f"- {m}" for m in failed] or ["- all input checks passed"])]
+    return "\n".join(lines) + "\n"
+
+
 def _process_clip(clip_: Clip, out_dir: Path, detector: str, methods: list[str] | None, marker_specs: list[str] | None,
                   recording: bool, images_in_recording: bool, stage: Callable[[str], None] | None,
                   progress: Callable[[int, int], None] | None, calib_units: str | None,
@@ -73,7 +89,7 @@ def _process_clip(clip_: Clip, out_dir: Path, detector: str, methods: list[str] 
     t0 = time.perf_counter()
     say = stage or (lambda s: None)
     clip = clip_.path  # the clip is read once, handed to every stage
-    recorder = Recorder(out_dir / "run.rrd", 1.0 / clip_.fps) if recording else None
+    recorder = Recorder(out_dir / "run.rrd", 1.0 / clip_.fps, name=f"stereotrack run {clip.name}") if recording else None
     try:
         say("detect")
         sink = recorder.log_frame if recorder is not None and images_in_recording else None
@@ -94,7 +110,8 @@ def _process_clip(clip_: Clip, out_dir: Path, detector: str, methods: list[str] 
                 series[f"target/distance/{m}"] = tr.extra["distance"]
             if est.target is not None and est.target.alpha is not None and est.target.distance is not None:
                 series["target/alpha/truth"], series["target/distance/truth"] = est.target.alpha, est.target.distance
-            rrd = recorder.finish(est.rig, est.observations, est.tracks, truth, series, det.marker_colours, progress)
+            rrd = recorder.finish(est.rig, est.observations, est.tracks, truth, series, det.marker_colours, progress,
+                                  run_description(clip, detector, est.metrics))
     except BaseException:
         if recorder is not None:
             recorder.abort()

@@ -75,7 +75,7 @@ def read_recording(path) -> tuple[dict[str, dict[str, list]], set[str], object]:
         if chunk.is_static:
             static.add(chunk.entity_path)
         for name in rb.schema.names:
-            if name in ("log_time", "time", "rerun.controls.RowId"):
+            if name in ("log_time", "time", "rerun.controls.RowId", "RecordingInfo:start_time"):
                 continue
             cols.setdefault(chunk.entity_path, {}).setdefault(name, []).extend(rb.column(name).to_pylist())
     return cols, static, reader
@@ -127,6 +127,12 @@ def test_run_cli_on_sample_clip(tmp_path):
     assert "kalman_bucy" in result.output and (clip / "out" / "run.rrd").is_file()
     metrics = json.loads((clip / "out" / "metrics.json").read_text())["methods"]
     assert metrics["kalman_bucy"]["alpha_rmse_rad"] < 0.05
+    # a run with the four-point target shows its α and z, each method named, truth in black
+    cols, _, reader = read_recording(clip / "out" / "run.rrd")
+    origins = [o for c in blueprint_columns(reader).values() for v in c.get("ViewBlueprint:space_origin", []) for o in v]
+    assert "/metrics/target/alpha" in origins and "/metrics/target/distance" in origins
+    assert cols["/metrics/target/alpha/kalman_bucy"]["SeriesLines:names"][0] == ["kalman_bucy"]
+    assert cols["/metrics/target/alpha/truth"]["SeriesLines:colors"][0] == [packed((0, 0, 0))]
 
 
 def test_cli_errors_are_one_line(tmp_path):
@@ -226,3 +232,47 @@ def test_output_option_is_output_only(tmp_path):
     assert res.exit_code == 0, res.output
     assert (tmp_path / "X" / "metrics.json").is_file() and (tmp_path / "X" / "estimates" / "ekf.csv").is_file()
     assert sorted(p.name for p in (clip / "out").iterdir()) == before
+
+
+def blueprint_columns(reader) -> dict[str, dict[str, list]]:
+    """The saved blueprint's ``entity → column → values``."""
+    cols: dict[str, dict[str, list]] = {}
+    for chunk in reader.stream(store=reader.blueprints()[0]):
+        rb = chunk.to_record_batch()
+        for name in rb.schema.names:
+            if name not in ("log_time", "rerun.controls.RowId"):
+                cols.setdefault(chunk.entity_path, {}).setdefault(name, []).extend(rb.column(name).to_pylist())
+    return cols
+
+
+def packed(rgb) -> int:
+    r, g, b = rgb
+    return (r << 24) | (g << 16) | (b << 8) | 255
+
+
+def test_recording_shows_what_the_run_was(e2e_run):
+    """The blueprint opens on the `frame` timeline at the clip's frame rate, with no α/z plots
+    for a run without the four-point target and a text panel saying what the run was; every method
+    has a 3-D path; every error series is named and coloured as the report draws it; the recording
+    is named after the clip."""
+    from pipeline.style import method_rgb
+
+    cols, static, reader = read_recording(e2e_run.recording)
+    bp = blueprint_columns(reader)
+    assert bp["/time_panel"]["TimePanelBlueprint:timeline"][0] == ["frame"]
+    assert bp["/time_panel"]["TimePanelBlueprint:fps"][0] == [30.0]
+    origins = [o for c in bp.values() for v in c.get("ViewBlueprint:space_origin", []) for o in v]
+    assert "/world" in origins and "/run" in origins and not any(o.startswith("/metrics/target") for o in origins)
+    assert any("clip" in n for v in cols["/__properties"].get("RecordingInfo:name", []) for n in v)
+    assert "# clip" in "".join(t for v in cols["/run"]["TextDocument:text"] for t in v)
+    for meth in METHODS:
+        assert f"/world/estimates/{meth}/path" in static and cols[f"/world/estimates/{meth}/path"]["LineStrips3D:strips"]
+        assert {lab for v in cols[f"/world/estimates/{meth}/points"]["Points3D:labels"] for lab in v} == {"red"}
+        tr = e2e_run.estimate.tracks[meth]["red"]
+        seen = cols[f"/world/left/estimates/{meth}"]
+        want = e2e_run.estimate.rig.left.project(tr.position[seen["frame"]])
+        np.testing.assert_allclose(np.array(seen["Points2D:positions"])[:, 0], want, atol=1e-3)
+        for kind in ("error", "reprojection"):
+            series = cols[f"/metrics/{kind}/{meth}/red"]
+            assert series["SeriesLines:names"][0] == [f"{meth} · red"]
+            assert series["SeriesLines:colors"][0] == [packed(method_rgb(meth))]

@@ -1,0 +1,55 @@
+"""Screenshots of what a person sees: a recording in rerun's web viewer, in headless Chromium.
+
+    python tools/screenshots.py RUN.rrd [-o DIR] [--wait 20] [--chromium /usr/bin/chromium]
+
+Starts the rerun viewer that the pinned rerun-sdk ships (``rerun --serve-web``) on local ports, opens it
+with Playwright driving Debian's ``chromium`` (``pip install playwright``; not a project dependency),
+waits for the recording to load and saves ``DIR/<name>.png``. Not run in CI.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("recording", type=Path)
+    ap.add_argument("-o", "--out", type=Path, default=Path("screenshots"))
+    ap.add_argument("--wait", type=float, default=20.0, help="seconds to let the viewer load")
+    ap.add_argument("--chromium", default=shutil.which("chromium") or "/usr/bin/chromium")
+    ap.add_argument("--size", default="1600x1000")
+    ap.add_argument("--rerun", default=shutil.which("rerun") or str(Path(sys.executable).with_name("rerun")),
+                    help="the rerun viewer executable (the one the project's rerun-sdk installs)")
+    args = ap.parse_args()
+    from playwright.sync_api import sync_playwright
+
+    rerun = args.rerun
+    web, grpc = 19090, 19876
+    server = subprocess.Popen([str(rerun), "--serve-web", "--web-viewer-port", str(web), "--port", str(grpc),
+                               str(args.recording)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        time.sleep(3)
+        w, h = (int(v) for v in args.size.split("x"))
+        args.out.mkdir(parents=True, exist_ok=True)
+        with sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=args.chromium, args=["--use-gl=swiftshader", "--no-sandbox"])
+            page = browser.new_page(viewport={"width": w, "height": h})
+            page.goto(f"http://127.0.0.1:{web}/?url=rerun%2Bhttp://127.0.0.1:{grpc}/proxy")
+            time.sleep(args.wait)
+            path = args.out / f"{args.recording.parent.parent.name or args.recording.stem}.png"
+            page.screenshot(path=str(path))
+            browser.close()
+        print(f"wrote {path}")
+    finally:
+        server.terminate()
+        server.wait(timeout=10)
+
+
+if __name__ == "__main__":
+    main()
