@@ -378,24 +378,73 @@ def run_cmd(
 
 
 @app.command("view")
-def view_cmd(folder: Annotated[Path, typer.Argument(
-        help="A clip folder (its out/run.rrd), an output folder holding run.rrd (a batch's OUT/<clip>), or a .rrd file.")],
+def view_cmd(
+    folder: Annotated[Path, typer.Argument(
+        help="A clip folder (its out/run.rrd), an output folder holding run.rrd, a batch output folder (every "
+        "clip's recording), or a .rrd file.")],
+    web: Annotated[bool, typer.Option("--web", help="Serve rerun's web viewer on 127.0.0.1 and print its URL "
+                                      "(over SSH: forward both ports).")] = False,
+    port: Annotated[int, typer.Option(help="The web viewer's HTTP port (--web); the data port is the next one.")] = 9090,
 ) -> None:
-    """Open a recording in the rerun viewer (or print the command when there is no display)."""
+    """Open recordings in the rerun viewer that stereotrack's rerun-sdk installs (or print the command)."""
     import os
-    import shutil
     import subprocess
 
-    candidates = [folder] if folder.suffix == ".rrd" else [folder / "run.rrd", folder / "out" / "run.rrd"]
-    rrd = next((p for p in candidates if p.is_file()), None)
-    if rrd is None:
-        raise StereotrackError("no recording here (looked for " + ", ".join(map(str, candidates))
-                               + "): run `stereotrack run` first", folder)
-    viewer = shutil.which("rerun")
-    if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")) or viewer is None:
-        out.print(f"no display here; on a machine with one run:\n  rerun {rrd}")
+    rrds = _recordings(folder)
+    viewer = _viewer()
+    if viewer is None:
+        raise StereotrackError("the rerun viewer is not installed next to this Python nor on PATH "
+                               "(pip install rerun-sdk installs it)")
+    if web:
+        url = f"http://127.0.0.1:{port}/?url=rerun%2Bhttp://127.0.0.1:{port + 1}/proxy"
+        out.print(f"serving {len(rrds)} recording(s) at {url}\n(over SSH: ssh -L {port}:127.0.0.1:{port} "
+                  f"-L {port + 1}:127.0.0.1:{port + 1} HOST; Ctrl-C stops)", highlight=False, soft_wrap=True)
+        cmd = [viewer, "--serve-web", "--bind", "127.0.0.1", "--web-viewer-port", str(port), "--port", str(port + 1)]
+    elif not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        out.print(f"no display here: run `stereotrack view {folder} --web`, or on a machine with one:\n  "
+                  f"rerun {' '.join(map(str, rrds))}", highlight=False)
         return
-    subprocess.run([viewer, str(rrd)], check=False)
+    else:
+        cmd = [viewer]
+    from pipeline.lifeline import terminate_with_parent
+
+    rc = subprocess.run([*cmd, *map(str, rrds)], check=False, preexec_fn=terminate_with_parent).returncode
+    if rc:
+        raise typer.Exit(rc)
+
+
+def _recordings(folder: Path) -> list[Path]:
+    """The recordings ``view`` opens: a .rrd file; a folder's run.rrd or out/run.rrd; else every
+    clip's run.rrd under a batch output folder."""
+    if folder.suffix == ".rrd" and folder.is_file():
+        return [folder]
+    for p in (folder / "run.rrd", folder / "out" / "run.rrd"):
+        if p.is_file():
+            return [p]
+    batch = sorted(p for p in folder.rglob("run.rrd") if not any(part.startswith(".") for part in p.relative_to(folder).parts)) \
+        if folder.is_dir() else []
+    if batch:
+        return batch
+    raise StereotrackError("no recording here (a .rrd file, run.rrd, out/run.rrd, or a batch output folder of "
+                           "clips with run.rrd): `stereotrack run` or `stereotrack batch` writes them", folder)
+
+
+def _viewer() -> str | None:
+    """The rerun viewer that stereotrack's rerun-sdk installs (its binary, run directly, so that it
+    can be ended with stereotrack), else the ``rerun`` beside this Python, else the one on PATH."""
+    import shutil
+    import sys
+
+    try:
+        import rerun_cli
+
+        binary = Path(rerun_cli.__file__).with_name("rerun")
+        if binary.is_file():
+            return str(binary)
+    except ImportError:
+        pass
+    beside = Path(sys.executable).with_name("rerun")
+    return str(beside) if beside.is_file() else shutil.which("rerun")
 
 
 @app.command("batch")

@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import signal
 import socket
 import threading
 import time
@@ -41,6 +42,17 @@ def die_with_parent(parent_pid: int) -> None:
                 os._exit(1)
 
     threading.Thread(target=watch, name="stereotrack-lifeline", daemon=True).start()
+
+
+def terminate_with_parent() -> None:
+    """For ``subprocess`` ``preexec_fn``: the child (a viewer binary, not Python) gets SIGTERM when
+    its parent dies, SIGKILL included (Linux ``PR_SET_PDEATHSIG``; elsewhere nothing)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # 1 = PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
 
 
 _received: int | None = None  # the signal that ended the command

@@ -220,6 +220,8 @@ class Recorder:
         for key, series in (extra_series or {}).items():
             who = key.rsplit("/", 1)[-1]
             self._scalars(f"metrics/{key}", series, who, list(TRUTH_RGB if who == "truth" else method_rgb(who)))
+        if progress is not None:
+            progress(len(tracks), len(tracks))  # the bar completes (it stopped at n − 1 of n)
         target = any(k.startswith("target/") for k in extra_series or {})
         rec.send_blueprint(blueprint(1.0 / self.dt, target, bool(info)), make_active=True, make_default=True)
         rec.flush()

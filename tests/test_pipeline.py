@@ -202,8 +202,28 @@ def test_view_works_on_any_folder_with_a_recording(e2e_run, tmp_path, monkeypatc
     for target, rrd in ((batch_clip, batch_clip / "run.rrd"), (e2e_run.clip, e2e_run.recording)):
         res = CliRunner().invoke(app, ["view", str(target)])
         assert res.exit_code == 0 and f"rerun {rrd}" in res.output.replace("\n", ""), res.output
-    res = CliRunner().invoke(app, ["view", str(tmp_path)])
+    res = CliRunner().invoke(app, ["view", str(tmp_path / "OUT")])  # a batch output folder: every clip's
+    assert res.exit_code == 0 and f"rerun {batch_clip / 'run.rrd'}" in res.output.replace("\n", "")
+    (tmp_path / "empty").mkdir()
+    res = CliRunner().invoke(app, ["view", str(tmp_path / "empty")])
     assert res.exit_code != 0 and "no recording" in str(res.exception)
+
+
+def test_view_web_runs_the_viewer_beside_python_and_passes_its_exit_code(e2e_run, tmp_path, monkeypatch):
+    """`view --web` serves rerun's web viewer on 127.0.0.1, prints the URL, and the viewer's exit
+    code is the command's (a fake viewer that exits 3 stands in for rerun)."""
+    import pipeline.cli as cli_module
+
+    fake = tmp_path / "rerun"
+    fake.write_text(f"#!/bin/sh\necho \"$@\" > {tmp_path / 'args'}\nexit 3\n")
+    fake.chmod(0o755)
+    monkeypatch.setattr(cli_module, "_viewer", lambda: str(fake))
+    res = CliRunner().invoke(app, ["view", str(e2e_run.clip), "--web", "--port", "9190"])
+    assert res.exit_code == 3, res.output
+    assert "http://127.0.0.1:9190/?url=rerun%2Bhttp://127.0.0.1:9191/proxy" in res.output.replace("\n", "")
+    args = (tmp_path / "args").read_text().split()
+    assert args[:7] == ["--serve-web", "--bind", "127.0.0.1", "--web-viewer-port", "9190", "--port", "9191"]
+    assert args[-1] == str(e2e_run.recording)
 
 
 def test_version_and_plain_flags():
@@ -276,3 +296,24 @@ def test_recording_shows_what_the_run_was(e2e_run):
             series = cols[f"/metrics/{kind}/{meth}/red"]
             assert series["SeriesLines:names"][0] == [f"{meth} · red"]
             assert series["SeriesLines:colors"][0] == [packed(method_rgb(meth))]
+
+
+def test_the_viewer_dies_with_view(e2e_run, tmp_path):
+    """`stereotrack view --web` killed with SIGKILL: the viewer it started ends too."""
+    import signal
+    import time
+
+    import psutil
+
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "view", str(e2e_run.clip), "--web", "--port", "9390"],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 30
+    children = []
+    while time.time() < deadline and not children:
+        time.sleep(0.3)
+        children = psutil.Process(proc.pid).children(recursive=True)
+    assert children, "the viewer never started"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=10)
+    _, alive = psutil.wait_procs(children, timeout=5)
+    assert not [p for p in alive if p.status() != psutil.STATUS_ZOMBIE]

@@ -10,7 +10,9 @@ waits for the recording to load and saves ``DIR/<name>.png``. Not run in CI.
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -31,8 +33,9 @@ def main() -> None:
 
     rerun = args.rerun
     web, grpc = 19090, 19876
-    server = subprocess.Popen([str(rerun), "--serve-web", "--web-viewer-port", str(web), "--port", str(grpc),
-                               str(args.recording)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    server = subprocess.Popen([str(rerun), "--serve-web", "--bind", "127.0.0.1", "--web-viewer-port", str(web),
+                               "--port", str(grpc), str(args.recording)],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         time.sleep(3)
         w, h = (int(v) for v in args.size.split("x"))
@@ -46,8 +49,8 @@ def main() -> None:
             page.screenshot(path=str(path))
             browser.close()
         print(f"wrote {path}")
-    finally:
-        server.terminate()
+    finally:  # the rerun entry point runs the viewer binary as a child: end the whole group
+        os.killpg(server.pid, signal.SIGTERM)
         server.wait(timeout=10)
 
 
