@@ -53,20 +53,27 @@ def test_claim_a_triangulation_error_grows_with_noise(receding):
     assert all(a < b for a, b in itertools.pairwise(errs)), errs
 
 
-def test_claim_b_noise_free_vgg_latches_algorithm1_follows(receding):
-    rig, dt, X, V = receding
-    finals = {"spsa": [], "spsa_vgg": []}
+def test_claim_b_noise_free_vgg_latches_algorithm1_acts_but_does_not_follow(receding):
+    """Claim (b), measured from a start at rest (the velocity must be learned, so carrying a given
+    velocity passes nothing): on noise-free observations the unmodified SPSA latches — its final
+    error is over 90 % of the distance the marker travelled — while Algorithm 1's update acts (its
+    final error well under predict-only's, which is the whole travel) but does not follow: it ends
+    over 30 % of the travel away (measured 2.4–4.9 m of 6.3 m). A method that only carries its
+    start fails the first bound; one that tracks fails the last."""
+    rig, dt, X, _ = receding
+    travel = float(np.linalg.norm(X[-1] - X[0]))
+    finals: dict[str, list[float]] = {"spsa": [], "spsa_vgg": [], "predict_only": []}
     for seed in SEEDS:
         Y, rng = observe(rig, X, 0.0, seed)
-        init = given(X, V, rng)
+        state = np.r_[X[0] + rng.normal(0, 0.05, 3), 0.0, 0.0, 0.0]
+        init = {"mode": "given", "state": tuple(state.tolist()), "sigma_position": 0.05, "sigma_velocity": 0.05}
         for m in finals:
             P = create(m, rig, dt, {"init": init, "seed": seed}).run(Y).position
-            finals[m].append(np.linalg.norm(P[-1] - X[-1]))
-    assert np.mean(finals["spsa_vgg"]) > 5 * np.mean(finals["spsa"]), finals
-    # latching: the unmodified SPSA's error grows with time
-    P = create("spsa_vgg", rig, dt, {"init": given(X, V, np.random.default_rng(0))}).run(rig.project(X)).position
-    e = np.linalg.norm(P - X, axis=1)
-    assert e[-1] > 3 * e[len(e) // 4]
+            finals[m].append(float(np.linalg.norm(P[-1] - X[-1])))
+    f = {m: float(np.mean(v)) for m, v in finals.items()}
+    assert f["spsa_vgg"] > 0.9 * travel, (f, travel)
+    assert f["spsa"] < 0.85 * f["predict_only"] and f["spsa"] < f["spsa_vgg"], f
+    assert f["spsa"] > 0.3 * travel, (f, travel)  # the thesis's "follows" is not supported
 
 
 def _noisy_runs(receding, sigma=2.0):
@@ -93,14 +100,19 @@ def noisy(receding):
     return _noisy_runs(receding)
 
 
-def test_claim_c_projection_rule_keeps_spsa_bounded(noisy):
+def test_claim_c_projection_rule_keeps_spsa_bounded(noisy, receding):
+    """Without the projection rule Algorithm 1 runs away; with it its worst error over a run stays
+    below the worst error of triangulation on the same observations (mean over seeds; measured
+    1.8 m against 2.7 m). The bound is one a looser rule crosses: th 3.3× the default gives 5.0 m,
+    10× gives 5.6 m."""
     X, out = noisy
+    rig = receding[0]
     final = {k: np.mean([np.linalg.norm(P[-1] - X[-1]) for P in v]) for k, v in out.items()}
     assert final["spsa_no_projection"] > 100 * final["spsa"], final
-    # bounded: the rule caps each iteration's step at α·th. (With the earlier inert gains the worst
-    # error stayed under 0.5 m only because the update never moved the true-velocity start.)
-    worst = max(np.nanmax(np.linalg.norm(P - X, axis=1)) for P in out["spsa"])
-    assert worst < 5.0  # metres, over a 1.5 → 7.5 m trajectory
+    worst = np.mean([np.nanmax(np.linalg.norm(P - X, axis=1)) for P in out["spsa"]])
+    tri = np.mean([np.nanmax(np.linalg.norm(triangulate(rig, observe(rig, X, 2.0, seed)[0]) - X, axis=1))
+                   for seed in SEEDS])
+    assert worst < tri, (worst, tri)
 
 
 def test_claim_d_ekf_with_correct_covariances_beats_spsa(noisy):
@@ -173,13 +185,24 @@ def test_vectorised_batch_equals_single_track(receding, method):
         np.testing.assert_allclose(batch[i], create(method, rig, dt, {}).run(Y).position, atol=1e-8)
 
 
-def test_batch_spsa_tracks(receding):
+def test_batch_spsa_equals_run_and_its_update_acts(receding):
+    """Algorithm 1's batch path gives each track's ``run``. From the oracle start (the true state)
+    on this constant-velocity path predict-only is exact, so "tracks" means nothing there; what can
+    fail: the update acts (it moves the estimate off the exact prediction: 26 mm median, measured)
+    and stays below triangulation's error (39 mm). From a start 0.1 m off it does not converge
+    (0.26 m median against predict-only's 0.1 m, measured; benchmarks/thesis.py finds Algorithm 1
+    behind predict-only with the thesis's own settings too)."""
     rig, dt, X, V = receding
     Y = np.stack([observe(rig, X, 1.0, s)[0] for s in range(20)])
     init = {"mode": "given", "state": np.r_[X[0], V[0]].tolist()}  # oracle start: the true state
     P = create("spsa", rig, dt, {"init": init}).run_batch(Y)
+    for i in (0, 7, 19):
+        np.testing.assert_allclose(P[i], create("spsa", rig, dt, {"init": init}).run(Y[i]).position, atol=1e-9)
+    exact = create("predict_only", rig, dt, {"init": init}).run_batch(Y)
+    assert np.max(np.linalg.norm(exact - X, axis=2)) < 1e-9  # the baseline is exact here
     tri = triangulate(rig, Y.reshape(-1, 4)).reshape(P.shape)
-    assert np.median(np.linalg.norm(P - X, axis=2)) < np.median(np.linalg.norm(tri - X, axis=2))
+    err = np.median(np.linalg.norm(P - X, axis=2))
+    assert 1e-3 < err < np.median(np.linalg.norm(tri - X, axis=2)), err
 
 
 def test_alphabeta_agrees_with_filterpy_gh():

@@ -167,8 +167,9 @@ def test_filter_steps_expose_innovation_and_nis(method):
 def test_ekf_is_consistent_and_rts_smooths():
     """Truth drawn from the filter's own model (white-noise acceleration, q = 0.05 m²/s³; start
     velocity from the prior, 0.1 m/s; runs that leave either camera's view are drawn again), pixel
-    noise σ = 1 px, 40 runs × 90 frames: the EKF's NEES (6 dof) averaged over runs and frames lies
-    in the 95 % band of χ²(6·M)/M, its NIS likewise, and ``ekf_rts`` has the lower 3-D RMSE."""
+    noise σ = 1 px, 40 runs × 90 frames: the EKF's NEES (6 dof) averaged over the runs lies in the
+    95 % band of χ²(6·M)/M on at least 90 % of frames, its NIS averaged over all updates in its
+    band, and ``ekf_rts`` has the lower 3-D RMSE."""
     M, n, q, sigma = 40, 90, 0.05, 1.0
     rng = np.random.default_rng(7)
     A, Q = transition(DT), white_noise_acceleration(DT, q)
@@ -193,9 +194,17 @@ def test_ekf_is_consistent_and_rts_smooths():
         dof.append(f.nis_dof[f.nis_dof > 0])
         rm_f.append(np.sqrt(np.mean(np.sum((f.position - truth[m, :, :3]) ** 2, axis=1))))
         rm_s.append(np.sqrt(np.mean(np.sum((s.position - truth[m, :, :3]) ** 2, axis=1))))
-    anees = float(np.mean(eps))
+    # Bar-Shalom's test per time step: the NEES averaged over the M runs at each frame lies in the
+    # 95 % band of χ²(6M)/M on at least 90 % of frames (measured: 95.6 %). Averaging over frames too
+    # would pass covariances 17 % off; this does not (P×1.17: 54 % of frames, P/1.17: 69 %).
+    per_frame = np.nanmean(np.array(eps), axis=0)
     lo, hi = band(6 * M)
-    assert lo / M <= anees <= hi / M, (anees, lo / M, hi / M)
+
+    def inside(a: np.ndarray) -> float:
+        return float(np.mean((a >= lo / M) & (a <= hi / M)))
+
+    assert inside(per_frame) >= 0.9, (inside(per_frame), np.nanmean(per_frame))
+    assert inside(per_frame / 1.17) < 0.9 and inside(per_frame * 1.17) < 0.9
     anis = float(np.mean(np.concatenate(nis) / np.concatenate(dof)))
     lo, hi = band(4 * M)
     assert lo / (4 * M) <= anis <= hi / (4 * M), anis

@@ -169,23 +169,28 @@ def test_newton_step_lands_on_the_frames_minimum(receding):
 
 
 def test_disparity_floor_follows_the_disparity(receding):
-    """The disparity's gain floor is ``alpha_depth_per_disparity · b/z``: near the rig depth may
-    follow more than far away, so the memory the disparity reaches grows as the marker recedes."""
-    from pipeline.estimators.spsa_stereo import max_memory
+    """The disparity's gain floor is proportional to the disparity (``alpha_depth_per_disparity ·
+    b/z``): near the rig depth may follow more than far away. Against truth, on the two scenarios
+    whose depth changes most, it beats a fixed floor of 0.1 (mean 3-D RMSE over 6 seeds; measured
+    55.5 against 60.5 mm on receding, 194 against 226 mm on accelerating), and the memory it
+    reaches grows as the marker recedes."""
+    from renderers.motion import simulate_truth
+    from renderers.scenario import load_scenario
 
+    fixed = {"alpha_depth_per_disparity": 1e-9, "alpha_min_depth": 0.1}
+    for name in ("receding", "accelerating"):
+        sc = load_scenario(name).with_overrides(frames=300)
+        rig, dt, X = sc.rig.build(), sc.dt, simulate_truth(sc).positions[:, 0]
+        r: dict[str, list[float]] = {"proportional": [], "fixed": []}
+        for seed in range(6):
+            Y = noisy(rig, X, 1.0, seed)
+            for key, cfg in (("proportional", {}), ("fixed", fixed)):
+                r[key].append(rmse(create("spsa_stereo", rig, dt, cfg).run(Y).position[1:], X[1:]))
+        assert np.mean(r["proportional"]) < np.mean(r["fixed"]), (name, r)
     rig, dt, X, _ = receding
     est = create("spsa_stereo", rig, dt)
-    Y = noisy(rig, X, 1.0, 0)
     mem = []
-    for k in range(300):
-        est.step(Y[k])
+    for y in noisy(rig, X, 1.0, 0):
+        est.step(y)
         mem.append(est._mem[2] if est.initialized else np.nan)
-    z = rig.left.depth(X)
-    for zz in (z[40], z[-1]):
-        cap = est.disparity_memory_cap(rig.baseline / zz)
-        assert abs(cap - max_memory(1.5 * rig.baseline / zz)) < 1e-12
-    assert est.disparity_memory_cap(rig.baseline / z[40]) < est.disparity_memory_cap(rig.baseline / z[-1])
-    # the memory actually reached stays under each frame's cap (Kesten's rule may halve it)
-    caps = np.array([est.disparity_memory_cap(rig.baseline / zz) for zz in z])
-    assert np.all(np.array(mem[40:]) <= caps[40:] * 1.05 + 1.0)
     assert np.nanmax(mem[:60]) < np.nanmax(mem[-60:])
