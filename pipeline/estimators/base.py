@@ -324,6 +324,7 @@ class Estimator(ABC):
         self.initiator = Initiator(self.config.init, self.model, self.dt, propagate=self.knows_pixel_noise(),
                                    gate=self.config.gate)
         self.gated_run = 0  # frames in a row with a camera gated
+        self.unseen = self.returning = 0  # frames without observations; frames back from a long gap
         self.recent: deque = deque(maxlen=self.config.restart_after)  # what a restart fits
 
     def start(self, y: np.ndarray) -> Start | None:

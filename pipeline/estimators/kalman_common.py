@@ -4,6 +4,7 @@ Rauch–Tung–Striebel backward pass (filterpy's ``rts_smoother``)."""
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 
 import numpy as np
@@ -100,6 +101,8 @@ class GatedFilter:
                 kept[2 * c : 2 * c + 2] = np.nan
         had = gated or bool(np.isfinite(y).any())  # one track: plain Python, as update_gated_run
         self.gated_run = self.gated_run + 1 if gated else (0 if had else self.gated_run)  # type: ignore[has-type]
+        self.gated_run, self.unseen, self.returning = after_gap(  # type: ignore[has-type]
+            self.gated_run, self.unseen, self.returning, had, gated, self.config.restart_after)  # type: ignore[attr-defined]
         restart = None
         if self.gated_run >= self.config.restart_after:  # type: ignore[attr-defined]
             restart = self.initiator.restart(self.frame, self.recent_observations())  # type: ignore[attr-defined]
@@ -115,6 +118,20 @@ def update_gated_run(run, y: np.ndarray, kept: np.ndarray):
     had = np.any(np.isfinite(y), axis=-1)
     gated = np.any(np.isfinite(y) & ~np.isfinite(kept), axis=-1)
     return np.where(gated, run + 1, np.where(had, 0, run))
+
+
+def after_gap(run, unseen, returning, had, gated, restart_after: int):
+    """A track back from a gap of ``restart_after`` frames or more restarts at the first gated
+    camera within its first ``restart_after`` observed frames: after a long gap the prediction is
+    far from the returning marker by the gap's length, not because of an outlier (one track in
+    Python scalars, or M tracks as arrays). Returns (gated run, frames unseen, returning frames left)."""
+    returning = np.where(had & (unseen >= restart_after), restart_after, returning)
+    run = np.where(gated & (returning > 0), np.maximum(run, restart_after), run)
+    returning = np.where(had, np.maximum(returning - 1, 0), returning)
+    unseen = np.where(had, 0, unseen + 1)
+    if np.ndim(run) == 0:
+        return int(run), int(unseen), int(returning)
+    return run, unseen, returning
 
 
 def gated_step(step: Step, n_gated: int, restarted: bool = False) -> Step:
@@ -138,6 +155,7 @@ def kalman_batch(est: Estimator, Y: np.ndarray, linearize: Linearize) -> np.ndar
     A, Q = est.A, est.Q
     threshold, Rg = est.gate_threshold(), est.gate_covariance()  # type: ignore[attr-defined]
     run_gated = np.zeros(M, dtype=int)
+    unseen, returning = np.zeros(M, dtype=int), np.zeros(M, dtype=int)  # see after_gap
     for k in range(n):
         run = begin < k
         x[run] = x[run] @ A.T
@@ -148,6 +166,10 @@ def kalman_batch(est: Estimator, Y: np.ndarray, linearize: Linearize) -> np.ndar
         if len(idx):
             Yk = _gate_batch(est, x[idx], P[idx], Y[idx, k], threshold, Rg)
             run_gated[idx] = update_gated_run(run_gated[idx], Y[idx, k], Yk)
+            had = np.isfinite(Y[idx, k]).any(axis=1)
+            gated = np.any(np.isfinite(Y[idx, k]) & ~np.isfinite(Yk), axis=1)
+            run_gated[idx], unseen[idx], returning[idx] = after_gap(run_gated[idx], unseen[idx], returning[idx], had,
+                                                                   gated, est.config.restart_after)
             fresh = _restart_batch(est, idx, k, Y, run_gated, x, P)
             H, r, R, have = linearize(x[idx, :3], Yk)
             have &= ~fresh
@@ -187,21 +209,27 @@ def rts_smooth(est: Estimator, track: Track) -> Track:
 
         P⁻ₖ₊₁ = A Pₖ Aᵀ + Q,  Cₖ = Pₖ Aᵀ (P⁻ₖ₊₁)⁻¹,
         x̂ₖ ← xₖ + Cₖ (x̂ₖ₊₁ − A xₖ),  P̂ₖ ← Pₖ + Cₖ (P̂ₖ₊₁ − P⁻ₖ₊₁) Cₖᵀ
-    """
+
+    Each segment between restarts is smoothed on its own: a restart is a new start, not an update
+    of the state before it, so the backward pass must not carry it across."""
     ok = np.flatnonzero(np.all(np.isfinite(track.position), axis=1))
     if len(ok) < 2 or track.covariance is None:  # never started: nothing to smooth
         return track
-    s = ok[0]
-    Xs = np.hstack([track.position[s:], track.velocity[s:]])
     from filterpy.kalman import KalmanFilter  # imported when a filter is built (see base.py)
 
     kf = KalmanFilter(dim_x=6, dim_z=1)
     kf.F, kf.Q = est.A, est.Q
-    xs, Ps, _, _ = kf.rts_smoother(Xs, track.covariance[s:].copy())
     track.position = track.position.copy()
     track.velocity = track.velocity.copy()
     track.covariance = track.covariance.copy()
-    track.position[s:], track.velocity[s:], track.covariance[s:] = xs[:, :3], xs[:, 3:], Ps
+    restarts = np.flatnonzero(np.nan_to_num(track.extra.get("restart", np.zeros(len(track.position)))) > 0)
+    cuts = [ok[0], *[int(r) for r in restarts if r > ok[0]], len(track.position)]
+    for a, b in itertools.pairwise(cuts):
+        if b - a < 2:
+            continue
+        Xs = np.hstack([track.position[a:b], track.velocity[a:b]])
+        xs, Ps, _, _ = kf.rts_smoother(Xs, track.covariance[a:b].copy())
+        track.position[a:b], track.velocity[a:b], track.covariance[a:b] = xs[:, :3], xs[:, 3:], Ps
     track.covariance_trace = np.trace(track.covariance, axis1=1, axis2=2)
     return track
 
