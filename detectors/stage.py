@@ -332,9 +332,8 @@ def summarize(rows: list[tuple], clip: Clip, n_frames: int, n_cams: int) -> list
 def _footage_to_grid(clip: Clip) -> dict[str, np.ndarray] | None:
     """Per camera, each footage frame's frame on the clip's grid (a video that dropped frames is
     shorter than the truth), from timestamps.csv; None without one."""
-    from pipeline.sync import nominal_frames, read_timestamps
+    from pipeline.sync import nominal_frames
 
-    path = clip.folder / "timestamps.csv"
-    if not clip.path.is_dir() or not path.is_file():
+    if clip.timestamps is None:
         return None
-    return {cam: nominal_frames(t, clip.fps) for cam, t in read_timestamps(path).items()}
+    return {cam: nominal_frames(t, clip.fps) for cam, t in clip.timestamps.items()}

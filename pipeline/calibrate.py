@@ -20,7 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline.camera import UNDISTORT_CRITERIA, Camera, StereoRig, save_calibration
+from pipeline.camera import LENGTH_UNITS, UNDISTORT_CRITERIA, Camera, StereoRig, save_calibration
 from pipeline.clip import IMAGE_EXTS, VIDEO_EXTS
 from pipeline.errors import StereotrackError
 from pipeline.io import atomic_path, write_text
@@ -43,7 +43,7 @@ def parse_length(text: str, what: str = "--square") -> float:
     m = LENGTH.match(str(text))
     if not m or float(m.group(1)) <= 0:
         raise StereotrackError(f"{what} {text!r} is not a length (e.g. 24mm, 2.4cm, 0.024)")
-    return float(m.group(1)) * {"mm": 1e-3, "cm": 1e-2, "m": 1.0, None: 1.0}[m.group(2)]
+    return float(m.group(1)) * LENGTH_UNITS[m.group(2) or "m"]
 
 
 def parse_board(spec: str, square: float, marker: float | None = None) -> Board:

@@ -198,14 +198,22 @@ class Clip:
                       f"give --fps or `fps:` in {CLIP_SETTINGS}", stacklevel=2)
         return 30.0, "default"
 
-    def _timestamps_rate(self) -> float | None:
-        """1 / the median period between consecutive left frames in timestamps.csv, if any."""
+    @cached_property
+    def timestamps(self) -> dict[str, np.ndarray] | None:
+        """``timestamps.csv`` (per camera: footage frame → time, NaN where absent), read once; None
+        without one."""
         path = self.folder / TIMESTAMPS
         if not (self.path.is_dir() and path.is_file()):
             return None
         from pipeline.sync import read_timestamps
 
-        t = read_timestamps(path)["left"]
+        return read_timestamps(path)
+
+    def _timestamps_rate(self) -> float | None:
+        """1 / the median period between consecutive left frames in timestamps.csv, if any."""
+        if self.timestamps is None:
+            return None
+        t = self.timestamps["left"]
         frames = np.flatnonzero(np.isfinite(t))
         if len(frames) < 2:
             return None

@@ -32,7 +32,7 @@ from pipeline.estimators.base import is_builtin, origin
 from pipeline.io import write_csv, write_json
 from pipeline.manifest import stereotrack_version
 from pipeline.metrics import compute_metrics
-from pipeline.sync import SyncEstimate, grid_length, read_timestamps, resolve_sync
+from pipeline.sync import SyncEstimate, grid_length, resolve_sync
 
 
 @dataclass
@@ -194,10 +194,10 @@ def _timestamps(clip: Clip, setting: str | float | None) -> dict[str, np.ndarray
     ``off`` ignores them, a number of seconds wins over them (with a warning)."""
     from pipeline.clip import TIMESTAMPS
 
-    ts_path = clip.folder / TIMESTAMPS
-    ts = read_timestamps(ts_path) if setting != "off" and clip.path.is_dir() and ts_path.is_file() else None
+    ts = clip.timestamps if setting != "off" else None
     if ts is not None and isinstance(setting, float):  # the command line wins over the clip's own file
-        warnings.warn(f"{ts_path}: --time-offset {setting:g} s used instead of this file's frame times", stacklevel=3)
+        warnings.warn(f"{clip.folder / TIMESTAMPS}: --time-offset {setting:g} s used instead of this file's frame times",
+                      stacklevel=3)
         ts = None
     return ts
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import StereotrackError
-from pipeline.io import atomic_path, read_csv, write_csv
+from pipeline.io import atomic_path, write_csv
 
 FORMATS = ("trc", "c3d", "csv")
 
@@ -29,16 +29,14 @@ class Tracks:
 
 
 def read_tracks(out_dir: Path, method: str, fps: float) -> Tracks:
-    """``out_dir/estimates/<method>.csv`` as frames × markers × 3."""
-    path = out_dir / "estimates" / f"{method}.csv"
-    cols = read_csv(path, ["frame", "marker", "x", "y", "z"], numeric=["x", "y", "z"], finite=["frame"])
-    markers = list(dict.fromkeys(str(m) for m in cols["marker"]))
-    frames = cols["frame"].astype(int)
-    pos = np.full((int(frames.max()) + 1 if len(frames) else 0, len(markers), 3), np.nan)
-    index = {m: i for i, m in enumerate(markers)}
-    col = np.array([index[str(m)] for m in cols["marker"]], dtype=int)
-    pos[frames, col] = np.column_stack([cols["x"], cols["y"], cols["z"]])
-    return Tracks(method, markers, pos, fps)
+    """``out_dir/estimates/<method>.csv`` (through :func:`pipeline.clip.read_positions`) as
+    frames × markers × 3."""
+    from pipeline.clip import read_positions
+
+    pos, n = read_positions(out_dir / "estimates" / f"{method}.csv")
+    markers = list(pos)
+    stacked = np.stack([pos[m] for m in markers], axis=1) if markers else np.empty((n, 0, 3))
+    return Tracks(method, markers, stacked, fps)
 
 
 def clip_fps(out_dir: Path) -> float:

@@ -187,9 +187,7 @@ class Initiator:
     def _valid(self, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
         """Triangulations in front of both cameras whose reprojection is plausible (an outlier in
         one camera off the epipolar line leaves a residual no detection noise explains)."""
-        ok = np.all(np.isfinite(X), axis=-1)
-        depth = np.where(ok[..., None], self.model.rig.depths(np.where(ok[..., None], X, 1.0)), -1.0)
-        return ok & np.all(depth > 0, axis=-1) & (reprojection_residual(self.model, X, Y) <= self.max_residual)
+        return plausible_triangulation(self.model, X, Y, self.max_residual)
 
     def _given(self, frame: int) -> Start:
         c = self.config
@@ -428,10 +426,16 @@ def stereo_consistent(model: StereoMeasurementModel, y: np.ndarray, sigma: float
     y = np.asarray(y, dtype=float)[None]
     if not np.isfinite(y).all():
         return False
-    X = model.inverse_function(y)
-    if not np.isfinite(X).all() or np.any(model.rig.depths(X) <= 0):
-        return False
-    return bool(reprojection_residual(model, X, y)[0] <= plausible_residual(max(sigma, GATE_FLOOR_PX), gate))
+    limit = plausible_residual(max(sigma, GATE_FLOOR_PX), gate)
+    return bool(plausible_triangulation(model, model.inverse_function(y), y, limit)[0])
+
+
+def plausible_triangulation(model: StereoMeasurementModel, X: np.ndarray, Y: np.ndarray, limit: float) -> np.ndarray:
+    """Which triangulations ``X`` (…×3) of ``Y`` (…×4) are finite, in front of both cameras and
+    reproject within ``limit`` px² (:func:`plausible_residual`)."""
+    ok = np.all(np.isfinite(X), axis=-1)
+    depth = np.where(ok[..., None], model.rig.depths(np.where(ok[..., None], X, 1.0)), -1.0)
+    return ok & np.all(depth > 0, axis=-1) & (reprojection_residual(model, X, Y) <= limit)
 
 
 def camera_gate(sigma: float, gate: float) -> float:

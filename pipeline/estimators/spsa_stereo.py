@@ -326,7 +326,7 @@ class SPSAStereoEstimator(Estimator):
             self._mem[i] = min(self._mem[i] + 1.0, cap)
         return self._mem[i]
 
-    def _update(self, yn: tuple, use_l: bool, use_r: bool) -> tuple[bool, float, float]:
+    def _update(self, yn: tuple, use_l: bool, use_r: bool, y: np.ndarray) -> tuple[bool, float, float]:
         """One frame after the start (predict, minimise, correct) on a normalized observation;
         (predicted, minimised cost, image-coordinate gain α_n). The state is left in ``self.p``,
         ``self.v``."""
@@ -337,7 +337,7 @@ class SPSAStereoEstimator(Estimator):
         if not (use_l or use_r):
             return True, math.nan, math.nan
         if math.isfinite(self._nis_gate):
-            use_l, use_r = self._gate_cameras(pp, yn, use_l, use_r)
+            use_l, use_r = self._gate_cameras(pp, yn, use_l, use_r, y)
             if not (use_l or use_r):
                 return True, math.nan, math.nan
         q = self.g(pp)
@@ -370,7 +370,8 @@ class SPSAStereoEstimator(Estimator):
         self.v = [v[0] + k * (pv[0] - pp[0]), v[1] + k * (pv[1] - pp[1]), v[2] + k * (pv[2] - pp[2])]
         return False, cost, a0
 
-    def _gate_cameras(self, pp: list[float], yn: tuple, use_l: bool, use_r: bool) -> tuple[bool, bool]:
+    def _gate_cameras(self, pp: list[float], yn: tuple, use_l: bool, use_r: bool,
+                      pixels: np.ndarray) -> tuple[bool, bool]:
         """Drop a camera whose observation lies too far from the prediction: its squared
         reprojection residual (px²) over ``σ²`` times the robust scale of
         :class:`~pipeline.estimators.base.RobustNISScale`, beyond the χ² gate (2 dof). The
@@ -391,15 +392,12 @@ class SPSAStereoEstimator(Estimator):
                 if nis / scale > self._nis_gate:
                     out[c] = False
                     self._gated += 1
-        if self._gated == 2 and self._consistent(yn):  # both far but one point: lag, not an outlier
+        # both far but one point (``pixels``: this frame's observation): lag, not an outlier
+        if self._gated == 2 and stereo_consistent(self.model, pixels, self.config.pixel_sigma,
+                                                  self.config.gate):  # type: ignore[attr-defined]
             self._gated = 0
             return use_l, use_r
         return out[0], out[1]
-
-    def _consistent(self, yn: tuple) -> bool:
-        """:func:`~pipeline.estimators.base.stereo_consistent` of a normalized observation."""
-        y = np.concatenate([(c.K @ [yn[2 * i], yn[2 * i + 1], 1.0])[:2] for i, c in enumerate(self.rig.cameras)])
-        return stereo_consistent(self.model, y, self.config.pixel_sigma, self.config.gate)  # type: ignore[attr-defined]
 
     def _step(self, y: np.ndarray) -> Step:
         if not self.initialized:
@@ -411,7 +409,7 @@ class SPSAStereoEstimator(Estimator):
         yn = tuple(self.rig.normalize(y).tolist())
         self._gated = 0
         use_l, use_r = math.isfinite(yn[0]) and math.isfinite(yn[1]), math.isfinite(yn[2]) and math.isfinite(yn[3])
-        pred, cost, gain = self._update(yn, use_l, use_r)
+        pred, cost, gain = self._update(yn, use_l, use_r, y)
         restarted = self._restart_if_lost(self.frame, self.recent_observations(), use_l or use_r)
         return Step(np.array(self.p), np.array(self.v), predicted=pred and not restarted,
                     extra={"cost": cost, "gain": gain, "gated": float(self._gated), "restart": float(restarted)})
@@ -450,7 +448,7 @@ class SPSAStereoEstimator(Estimator):
         restarts = [math.nan] * len(gated)
         for j in range(k, n):
             self._gated = 0
-            pred[j], costs[j], gains[j] = update(tuple(rows[j]), okl[j], okr[j])
+            pred[j], costs[j], gains[j] = update(tuple(rows[j]), okl[j], okr[j], Y[j])
             restarted = self._restart_if_lost(j, Y[max(0, j + 1 - self.config.restart_after) : j + 1], okl[j] or okr[j])
             pred[j] = pred[j] and not restarted
             states[j] = self.p + self.v
