@@ -24,12 +24,9 @@ from typing import Any
 
 from pipeline.camera import has_calibration
 from pipeline.errors import StereotrackError
-from pipeline.io import check_replaceable, ensure_dir, write_csv, write_json, write_text
+from pipeline.io import check_replaceable, ensure_dir, write_json
 from pipeline.lifeline import OutputLock, die_with_parent, ignore_sigint, still_parented
 from pipeline.manifest import MANIFEST, verify_manifest, write_manifest
-
-SUMMARY_COLUMNS = ["clip", "status", "method", "rmse_m", "final_m", "reprojection_rmse_px", "steps_per_second",
-                   "attempts", "error"]
 
 
 @dataclass
@@ -71,9 +68,16 @@ def clip_key(clip: Path, input_dir: Path) -> str:
     return input_dir.resolve().name if rel == "." else rel
 
 
-def _worker_init(parent_pid: int, single_thread: bool) -> None:
+#: where a pool worker sends (clip, stage) as it goes (set by :func:`_worker_init`)
+_STAGES: Any = None
+
+
+def _worker_init(parent_pid: int, single_thread: bool, stages: Any = None) -> None:
     """Pool-worker initializer: die with the batch process; leave Ctrl-C to it (the batch ends its
-    workers itself); one OpenCV thread per worker when several workers share the cores."""
+    workers itself); one OpenCV thread per worker when several workers share the cores; send
+    each clip's stages to the batch through ``stages`` (a multiprocessing queue)."""
+    global _STAGES
+    _STAGES = stages
     die_with_parent(parent_pid)
     ignore_sigint()
     if single_thread:
@@ -126,7 +130,8 @@ def _process_one(clip: str, key: str, out_root: str, settings: dict[str, Any],
             process_clip(clip_p, partial, detector=settings["detector"], methods=settings.get("methods"),
                          images_in_recording=settings.get("images", True), marker_specs=specs,
                          calib_units=settings.get("calib_units"), lock=False, configs=settings.get("configs"),
-                         time_offset=settings.get("time_offset", "auto"), fps=settings.get("fps"))
+                         time_offset=settings.get("time_offset", "auto"), fps=settings.get("fps"),
+                         figures=settings.get("figures", False), stage=lambda name: _stage(key, name))
         (partial / ATTEMPT).unlink()
         write_manifest(partial, settings, inputs)
         if parent_pid is not None and not still_parented(parent_pid):
@@ -142,6 +147,15 @@ def _process_one(clip: str, key: str, out_root: str, settings: dict[str, Any],
         shutil.rmtree(partial, ignore_errors=True)
         last = traceback.extract_tb(exc.__traceback__)[-1]
         return ClipOutcome(key, "failed", error=f"{type(exc).__name__}: {exc} ({Path(last.filename).name}:{last.lineno})")
+
+
+def _stage(key: str, name: str) -> None:
+    """Tell the batch which stage a clip is in (pool workers; a Dask run reports clips only)."""
+    if _STAGES is not None:
+        try:
+            _STAGES.put_nowait((key, name))
+        except Exception:  # a full or closed queue never stops a clip
+            pass
 
 
 def _swap_in(partial: Path, final: Path) -> None:
@@ -174,6 +188,8 @@ def run_batch(
     images: bool = True,
     time_offset: str | float | None = "auto",
     fps: float | None = None,
+    figures: bool = False,
+    on_stage: Callable[[str, str], None] | None = None,
 ) -> list[ClipOutcome]:
     """Process every clip under ``input_dir``; write ``summary.csv`` and ``summary.md``.
 
@@ -185,6 +201,8 @@ def run_batch(
 
     ``configs`` (``--config``) are the methods' settings, part of what a complete clip must match.
     ``images``: whether each clip's recording holds its frames (``--no-images`` leaves them out).
+    ``figures``: whether each clip's report draws its figures (``--figures``; the summary's
+    leaderboard is always written). ``on_stage`` gets (clip, stage) as local workers go.
     Markers: ``marker_specs`` (``--markers``) apply to every clip; else a clip's own
     ``markers.yaml``; else ``INPUT/markers.yaml``; else a rendered clip's description (clip.json).
 
@@ -208,6 +226,8 @@ def run_batch(
                 "calib_units": calib_units, "configs": configs, "images": images, "time_offset": time_offset}
     if fps is not None:  # recorded only when given, so manifests of earlier batches stay valid
         settings["fps"] = fps
+    if figures:
+        settings["figures"] = True
     keys = {c: clip_key(c, input_dir) for c in clips}
     ensure_dir(out_root)
     with OutputLock(out_root, f"stereotrack batch {input_dir}"):
@@ -224,11 +244,13 @@ def run_batch(
 
         def record(o: ClipOutcome) -> None:
             outcomes[o.clip] = o
+            if on_stage is not None:
+                on_stage(o.clip, "done")
             counter.tick()
 
         try:
             if todo and scheduler is None and scheduler_file is None:
-                _run_local(todo, keys, out_root, settings, workers, record)
+                _run_local(todo, keys, out_root, settings, workers, record, on_stage)
             elif todo:
                 _run_dask(todo, keys, out_root, settings, workers, scheduler, scheduler_file, record)
         finally:
@@ -239,6 +261,8 @@ def run_batch(
                 o.attempts += 1
                 o.warnings.append(f"{key}: the worker running an attempt at it ({worker}) died")
         ordered = [outcomes[keys[c]] for c in clips]
+        from pipeline.summary import write_summary
+
         write_summary(out_root, ordered)
     return ordered
 
@@ -293,31 +317,49 @@ def _remove_leftovers(out_root: Path) -> list[tuple[str, str]]:
     return dead
 
 
+def _drain(stages: Any, on_stage: Callable[[str, str], None] | None) -> None:
+    """Hand every (clip, stage) the workers have sent to ``on_stage``."""
+    import queue
+
+    while stages is not None and on_stage is not None:
+        try:
+            on_stage(*stages.get_nowait())
+        except queue.Empty:
+            return
+
+
 def _run_local(todo: list[Path], keys: dict[Path, str], out_root: Path, settings: dict, workers: int,
-               record: Callable[[ClipOutcome], None]) -> None:
+               record: Callable[[ClipOutcome], None], on_stage: Callable[[str, str], None] | None = None) -> None:
     """A spawn-context process pool whose workers die with this process, and are ended at once
     when the batch is interrupted (Ctrl-C, SIGTERM) instead of finishing their clips."""
     from concurrent.futures.process import BrokenProcessPool
 
     from pipeline.lifeline import end_pool, signals_deferred
 
-    init = (os.getpid(), workers > 1)
-    pool = cf.ProcessPoolExecutor(max_workers=max(1, workers), mp_context=mp.get_context("spawn"),
-                                  initializer=_worker_init, initargs=init)
+    ctx = mp.get_context("spawn")
+    stages = ctx.Queue() if on_stage is not None else None
+    pool = cf.ProcessPoolExecutor(max_workers=max(1, workers), mp_context=ctx, initializer=_worker_init,
+                                  initargs=(os.getpid(), workers > 1, stages))
     try:
         with signals_deferred():  # submitting spawns the workers
             futs = {pool.submit(_process_one, str(c), keys[c], str(out_root), settings, os.getpid()): keys[c]
                     for c in todo}
-        for f in cf.as_completed(futs):
-            try:
-                record(f.result())
-            except BrokenProcessPool:
-                record(ClipOutcome(futs[f], "failed", error="its worker process died (killed, or out of memory)",
-                                   attempts=0))
+        pending = set(futs)
+        while pending:
+            finished, pending = cf.wait(pending, timeout=0.25, return_when=cf.FIRST_COMPLETED)
+            _drain(stages, on_stage)
+            for f in finished:
+                try:
+                    record(f.result())
+                except BrokenProcessPool:
+                    record(ClipOutcome(futs[f], "failed", error="its worker process died (killed, or out of memory)",
+                                       attempts=0))
     except BaseException:
         end_pool(pool)
         raise
     pool.shutdown()
+    if stages is not None:
+        stages.close()
 
 
 def _run_dask(todo: list[Path], keys: dict[Path, str], out_root: Path, settings: dict, workers: int,
@@ -386,29 +428,6 @@ def _checked_scheduler_file(path: Path) -> Path:
 def _first_line(exc: BaseException) -> str:
     lines = str(exc).strip().splitlines()
     return lines[0] if lines else type(exc).__name__
-
-
-def write_summary(out_root: Path, outcomes: list[ClipOutcome]) -> None:
-    """``summary.csv`` (one row per clip and method) and ``summary.md``."""
-    rows = []
-    for o in outcomes:
-        methods = o.metrics.get("methods", {}) if o.metrics else {}
-        if not methods:
-            rows.append((o.clip, o.status, "", "", "", "", "", o.attempts, o.error))
-        for m, e in methods.items():
-            rows.append((o.clip, o.status, m, e.get("rmse", ""), e.get("final", ""), e.get("reprojection_rmse_px", ""),
-                         e.get("steps_per_second", ""), o.attempts, o.error))
-    write_csv(out_root / "summary.csv", SUMMARY_COLUMNS, rows)
-    n_fail = sum(o.status == "failed" for o in outcomes)
-    lines = ["# stereotrack batch summary", "", f"{len(outcomes)} clips, {n_fail} failed.", "",
-             "| clip | status | method | 3-D RMSE (m) | final (m) | reproj. RMSE (px) | error |", "|---|---|---|---|---|---|---|"]
-    for r in rows:
-        fmt = [f"{v:.4g}" if isinstance(v, float) else str(v) for v in r]
-        lines.append(f"| {fmt[0]} | {fmt[1]} | {fmt[2]} | {fmt[3]} | {fmt[4]} | {fmt[5]} | {fmt[8]} |")
-    notes = [(o.clip, w) for o in outcomes for w in clip_warnings(o)]
-    if notes:
-        lines += ["", "## Warnings", "", *[f"- **{c}**: {w}" for c, w in notes]]
-    write_text(out_root / "summary.md", "\n".join(lines) + "\n")
 
 
 def clip_warnings(o: ClipOutcome) -> list[str]:

@@ -146,7 +146,7 @@ def _configs(path: Path | None) -> dict | None:
 
 
 def _fmt(v: float | None, spec: str = ".3f") -> str:
-    return "—" if v is None else format(v, spec)
+    return "—" if v is None or v != v else format(v, spec)
 
 
 @app.command("detect")
@@ -216,14 +216,16 @@ def _print_sync(metrics: dict) -> None:
 
 
 def _metrics_table(metrics: dict, title: str) -> Table:
-    table = Table(title=title, caption="3-D errors in m, reprojection in px, α in rad, z in m")
+    table = Table(title=title, caption="3-D errors and z in mm, reprojection in px, α in mrad; steps/s is "
+                  "wall-clock on this machine and varies with its load")
     table.add_column("method", no_wrap=True)
     for col in ("3-D RMSE", "final", "reproj.", "α RMSE", "z RMSE", "steps/s"):
         table.add_column(col, justify="right", no_wrap=True)
+    milli = lambda v: None if v is None else 1000 * v  # noqa: E731
     for m, e in metrics.get("methods", {}).items():
-        table.add_row(m, _fmt(e.get("rmse"), ".4f"), _fmt(e.get("final"), ".4f"),
-                      _fmt(e.get("reprojection_rmse_px"), ".2f"), _fmt(e.get("alpha_rmse_rad"), ".4f"),
-                      _fmt(e.get("distance_rmse_m"), ".4f"), _fmt(e.get("steps_per_second"), ",.0f"))
+        table.add_row(m, _fmt(milli(e.get("rmse")), ".2f"), _fmt(milli(e.get("final")), ".2f"),
+                      _fmt(e.get("reprojection_rmse_px"), ".2f"), _fmt(milli(e.get("alpha_rmse_rad")), ".2f"),
+                      _fmt(milli(e.get("distance_rmse_m")), ".2f"), _fmt(e.get("steps_per_second"), ",.0f"))
     return table
 
 
@@ -249,7 +251,7 @@ def estimate_cmd(
         task = bar.add_task("estimate", total=None)
         res = estimate_clip(Clip(clip, fps), _methods(methods), output, configs=configs, in_dir=clip / "out",
                             progress=lambda d, t: bar.update(task, completed=d, total=t), calib_units=calib_units,
-                            time_offset=offset)
+                            time_offset=offset, describe=lambda w: bar.update(task, description=f"estimate ({w})"))
     _print_time(res.metrics["time"]["fps"], res.metrics["time"]["source"])
     _print_sync(res.metrics)
     out.print(_metrics_table(res.metrics, str(res.out_dir / "metrics.json")))
@@ -373,7 +375,7 @@ def run_cmd(
     _print_time(res.estimate.metrics["time"]["fps"], res.estimate.metrics["time"]["source"])
     _print_sync(res.estimate.metrics)
     out.print(_metrics_table(res.estimate.metrics, f"{clip} — {res.estimate.n_frames} frames"))
-    out.print(f"outputs in {res.out_dir}: detections.csv, estimates/, metrics.json, report.md, run.rrd")
+    out.print(f"outputs in {res.out_dir}: detections.csv, estimates/, metrics.json, report.html, report.md, run.rrd")
     out.print(f"replay: stereotrack view {clip}    ({__import__('time').perf_counter() - t0:.1f} s)")
 
 
@@ -466,6 +468,8 @@ def batch_cmd(
     no_images: Annotated[bool, typer.Option("--no-images", help="Leave the frames out of each clip's recording.")] = False,
     time_offset: TimeOffsetOption = "auto",
     fps: FpsOption = None,
+    figures: Annotated[bool, typer.Option("--figures", help="Draw each clip's report figures (the summary's "
+                                          "leaderboard is always written).")] = False,
 ) -> None:
     """Process every clip folder under INPUT_DIR; exit code 1 if any clip failed.
 
@@ -484,15 +488,56 @@ def batch_cmd(
         outcomes = run_batch(input_dir, output, workers, sched, force, detector, _methods(methods),
                              progress=lambda d, t: bar.update(task, completed=d, total=t),
                              marker_specs=_specs(markers), calib_units=calib_units, scheduler_file=scheduler_file,
-                             configs=configs, images=not no_images, time_offset=offset, fps=fps)
-    from pipeline.batch import clip_warnings
-
-    table = Table("clip", "status", "attempts", "warnings", "error", title=str(output / "summary.csv"))
-    for o in outcomes:
-        table.add_row(o.clip, o.status, str(o.attempts), str(len(clip_warnings(o))) or "", o.error)
-    out.print(table)
+                             configs=configs, images=not no_images, time_offset=offset, fps=fps, figures=figures,
+                             on_stage=_ClipStages(bar))
+    _print_batch(outcomes, output)
     if any(o.status == "failed" for o in outcomes):
         raise typer.Exit(1)
+
+
+class _ClipStages:
+    """One progress line per clip in flight, saying its stage; removed when the clip is done."""
+
+    def __init__(self, bar: Progress) -> None:
+        self.bar, self.tasks = bar, {}
+
+    def __call__(self, clip: str, stage: str) -> None:
+        if stage == "done":
+            if clip in self.tasks:
+                self.bar.remove_task(self.tasks.pop(clip))
+        elif clip not in self.tasks:
+            self.tasks[clip] = self.bar.add_task(f"  {clip}: {stage}", total=None)
+        else:
+            self.bar.update(self.tasks[clip], description=f"  {clip}: {stage}")
+
+
+def _print_batch(outcomes: list, output: Path) -> None:
+    """The per-method leaderboard, the clips that failed or warned, and where the summary is."""
+    from pipeline.batch import clip_warnings
+    from pipeline.summary import method_rows
+
+    rows = method_rows(outcomes)
+    table = Table(title=f"{len(outcomes)} clips: 3-D RMSE (mm) of each method across clips",
+                  caption="steps/s is wall-clock on this machine and varies with its load")
+    for col in ("method", "clips", "mean", "95 % CI", "median", "runaway", "failed", "steps/s"):
+        table.add_column(col, justify="left" if col == "method" else "right", no_wrap=True)
+    for r in rows:
+        from pipeline.summary import interval
+
+        ci = interval(r["mean_ci_low_m"], r["mean_ci_high_m"])
+        table.add_row(r["method"], str(r["clips"]), _fmt(r["mean_rmse_m"] and 1000 * r["mean_rmse_m"], ".2f"), ci,
+                      _fmt(r["median_rmse_m"] and 1000 * r["median_rmse_m"], ".2f"), str(r["runaways"]),
+                      str(r["failures"]), _fmt(r["median_steps_per_second"], ",.0f"))
+    out.print(table)
+    bad = [o for o in outcomes if o.status == "failed" or clip_warnings(o)]
+    if bad:
+        clips = Table("clip", "status", "attempts", "warnings", "error", title="clips that failed or warned")
+        for o in bad:
+            clips.add_row(o.clip, o.status, str(o.attempts), str(len(clip_warnings(o))), o.error)
+        out.print(clips)
+    n_ok = sum(o.status != "failed" for o in outcomes)
+    out.print(f"{n_ok} of {len(outcomes)} clips done; summary: {output / 'summary.html'} (and summary.md, "
+              f"summary.csv)", highlight=False)
 
 
 @app.command("render-batch")

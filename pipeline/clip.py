@@ -333,8 +333,13 @@ def read_positions(path: Path, n_frames: int | None = None) -> tuple[dict[str, n
     positions (frames × 3, NaN where absent), and the frame count. A row whose frame lies
     outside ``0 .. n_frames − 1`` is an error naming the line."""
     cols = read_csv(path, ["frame", "marker", "x", "y", "z"], numeric=["x", "y", "z"], finite=["frame"])
+    check_frame_column(cols["frame"], n_frames, path)
+    return positions_from_columns(cols)
+
+
+def positions_from_columns(cols: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], int]:
+    """Columns of a long-format table (checked by the caller) → marker → positions, frame count."""
     frames = cols["frame"]
-    check_frame_column(frames, n_frames, path)
     n = int(np.nanmax(frames)) + 1 if len(frames) else 0
     pos: dict[str, np.ndarray] = {}
     for k, name, x, y, z in zip(cols["frame"].astype(int), cols["marker"], cols["x"], cols["y"], cols["z"], strict=True):

@@ -82,6 +82,7 @@ def estimate_clip(
     in_dir: str | Path | None = None,
     detections: tuple[dict[str, np.ndarray], FootageInfo] | None = None,
     time_offset: str | float | None = "auto",
+    describe: Callable[[str], None] | None = None,
 ) -> EstimateResult:
     """Run every requested method on every marker of a clip and write estimates and metrics.
 
@@ -93,7 +94,7 @@ def estimate_clip(
     (raw measurement, Kalman–Bucy, PnP + KF) run on its four labelled points too. Input checks
     (left/right swapped, epipolar consistency, points behind a camera, track jumps, and the
     detect stage's colour and image-size checks) are warned about and written to
-    ``metrics.json`` under ``checks``.
+    ``metrics.json`` under ``checks``. ``describe`` is told once what ``progress`` counts.
     """
     clip_ = Clip.open(clip)
     clip = clip_.path
@@ -151,6 +152,9 @@ def estimate_clip(
     if target_methods and target is None:
         raise StereotrackError(f"method(s) {', '.join(target_methods)} require a four-point target; this clip has none", clip)
     done, total = 0, len(point_methods) * len(obs) + len(target_methods)
+    if describe is not None:
+        describe(f"{total} tracks: {len(point_methods)} methods × {len(obs)} markers"
+                 + (f" + {len(target_methods)} target methods" if target_methods else ""))
     for m in target_methods:
         assert target is not None
         Yt = np.stack([aligned.get(f"{target.name}_{j}", np.full((n, 4), np.nan)) for j in range(1, 5)], axis=1)

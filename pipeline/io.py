@@ -90,6 +90,13 @@ def write_text(path: str | Path, text: str) -> None:
         tmp.write_text(text)
 
 
+def write_bytes(path: str | Path, data: bytes) -> None:
+    """Write bytes atomically (the folder is made when missing)."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+
+
 def write_json(path: str | Path, data: Any) -> None:
     """Write JSON atomically (NaN written as null so every JSON reader accepts it)."""
     write_text(path, json.dumps(_jsonable(data), indent=2, allow_nan=False) + "\n")

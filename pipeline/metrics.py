@@ -40,6 +40,22 @@ def rmse(a: np.ndarray, b: np.ndarray) -> float | None:
 
 
 
+#: a method whose error is over this many times the run's median is a runaway (clipped, named)
+RUNAWAY = 10.0
+
+
+def runaways(metrics: dict) -> list[str]:
+    """Point methods whose 3-D RMSE (reprojection RMSE without truth) is over :data:`RUNAWAY` ×
+    the median of the run's point methods (needs three methods to judge)."""
+    key = "rmse" if metrics.get("has_truth") else "reprojection_rmse_px"
+    vals = {m: e.get(key) for m, e in metrics.get("methods", {}).items() if not e.get("target")}
+    vals = {m: v for m, v in vals.items() if isinstance(v, (int, float)) and np.isfinite(v)}
+    if len(vals) < 3:
+        return []
+    med = float(np.median(list(vals.values())))
+    return [m for m, v in vals.items() if v > RUNAWAY * med]
+
+
 def _note_too_short(entry: dict[str, Any], method: str, n_frames: int) -> None:
     """A method that needs more frames than the clip has: say so (``note``), not an error."""
     from pipeline.estimators import registry

@@ -6,7 +6,9 @@ once as static data, with the frame images (JPEG, logged as they are decoded), d
 truth projections beneath them. Trajectories live under ``/world/truth`` and
 ``/world/estimates/<method>`` as one point per marker per frame; the 3-D view shows them over a
 visible time range from the start to the cursor, so each path is drawn from its points instead of
-being re-logged every frame. Per-frame errors and the target's α and z live under ``/metrics``.
+being re-logged every frame; filters' 95 % position ellipsoids under ``/world/uncertainty/<method>``
+(hidden until shown). Per-frame errors live under ``/metrics/<error|reprojection>/<marker>/<method>``,
+the target's α and z under ``/metrics/target``.
 Everything but the images is sent with ``send_columns``: one call per entity, not one per frame,
 so memory does not grow with the clip. The blueprint (3-D view, both camera views, error plots) is
 built in code and saved as the file's default.
@@ -17,46 +19,82 @@ from __future__ import annotations
 import os
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from pipeline.camera import StereoRig
 from pipeline.io import partial_beside
-from pipeline.metrics import errors_per_frame
-from pipeline.style import TRUTH_RGB, marker_rgb, method_rgb
+from pipeline.metrics import errors_per_frame, runaways
+from pipeline.style import TRUTH_RGB_VIEWER, marker_rgb, method_rgb
 
-#: 3-D sizes (m): truth small and black, each method's points larger in its colour, paths thin
+if TYPE_CHECKING:
+    from pipeline.estimate import EstimateResult
+
+#: 3-D sizes (m): truth small and light grey, each method's points larger in its colour, paths thin
 TRUTH_RADIUS, POINT_RADIUS, PATH_RADIUS = 0.005, 0.008, 0.002
 
 
-def blueprint(fps: float = 30.0, target: bool = False, info: bool = False):
-    """3-D view (paths: every point from the start to the cursor) beside the two camera views,
-    error plots below; the four-point target's α and z plots only when the run has the target, the
-    run's description when given. The time panel opens on the ``frame`` timeline at the clip's
-    frame rate (on rerun's default ``time`` timeline the trail is empty: it is set for ``frame``)."""
+def _hidden(paths: list[str]):
     import rerun.blueprint as rrb
 
+    return {p: rrb.EntityBehavior(visible=False) for p in paths}
+
+
+def _series_tabs(kind: str, title: str, markers: list[str], hidden: list[str]):
+    """One time-series view per marker (one line per method), as tabs; runaway methods hidden."""
+    import rerun.blueprint as rrb
+
+    views = [rrb.TimeSeriesView(name=f"{title} · {mk}", origin=f"/metrics/{kind}/{mk}",
+                                overrides=_hidden([f"/metrics/{kind}/{mk}/{m}" for m in hidden]) or None)
+             for mk in markers]
+    return rrb.Tabs(*views) if views else None
+
+
+def blueprint(fps: float = 30.0, target: bool = False, info: bool = False, markers: list[str] | None = None,
+              hidden: list[str] | None = None, uncertain: list[str] | None = None):
+    """3-D view (paths: every point from the start to the cursor) beside the two camera views;
+    below, per marker, the 3-D and reprojection errors with one line per method, and the
+    four-point target's α and z when the run has the target; the run's description when given.
+    ``hidden`` (runaway methods) and the covariance ellipsoids of ``uncertain`` start hidden (one
+    click in the blueprint tree shows them). The time panel opens on the ``frame`` timeline at
+    the clip's frame rate (on rerun's default ``time`` timeline the trail is empty: it is set for
+    ``frame``)."""
+    import rerun.blueprint as rrb
+
+    hidden, markers = list(hidden or []), list(markers or [])
     trail = rrb.VisibleTimeRange("frame", start=rrb.TimeRangeBoundary.infinite(),
                                  end=rrb.TimeRangeBoundary.cursor_relative())
-    plots = [rrb.TimeSeriesView(name="3-D error (m)", origin="/metrics/error"),
-             rrb.TimeSeriesView(name="reprojection error (px)", origin="/metrics/reprojection")]
+    plots = [t for t in (_series_tabs("error", "3-D error (m)", markers, hidden),
+                         _series_tabs("reprojection", "reprojection error (px)", markers, hidden)) if t is not None]
     if target:
         plots += [rrb.TimeSeriesView(name="target α (rad)", origin="/metrics/target/alpha"),
                   rrb.TimeSeriesView(name="target z (m)", origin="/metrics/target/distance")]
-    side = [rrb.Spatial2DView(name="left camera", origin="/world/left"),
-            rrb.Spatial2DView(name="right camera", origin="/world/right")]
+    side = [rrb.Spatial2DView(name=f"{c} camera", origin=f"/world/{c}",
+                              overrides=_hidden([f"/world/{c}/estimates/{m}" for m in hidden]) or None)
+            for c in ("left", "right")]
     if info:
         side.append(rrb.TextDocumentView(name="this run", origin="/run"))
+    off = [f"/world/estimates/{m}" for m in hidden] + [f"/world/uncertainty/{m}" for m in uncertain or []]
+    view3d = rrb.Spatial3DView(name="3-D", origin="/world", time_ranges=[trail], overrides=_hidden(off) or None)
     return rrb.Blueprint(
-        rrb.Vertical(
-            rrb.Horizontal(rrb.Spatial3DView(name="3-D", origin="/world", time_ranges=[trail]), rrb.Vertical(*side),
-                           column_shares=[3, 2]),
-            rrb.Horizontal(*plots),
-            row_shares=[3, 2],
-        ),
+        rrb.Vertical(rrb.Horizontal(view3d, rrb.Vertical(*side), column_shares=[3, 2]), rrb.Horizontal(*plots),
+                     row_shares=[3, 2]),
         rrb.TimePanel(timeline="frame", fps=float(fps), play_state="paused"),
         collapse_panels=True,
     )
+
+
+def ellipsoid_columns(cov: np.ndarray, level: float = 0.95) -> tuple[np.ndarray, np.ndarray]:
+    """Half-axes and rotations (quaternions, xyzw) of the ``level`` ellipsoids of 3×3 position
+    covariances (``n × 3 × 3``): the axes are the eigenvectors, the half-lengths √(χ²₃(level) λ)."""
+    from scipy.spatial.transform import Rotation
+    from scipy.stats import chi2
+
+    vals, vecs = np.linalg.eigh(cov)
+    vecs[np.linalg.det(vecs) < 0, :, 0] *= -1  # a proper rotation
+    half = np.sqrt(chi2.ppf(level, 3) * np.clip(vals, 0, None))
+    return half, Rotation.from_matrix(vecs).as_quat()
 
 
 class Recorder:
@@ -117,8 +155,9 @@ class Recorder:
                                   columns=columns)
 
     def _points(self, entity: str, per_frame: list[np.ndarray], colours: list[list], labels: list[list] | None,
-                kind: str, radius: float) -> None:
-        """One batch of points per frame (frames with none are skipped), as partitioned columns."""
+                kind: str, radius: float, show_labels: bool = True) -> None:
+        """One batch of points per frame (frames with none are skipped), as partitioned columns;
+        labels not drawn when ``show_labels`` is False (still shown on hover and selection)."""
         import rerun as rr
 
         frames = np.array([k for k, p in enumerate(per_frame) if len(p)], dtype=np.int64)
@@ -129,6 +168,8 @@ class Recorder:
         col = np.concatenate([np.asarray(colours[k], dtype=np.uint8).reshape(-1, 3) for k in frames])
         arch = rr.Points3D if kind == "3d" else rr.Points2D
         kw = {"labels": [x for k in frames for x in labels[k]]} if labels is not None else {}
+        if labels is not None and not show_labels:
+            self.rec.log(entity, arch.from_fields(show_labels=False), static=True)
         cols = arch.columns(positions=pos, colors=col, radii=np.full(len(pos), radius, np.float32), **kw)
         self._columns(entity, frames, cols.partition(lengths))
 
@@ -156,78 +197,139 @@ class Recorder:
             self.rec.log(entity, rr.LineStrips3D(strips, colors=[list(rgb)] * len(strips),
                                                  radii=[PATH_RADIUS] * len(strips)), static=True)
 
-    def finish(self, rig: StereoRig, observations: dict[str, np.ndarray], tracks: dict[str, dict],
-               truth: dict[str, np.ndarray] | None = None, extra_series: dict[str, np.ndarray] | None = None,
-               marker_colours: dict[str, list[int]] | None = None,
+    def finish(self, est: EstimateResult, marker_colours: dict[str, list[int]] | None = None,
                progress: Callable[[int, int], None] | None = None, info: str | None = None) -> Path:
-        """Log the calibration (static), detections, truth, every method's points, path and named,
-        coloured series, the run's description (``info``, Markdown) and the blueprint for this run,
-        then move the file into place; ``progress`` gets (methods done, methods)."""
+        """Log the calibration (static), detections, truth, every method's points, path,
+        covariance ellipsoids and named, coloured series, the target's plate and centres, the run's
+        description (``info``, Markdown) and the blueprint for this run, then move the file into
+        place; ``progress`` gets (methods done, methods)."""
         import rerun as rr
 
-        rec = self.rec
         if self.name:
-            rec.send_recording_name(self.name)
+            self.rec.send_recording_name(self.name)
         if info:
-            rec.log("run", rr.TextDocument(info, media_type=rr.MediaType.MARKDOWN), static=True)
-        rec.log("world", rr.ViewCoordinates.RDF, static=True)  # OpenCV axes: x right, y down, z forward
-        w, h = rig.image_size
-        for cam, name in zip(rig.cameras, ("left", "right"), strict=True):
-            rec.log(f"world/{name}", rr.Transform3D(translation=cam.center, mat3x3=cam.R.T), static=True)
-            rec.log(f"world/{name}", rr.Pinhole(image_from_camera=cam.K, width=w or None, height=h or None,
-                                               camera_xyz=rr.ViewCoordinates.RDF), static=True)
-        markers = list(observations)
-        mcol = {m: list(marker_rgb(marker_colours or {}, m, i)) for i, m in enumerate(markers)}
-        n = max([len(v) for v in observations.values()] + [len(t.position) for per in tracks.values()
-                                                             for t in per.values()] + [0])
-        for c, name in enumerate(("left", "right")):
-            pts, cols, labs = [], [], []
-            for k in range(n):
-                here = [m for m in markers
-                        if k < len(observations[m]) and np.all(np.isfinite(observations[m][k, 2 * c:2 * c + 2]))]
-                pts.append(np.array([observations[m][k, 2 * c:2 * c + 2] for m in here]).reshape(-1, 2))
-                cols.append([mcol[m] for m in here])
-                labs.append(here)
-            self._points(f"world/{name}/detections", pts, cols, labs, "2d", 3.0)
-            if truth is not None:
-                tp = [np.array([truth[m][k] for m in markers if m in truth and k < len(truth[m])]).reshape(-1, 3)
-                      for k in range(n)]
-                proj = [rig.cameras[c].project(p) if len(p) else p[:, :2] for p in tp]
-                self._points(f"world/{name}/truth", proj, [[TRUTH_RGB] * len(p) for p in proj], None, "2d", 2.0)
-        if truth is not None:
-            tp = [np.array([truth[m][k] for m in markers if m in truth and k < len(truth[m])]).reshape(-1, 3)
-                  for k in range(n)]
-            self._points("world/truth/points", tp, [[TRUTH_RGB] * len(p) for p in tp], None, "3d", TRUTH_RADIUS)
-            self._paths("world/truth/path", [truth[m] for m in markers if m in truth], TRUTH_RGB)
-        for j, (meth, per_marker) in enumerate(tracks.items()):
+            self.rec.log("run", rr.TextDocument(info, media_type=rr.MediaType.MARKDOWN), static=True)
+        self._rig(est.rig)
+        truth = est.truth.positions if est.truth else None
+        n = max([len(v) for v in est.observations.values()] + [est.n_frames])
+        self._detections(est, marker_colours or {}, truth, n)
+        uncertain = []
+        for j, (meth, per_marker) in enumerate(est.tracks.items()):
             if progress is not None:
-                progress(j, len(tracks))
-            rgb = list(method_rgb(meth))
-            here = [[m for m, t in per_marker.items() if k < len(t.position) and np.all(np.isfinite(t.position[k]))]
-                    for k in range(n)]
-            cur = [np.array([per_marker[m].position[k] for m in ms]).reshape(-1, 3) for k, ms in enumerate(here)]
-            colours = [[rgb] * len(p) for p in cur]
-            self._points(f"world/estimates/{meth}/points", cur, colours, here, "3d", POINT_RADIUS)
-            for c, cam in enumerate(("left", "right")):  # the estimates seen through each camera
-                seen = [rig.cameras[c].project(p) if len(p) else p[:, :2] for p in cur]
-                self._points(f"world/{cam}/estimates/{meth}", seen, colours, here, "2d", 2.5)
-            self._paths(f"world/estimates/{meth}/path", [t.position for t in per_marker.values()], rgb)
-            for marker, t in per_marker.items():
-                if truth is not None and marker in truth:
-                    self._scalars(f"metrics/error/{meth}/{marker}", errors_per_frame(t.position, truth[marker]),
-                                  f"{meth} · {marker}", rgb)
-                self._scalars(f"metrics/reprojection/{meth}/{marker}", t.reprojection_error, f"{meth} · {marker}", rgb)
-        for key, series in (extra_series or {}).items():
-            who = key.rsplit("/", 1)[-1]
-            self._scalars(f"metrics/{key}", series, who, list(TRUTH_RGB if who == "truth" else method_rgb(who)))
+                progress(j, len(est.tracks))
+            self._method(est.rig, meth, per_marker, truth, n)
+            if self._ellipsoids(meth, per_marker, n):
+                uncertain.append(meth)
+        self._target(est, truth, n)
         if progress is not None:
-            progress(len(tracks), len(tracks))  # the bar completes (it stopped at n − 1 of n)
-        target = any(k.startswith("target/") for k in extra_series or {})
-        rec.send_blueprint(blueprint(1.0 / self.dt, target, bool(info)), make_active=True, make_default=True)
-        rec.flush()
-        rec.disconnect()
+            progress(len(est.tracks), len(est.tracks))  # the bar completes (it stopped at n − 1 of n)
+        markers = sorted({m for per in est.tracks.values() for m in per})
+        self.rec.send_blueprint(blueprint(1.0 / self.dt, bool(est.target_tracks), bool(info), markers,
+                                          runaways(est.metrics), uncertain), make_active=True, make_default=True)
+        self.rec.flush()
+        self.rec.disconnect()
         os.replace(self.tmp, self.path)
         return self.path
+
+    def _rig(self, rig: StereoRig) -> None:
+        """Both cameras as static transforms and pinholes in OpenCV's axes."""
+        import rerun as rr
+
+        self.rec.log("world", rr.ViewCoordinates.RDF, static=True)  # x right, y down, z forward
+        w, h = rig.image_size
+        for cam, name in zip(rig.cameras, ("left", "right"), strict=True):
+            self.rec.log(f"world/{name}", rr.Transform3D(translation=cam.center, mat3x3=cam.R.T), static=True)
+            self.rec.log(f"world/{name}", rr.Pinhole(image_from_camera=cam.K, width=w or None, height=h or None,
+                                                    camera_xyz=rr.ViewCoordinates.RDF), static=True)
+
+    def _detections(self, est: EstimateResult, colours: dict[str, list[int]], truth: dict | None, n: int) -> None:
+        """Each camera's detections (marker colours, labelled) and truth projections; truth in 3-D."""
+        obs, markers = est.observations, list(est.observations)
+        mcol = {m: list(marker_rgb(colours, m, i)) for i, m in enumerate(markers)}
+        there = [[m for m in markers if truth is not None and m in truth and k < len(truth[m])] for k in range(n)]
+        tp = [np.array([truth[m][k] for m in ms]).reshape(-1, 3) for k, ms in enumerate(there)] \
+            if truth is not None else None
+        for c, name in enumerate(("left", "right")):
+            here = [[m for m in markers if k < len(obs[m]) and np.all(np.isfinite(obs[m][k, 2 * c:2 * c + 2]))]
+                    for k in range(n)]
+            pts = [np.array([obs[m][k, 2 * c:2 * c + 2] for m in ms]).reshape(-1, 2) for k, ms in enumerate(here)]
+            self._points(f"world/{name}/detections", pts, [[mcol[m] for m in ms] for ms in here], here, "2d", 3.0)
+            if tp is not None:
+                proj = [est.rig.cameras[c].project(p) if len(p) else p[:, :2] for p in tp]
+                self._points(f"world/{name}/truth", proj, [[TRUTH_RGB_VIEWER] * len(p) for p in proj], None, "2d", 2.0)
+        if truth is not None and tp is not None:
+            self._points("world/truth/points", tp, [[TRUTH_RGB_VIEWER] * len(p) for p in tp], there, "3d", TRUTH_RADIUS)
+            self._paths("world/truth/path", [truth[m] for m in markers if m in truth], TRUTH_RGB_VIEWER)
+
+    def _method(self, rig: StereoRig, meth: str, per_marker: dict, truth: dict | None, n: int) -> None:
+        """A method's labelled points in 3-D and through each camera, its path, and its error
+        series per marker (``/metrics/<kind>/<marker>/<method>``, named and coloured)."""
+        rgb = list(method_rgb(meth))
+        here = [[m for m, t in per_marker.items() if k < len(t.position) and np.all(np.isfinite(t.position[k]))]
+                for k in range(n)]
+        cur = [np.array([per_marker[m].position[k] for m in ms]).reshape(-1, 3) for k, ms in enumerate(here)]
+        colours = [[rgb] * len(p) for p in cur]
+        self._points(f"world/estimates/{meth}/points", cur, colours, here, "3d", POINT_RADIUS, show_labels=False)
+        for c, cam in enumerate(("left", "right")):  # the estimates seen through each camera
+            seen = [rig.cameras[c].project(p) if len(p) else p[:, :2] for p in cur]
+            self._points(f"world/{cam}/estimates/{meth}", seen, colours, here, "2d", 2.5, show_labels=False)
+        self._paths(f"world/estimates/{meth}/path", [t.position for t in per_marker.values()], rgb)
+        for marker, t in per_marker.items():
+            if truth is not None and marker in truth:
+                self._scalars(f"metrics/error/{marker}/{meth}", errors_per_frame(t.position, truth[marker]), meth, rgb)
+            self._scalars(f"metrics/reprojection/{marker}/{meth}", t.reprojection_error, meth, rgb)
+
+    def _ellipsoids(self, meth: str, per_marker: dict, n: int) -> bool:
+        """The 95 % position ellipsoid of each marker per frame (filters with a covariance)."""
+        import rerun as rr
+
+        centers, half, quats, lengths, frames = [], [], [], [], []
+        for k in range(n):
+            got = [(t.position[k], t.covariance[k, :3, :3]) for t in per_marker.values()
+                   if t.covariance is not None and k < len(t.position) and np.all(np.isfinite(t.position[k]))
+                   and np.all(np.isfinite(t.covariance[k, :3, :3]))]
+            if got:
+                frames.append(k)
+                lengths.append(len(got))
+                centers += [c for c, _ in got]
+                h, q = ellipsoid_columns(np.array([P for _, P in got]))
+                half.append(h)
+                quats.append(q)
+        if not frames:
+            return False
+        cols = rr.Ellipsoids3D.columns(centers=np.array(centers), half_sizes=np.vstack(half), quaternions=np.vstack(quats),
+                                       colors=np.tile(method_rgb(meth), (len(centers), 1)).astype(np.uint8),
+                                       fill_mode=[rr.components.FillMode.MajorWireframe] * len(centers))
+        self._columns(f"world/uncertainty/{meth}", np.array(frames, dtype=np.int64), cols.partition(lengths))
+        return True
+
+    def _target(self, est: EstimateResult, truth: dict | None, n: int) -> None:
+        """The four-point target: the true plate as a closed outline per frame, each target
+        method's centre (points and path) and its α and z series beside the truth's."""
+        import rerun as rr
+
+        if est.target is None or not est.target_tracks:
+            return
+        corners = [f"{est.target.name}_{j}" for j in range(1, 5)]
+        if truth is not None and all(c in truth for c in corners):
+            frames = [k for k in range(n) if all(k < len(truth[c]) and np.all(np.isfinite(truth[c][k])) for c in corners)]
+            strips = [np.array([truth[c][k] for c in [*corners, corners[0]]]) for k in frames]
+            if frames:
+                cols = rr.LineStrips3D.columns(strips=strips, colors=[TRUTH_RGB_VIEWER] * len(strips),
+                                               radii=[PATH_RADIUS] * len(strips))
+                self._columns("world/truth/plate", np.array(frames, dtype=np.int64), cols.partition([1] * len(frames)))
+        for meth, tr in est.target_tracks.items():
+            rgb = list(method_rgb(meth))
+            pts = [tr.position[k:k + 1][np.all(np.isfinite(tr.position[k:k + 1]), axis=1)] for k in range(len(tr.position))]
+            self._points(f"world/estimates/{meth}/points", pts, [[rgb] * len(p) for p in pts],
+                         [["centre"] * len(p) for p in pts], "3d", POINT_RADIUS, show_labels=False)
+            self._paths(f"world/estimates/{meth}/path", [tr.position], rgb)
+            self._scalars(f"metrics/target/alpha/{meth}", tr.extra["alpha"], meth, rgb)
+            self._scalars(f"metrics/target/distance/{meth}", tr.extra["distance"], meth, rgb)
+        tg = est.target
+        if tg.alpha is not None and tg.distance is not None:
+            self._scalars("metrics/target/alpha/truth", tg.alpha, "truth", TRUTH_RGB_VIEWER)
+            self._scalars("metrics/target/distance/truth", tg.distance, "truth", TRUTH_RGB_VIEWER)
 
     def abort(self) -> None:
         """Stop recording and remove the partial file (after the file sink has closed it, so that
@@ -237,15 +339,3 @@ class Recorder:
                 self.rec.disconnect()
         finally:
             self.tmp.unlink(missing_ok=True)
-
-
-def write_recording(path: str | Path, rig: StereoRig, dt: float, observations: dict[str, np.ndarray],
-                    tracks: dict[str, dict], truth: dict[str, np.ndarray] | None = None, frames=None,
-                    extra_series: dict[str, np.ndarray] | None = None,
-                    marker_colours: dict[str, list[int]] | None = None) -> Path:
-    """A recording in one call: ``frames`` optionally yields (index, left, right) BGR images, which
-    are logged as they come."""
-    with Recorder(path, dt) as rec:
-        for k, left, right in frames or ():
-            rec.log_frame(k, left, right)
-        return rec.finish(rig, observations, tracks, truth, extra_series, marker_colours)

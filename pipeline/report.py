@@ -1,300 +1,459 @@
-"""``out/report.md``: the metrics table and matplotlib figures (trajectories in top and side views,
-error vs frame per method, image-plane tracks per camera, filter consistency), built from the stage files alone so a
-person who never opens rerun can read a run."""
+"""``out/report.md`` and the self-contained ``out/report.html``: the run's tables (errors in
+millimetres, each column's best value marked), its input checks, and matplotlib figures
+(trajectories, error per frame, image-plane tracks, the target's α and z, filter consistency),
+built from the stage files so a person who never opens rerun can read a run.
+
+Only the methods of this run's ``metrics.json`` are drawn (estimate CSVs left by earlier runs are
+not); axes are set by the methods that track, and a method that runs away (3-D RMSE, or without
+truth reprojection RMSE, over :data:`RUNAWAY` × the run's median) is clipped and named."""
 
 from __future__ import annotations
 
+import io
 import warnings
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from pipeline.clip import Clip, load_detections, read_positions
+from pipeline import html as H
+from pipeline.clip import Clip, load_detections, positions_from_columns
 from pipeline.errors import StereotrackError
-from pipeline.io import atomic_path, read_csv, read_json_mapping, write_text
-from pipeline.metrics import errors_per_frame
-from pipeline.style import marker_rgb, method_colour, method_linestyle
+from pipeline.io import read_csv, read_json_mapping, write_bytes, write_text
+from pipeline.metrics import RUNAWAY, errors_per_frame, runaways
+from pipeline.style import TRUTH_STYLE, marker_rgb, method_colour, method_hex, method_linestyle
+from pipeline.tables import Column, Table, inline, number, to_html, to_markdown
+
+#: figure resolution: sharp on a laptop screen, cheap to encode
+DPI = 100
+#: frames in the moving mean of the consistency figure
+CONSISTENCY_WINDOW = 15
 
 
-def load_estimates(out_dir: Path) -> dict[str, dict[str, np.ndarray]]:
-    """``estimates/<method>.csv`` → method → marker → positions (frames × 3)."""
-    return {f.stem: read_positions(f)[0] for f in sorted((out_dir / "estimates").glob("[!.]*.csv"))}
+@dataclass
+class ReportData:
+    """What the report draws, read once from the stage files."""
+    name: str
+    out_dir: Path
+    metrics: dict
+    point: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)  # method → marker → positions
+    target: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)  # method → CSV columns
+    filters: dict[str, tuple[np.ndarray, np.ndarray, float]] = field(default_factory=dict)  # NEES/3, NIS/dof, n
+    truth: dict[str, np.ndarray] | None = None
+    target_truth: dict[str, np.ndarray] | None = None
+    obs: dict[str, np.ndarray] = field(default_factory=dict)
+    marker_colours: dict[str, list[int]] = field(default_factory=dict)
+
+    @property
+    def runaways(self) -> list[str]:
+        return runaways(self.metrics)
+
+    def tracking(self) -> list[str]:
+        """Point methods that are drawn to scale (not runaways)."""
+        return [m for m in self.point if m not in self.runaways]
 
 
-def _hide_behind_camera(clip: Path, est: dict[str, dict[str, np.ndarray]], units: str | None
-                        ) -> dict[str, dict[str, np.ndarray]]:
-    """Estimates with points behind either camera set to NaN: they are counted in the metrics
-    and the Checks section, never drawn as if they were metres in front of the rig."""
+def _hide_behind_camera(clip: Clip, est: dict[str, dict[str, np.ndarray]], units: str | None) -> None:
+    """Points behind either camera set to NaN: counted in the metrics and the Checks section,
+    never drawn as if they were metres in front of the rig."""
     from pipeline.camera import has_calibration, load_calibration
 
-    if not has_calibration(clip):
-        return est
-    rig = load_calibration(clip, units)
-    out: dict[str, dict[str, np.ndarray]] = {}
-    for meth, per in est.items():
-        out[meth] = {}
-        for mk, P in per.items():
-            P = P.copy()
+    if not est or not has_calibration(clip.folder):
+        return
+    rig = load_calibration(clip.folder, units)
+    for per in est.values():
+        for P in per.values():
             with np.errstate(invalid="ignore"):
                 P[np.any(rig.depths(P) <= 0, axis=1)] = np.nan
-            out[meth][mk] = P
-    return out
 
 
-def checks_section(metrics: dict) -> list[str]:
-    """The report's "Checks" section: every input check, failed ones first."""
-    checks = metrics.get("checks") or []
-    if not checks:
-        return []
-    lines = ["## Checks", ""]
-    failed = [c for c in checks if not c.get("ok")]
-    lines.append(f"**{len(failed)} check(s) failed: look before trusting the numbers below.**" if failed
-                 else "All input checks passed.")
-    lines.append("")
-    for c in sorted(checks, key=lambda c: bool(c.get("ok"))):
-        lines.append(f"- {'✅' if c.get('ok') else '⚠️'} `{c.get('name')}`: {c.get('message')}")
-    behind = {m: e.get("behind_camera") for m, e in metrics.get("methods", {}).items() if e.get("behind_camera")}
-    if behind:
-        lines.append("- estimates behind a camera (counted, not drawn): "
-                     + ", ".join(f"{m} {n}" for m, n in behind.items()))
-    return [*lines, ""]
+def _filter_series(cols: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """A filter's NEES/3 and NIS/dof per frame (mean over markers) and markers per frame."""
+    if "nis" not in cols or not (np.isfinite(cols["nis"]).any() or np.isfinite(cols["nees"]).any()):
+        return None
+    frames = cols["frame"].astype(int)
+    n = int(frames.max()) + 1
+    with np.errstate(all="ignore"):
+        per = [np.bincount(frames, np.nan_to_num(v), n) / np.bincount(frames, np.isfinite(v), n)
+               for v in (cols["nees"] / 3, cols["nis"] / cols["nis_dof"])]
+    return per[0], per[1], max(1.0, len(frames) / n)
 
 
-def _save(fig, path: Path) -> None:
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight")
-
-
-def _fmt(v) -> str:
-    if v is None or (isinstance(v, float) and not np.isfinite(v)):
-        return "—"
-    return f"{v:.4g}" if isinstance(v, float) else str(v)
-
-
-def consistency_section(metrics: dict) -> list[str]:
-    """Markdown: each filter's NEES (position, against truth) and NIS, normalized by their degrees
-    of freedom (1 when the filter's covariance matches its errors) and the fraction of frames in
-    the 95 % χ² band (0.95 when it does)."""
-    rows = []
-    for m, e in metrics.get("methods", {}).items():
-        nees, nis = e.get("nees_position"), e.get("nis")
-        if nees or nis:
-            rows.append(f"| {m} | {_fmt(nees and nees['normalized_mean'])} | {_fmt(nees and nees['in_95'])} | "
-                        f"{_fmt(nis and nis['normalized_mean'])} | {_fmt(nis and nis['in_95'])} |")
-    if not rows:
-        return []
-    return ["## Filter consistency", "",
-            "NEES/3 and NIS/dof average 1, and 95 % of frames fall inside the χ² band, when a filter's covariance "
-            "matches its actual errors; far above 1 means over-confident, far below under-confident.", "",
-            "| method | NEES/3 (position) | NEES in 95 % band | NIS/dof | NIS in 95 % band |", "|---|---|---|---|---|",
-            *rows, ""]
-
-
-def _consistency_figure(src: Path, figdir: Path, colour, plt) -> bool:
-    """NEES and NIS per frame (moving mean over 15 frames, all markers) with the 95 % band of
-    that mean; False when no method has them."""
-    from pipeline.consistency import band
-
-    series: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    for f in sorted((src / "estimates").glob("[!.]*.csv")):
-        cols = read_csv(f)
-        if "nis" not in cols or not (np.isfinite(cols["nis"]).any() or np.isfinite(cols["nees"]).any()):
+def load_report_data(clip: Clip, src: Path, out_dir: Path) -> ReportData:
+    """The run's metrics and, for its methods only, their estimate CSVs (each read once), with
+    truth, detections and the marker colours the detect stage recorded."""
+    mpath = src / "metrics.json"
+    if not mpath.is_file():
+        raise StereotrackError("no metrics.json: run `stereotrack estimate` first", mpath)
+    metrics = read_json_mapping(mpath, "metrics")
+    data = ReportData(clip.folder.name, out_dir, metrics)
+    for m, entry in metrics.get("methods", {}).items():
+        path = src / "estimates" / f"{m}.csv"
+        if not path.is_file():
             continue
-        frames = cols["frame"].astype(int)
-        n = int(frames.max()) + 1
-        with np.errstate(all="ignore"), warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            per = [np.bincount(frames, np.nan_to_num(v), n) / np.bincount(frames, np.isfinite(v), n)
-                   for v in (cols["nees"], cols["nis"] / cols["nis_dof"])]
-        series[f.stem] = (per[0], per[1])
-    if not series:
-        return False
-    w = 15
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
-    # the band of a w-frame mean: χ²(3w)/w for NEES (3 dof), χ²(4w)/(4w) for NIS/dof (4 dof)
-    bands = [np.array(band(3 * w)) / w, np.array(band(4 * w)) / (4 * w)]
-    for ax, i, title in ((axes[0], 0, "NEES, position (3 dof), against truth"),
-                         (axes[1], 1, "NIS / dof of the filter's innovations")):
-        drawn = False
-        for meth, vals in series.items():
-            v = vals[i]
-            if not np.isfinite(v).any():
-                continue
-            ok = np.isfinite(v)
-            k = np.ones(w)
-            with np.errstate(all="ignore"):
-                mean = np.convolve(np.where(ok, v, 0), k, "same") / np.convolve(ok, k, "same")
-            (ax.semilogy if i == 0 else ax.plot)(mean, color=colour(meth), lw=1, label=meth)
-            drawn = True
-        if drawn:
-            ax.axhspan(*bands[i], color="0.85", zorder=0, label="95 % band")
-        if i == 0:
-            from matplotlib.ticker import ScalarFormatter
-
-            ax.yaxis.set_major_formatter(ScalarFormatter())
-            ax.yaxis.set_minor_formatter(ScalarFormatter())
-        ax.set(xlabel="frame", ylabel=f"moving mean over {w} frames", title=title)
-        ax.grid(alpha=0.3, which="both")
-    _legend_outside(fig, axes)
-    _save(fig, figdir / "consistency.png")
-    plt.close(fig)
-    return True
+        cols = read_csv(path)
+        if entry.get("target"):
+            data.target[m] = cols
+            continue
+        data.point[m] = positions_from_columns(cols)[0]
+        if (s := _filter_series(cols)) is not None:
+            data.filters[m] = s
+    _hide_behind_camera(clip, data.point, metrics.get("calibration_units"))
+    truth = clip.truth()
+    data.truth = truth.positions if truth is not None else None
+    if (clip.folder / "target_truth.csv").is_file() and data.target:
+        data.target_truth = read_csv(clip.folder / "target_truth.csv")
+    if (src / "detections.csv").is_file():
+        data.obs = load_detections(src / "detections.csv")
+    if (src / "detect.json").is_file():
+        data.marker_colours = read_json_mapping(src / "detect.json", "detect record").get("marker_colours", {})
+    return data
 
 
-def metrics_table(metrics: dict) -> str:
-    """Markdown table of the per-method metrics."""
-    head = ("| method | 3-D RMSE (m) | mean (m) | median (m) | final (m) | reproj. RMSE (px) | α RMSE (rad) "
-            "| z RMSE (m) | gated | steps/s |")
-    lines = [head, "|" + "---|" * 10]
-    for m, e in metrics.get("methods", {}).items():
-        gated = "—" if e.get("gated") is None else f"{e['gated']}" + (f" ({e['restarts']} restarts)" if e.get("restarts")
-                                                                     else "")
-        lines.append(f"| {m} | {_fmt(e.get('rmse'))} | {_fmt(e.get('mean'))} | {_fmt(e.get('median'))} | "
-                     f"{_fmt(e.get('final'))} | {_fmt(e.get('reprojection_rmse_px'))} | {_fmt(e.get('alpha_rmse_rad'))} | "
-                     f"{_fmt(e.get('distance_rmse_m'))} | {gated} | {_fmt(e.get('steps_per_second'))} |")
-    notes = [f"- **{m}**: {e['note']}" for m, e in metrics.get("methods", {}).items() if e.get("note")]
-    return "\n".join(lines + (["", *notes] if notes else []))
+# ---------------------------------------------------------------- figures
 
 
-def _legend_outside(fig, axes) -> None:
-    """One legend for the figure, right of the axes (never over the data)."""
+def _legend(fig, axes) -> None:
+    """One legend for the figure, right of the axes (never over the data), listing every series."""
     handles: dict[str, object] = {}
     for ax in np.atleast_1d(axes):
         for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
             handles.setdefault(lab, h)
+    fig.tight_layout(rect=(0, 0, 0.84 if handles else 1, 1))
     if handles:
-        fig.legend(list(handles.values()), list(handles), fontsize=8, loc="center left", bbox_to_anchor=(1.0, 0.5))
-    fig.tight_layout()
+        fig.legend(list(handles.values()), list(handles), fontsize=8, loc="center left", bbox_to_anchor=(0.845, 0.5),
+                   ncol=2 if len(handles) > 16 else 1)
 
 
-def write_report(clip: str | Path | Clip, out_dir: str | Path | None = None,
-                 progress: Callable[[int, int], None] | None = None, in_dir: str | Path | None = None) -> Path:
-    """Write ``report.md`` and its figures into ``out_dir`` (default ``CLIP/out``) from the stage
-    files in ``in_dir`` (default ``out_dir``); ``progress`` gets (figures done, figures in all)."""
+def _limits(arrays: list[np.ndarray], pad: float = 0.08) -> tuple[float, float] | None:
+    """Axis limits holding the finite values of ``arrays`` (0.5–99.5 percentiles), padded."""
+    vals = np.concatenate([a[np.isfinite(a)] for a in arrays]) if arrays else np.empty(0)
+    if not vals.size:
+        return None
+    lo, hi = np.percentile(vals, [0.5, 99.5])
+    span = max(hi - lo, 1e-3)
+    return float(lo - pad * span), float(hi + pad * span)
+
+
+def _plain_log_labels(ax) -> None:
+    """Log-axis ticks as plain numbers (2, 3, 5 …), not powers of ten."""
+    from matplotlib.ticker import FormatStrFormatter
+
+    ax.yaxis.set_major_formatter(FormatStrFormatter("%g"))
+    ax.yaxis.set_minor_formatter(FormatStrFormatter("%g"))
+
+
+def _runaway_note(data: ReportData, drawn: list[str]) -> str:
+    off = [m for m in data.runaways if m in drawn]
+    if not off:
+        return ""
+    key = "rmse" if data.metrics.get("has_truth") else "reprojection_rmse_px"
+    unit = (lambda v: f"{1000 * v:.3g} mm") if key == "rmse" else (lambda v: f"{v:.3g} px")
+    return ("; axes set by the methods that track: " + ", ".join(
+        f"{m} (RMSE {unit(data.metrics['methods'][m][key])})" for m in off) + " run off them")
+
+
+def fig_trajectories(data: ReportData, plt) -> tuple[object, str] | None:
+    """Top (x–z) and side (y–z) views of every marker: truth dashed black, each method its colour."""
+    if not data.point:
+        return None
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5))
+    markers = sorted({mk for per in data.point.values() for mk in per})
+    keep = data.tracking()
+    for ax, i in zip(axes, (0, 1), strict=True):
+        for mk in markers:
+            if data.truth and mk in data.truth:
+                ax.plot(data.truth[mk][:, 2], data.truth[mk][:, i], label="truth", **TRUTH_STYLE)
+            for meth, per in data.point.items():
+                if mk in per:
+                    ax.plot(per[mk][:, 2], per[mk][:, i], method_linestyle(meth), lw=1, color=method_colour(meth),
+                            label=meth)
+        shown = [per[mk][:, j] for per in (data.point[m] for m in keep) for mk in per for j in (2, i)]
+        truth = [T[:, j] for T in (data.truth or {}).values() for j in (2, i)]
+        zx = _limits([a for a in shown[::2] + truth[::2]]), _limits([a for a in shown[1::2] + truth[1::2]])
+        if zx[0]:
+            ax.set_xlim(*zx[0])
+        if zx[1]:
+            ax.set_ylim(*(zx[1][::-1] if i == 1 else zx[1]))
+        ax.set(xlabel="z (m)", ylabel=("x", "y")[i] + " (m)", title=("top view: x vs z", "side view: y vs z")[i])
+        ax.grid(alpha=0.3)
+    _legend(fig, axes)
+    return fig, "Trajectories, top and side views" + _runaway_note(data, list(data.point))
+
+
+def fig_error(data: ReportData, plt) -> tuple[object, str] | None:
+    """3-D error per frame (mean over markers), log scale, each method its colour."""
+    if data.truth is None or not data.point:
+        return None
+    fig, ax = plt.subplots(figsize=(12, 4.5))
+    errs = {}
+    for meth, per in data.point.items():
+        e = [errors_per_frame(per[mk], data.truth[mk]) for mk in per if mk in data.truth]
+        if e:
+            n = min(len(x) for x in e)
+            with np.errstate(all="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                errs[meth] = np.nanmean([x[:n] for x in e], axis=0) * 1000
+            ax.semilogy(errs[meth], method_linestyle(meth), color=method_colour(meth), lw=1, label=meth)
+    shown = [errs[m][errs[m] > 0] for m in data.tracking() if m in errs]
+    lim = _limits([np.log10(a) for a in shown], pad=0.05)
+    if lim:
+        ax.set_ylim(10 ** lim[0], 10 ** lim[1])
+    _plain_log_labels(ax)
+    ax.set(xlabel="frame", ylabel="3-D error (mm), mean over markers")
+    ax.grid(alpha=0.3, which="both")
+    _legend(fig, ax)
+    return fig, "3-D error per frame" + _runaway_note(data, list(errs))
+
+
+def fig_image_tracks(data: ReportData, plt) -> tuple[object, str] | None:
+    """Each camera's detections, one colour per marker (the marker's own)."""
+    if not data.obs:
+        return None
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    for c, ax in enumerate(axes):
+        for i, (mk, Y) in enumerate(sorted(data.obs.items())):
+            ax.plot(Y[:, 2 * c], Y[:, 2 * c + 1], ".", ms=2, label=mk,
+                    color=np.array(marker_rgb(data.marker_colours, mk, i)) / 255)
+        ax.set(xlabel="u (px)", ylabel="v (px)", title=("left", "right")[c] + " camera: detections (px)")
+        ax.invert_yaxis()
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.grid(alpha=0.3)
+    _legend(fig, axes)
+    return fig, "Image-plane tracks (detections)"
+
+
+def fig_target(data: ReportData, plt) -> tuple[object, str] | None:
+    """The four-point target's angle α and distance z over time: truth and each target method."""
+    if not data.target:
+        return None
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    for ax, col, ylabel in ((axes[0], "alpha", "α (rad)"), (axes[1], "distance", "z (m)")):
+        if data.target_truth is not None:
+            ax.plot(data.target_truth["t"], data.target_truth[col], label="truth", **TRUTH_STYLE)
+        for meth, cols in data.target.items():
+            ax.plot(cols["t"], cols[col], method_linestyle(meth), color=method_colour(meth), lw=1, label=meth)
+        ax.set(xlabel="t (s)", ylabel=ylabel, title=f"target {ylabel.split()[0]}")
+        ax.grid(alpha=0.3)
+    _legend(fig, axes)
+    return fig, "Four-point target: α and z"
+
+
+def fig_consistency(data: ReportData, plt) -> tuple[object, str] | None:
+    """NEES/3 and NIS/dof of each filter (moving mean over :data:`CONSISTENCY_WINDOW` frames, all
+    markers) against the 95 % band of that mean: the quantities of the consistency table."""
+    from pipeline.consistency import band
+
+    if not data.filters:
+        return None
+    w = CONSISTENCY_WINDOW
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    for i, (ax, title, dof) in enumerate(((axes[0], "NEES / 3, position, against truth", 3),
+                                          (axes[1], "NIS / dof of the filter's innovations", 4))):
+        per_frame = []
+        for meth, series in data.filters.items():
+            v, ok = series[i], np.isfinite(series[i])
+            if not ok.any():
+                continue
+            with np.errstate(all="ignore"):
+                mean = np.convolve(np.where(ok, v, 0), np.ones(w), "same") / np.convolve(ok, np.ones(w), "same")
+            ax.semilogy(mean, method_linestyle(meth), color=method_colour(meth), lw=1, label=meth)
+            per_frame.append(series[2])
+        if per_frame:
+            k = round(dof * w * float(np.median(per_frame)))  # χ² degrees of freedom in one moving mean
+            ax.axhspan(*(np.array(band(k)) / k), color="0.85", zorder=0, label="95 % band")
+        _plain_log_labels(ax)
+        ax.set(xlabel="frame", ylabel=f"moving mean over {w} frames", title=title)
+        ax.grid(alpha=0.3, which="both")
+    _legend(fig, axes)
+    return fig, "Filter consistency: NEES/3 and NIS/dof (1 when the covariance matches the errors)"
+
+
+FIGURES: list[tuple[str, Callable]] = [("trajectories", fig_trajectories), ("error", fig_error),
+                                       ("image_tracks", fig_image_tracks), ("target", fig_target),
+                                       ("consistency", fig_consistency)]
+
+
+def render_figures(data: ReportData, progress: Callable[[int, int], None] | None = None
+                   ) -> list[tuple[str, str, bytes]]:
+    """(name, caption, PNG bytes) of every figure the run has; ``progress`` gets (done, of)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    clip_ = Clip.open(clip)
-    clip = clip_.folder
-    out_dir = Path(out_dir) if out_dir else clip / "out"
-    src = Path(in_dir) if in_dir else out_dir
-    mpath = src / "metrics.json"
-    if not mpath.is_file():
-        raise StereotrackError("no metrics.json: run `stereotrack estimate` first", mpath)
-    metrics = read_json_mapping(mpath, "metrics")
-    est = load_estimates(src)
-    truth = clip_.truth()
-    est = _hide_behind_camera(clip, est, metrics.get("calibration_units"))
-    obs = load_detections(src / "detections.csv") if (src / "detections.csv").is_file() else {}
-    info = src / "detect.json"
-    mcolours = read_json_mapping(info, "detect record").get("marker_colours", {}) if info.is_file() else {}
-    total_figs = 5
-
-    def done(k: int) -> None:
+    out = []
+    for k, (name, make) in enumerate(FIGURES):
         if progress is not None:
-            progress(k, total_figs)
-
-    done(0)
-    figdir = out_dir / "figures"
-    markers = sorted({m for per in est.values() for m in per})
-    figs = []
-
-    fig, axes = plt.subplots(1, 2, figsize=(12, 5))
-    for ax, (i, j, lab) in zip(axes, ((0, 2, "top view: x (m) vs z (m)"), (1, 2, "side view: y (m) vs z (m)")), strict=True):
-        for mk in markers:
-            if truth and mk in truth.positions:
-                T = truth.positions[mk]
-                ax.plot(T[:, j], T[:, i], "k-", lw=2.5, alpha=0.5, label="truth" if mk == markers[0] else None)
-            for meth, per in est.items():
-                if mk in per:
-                    P = per[mk]
-                    ax.plot(P[:, j], P[:, i], method_linestyle(meth), lw=1, color=method_colour(meth),
-                            label=meth if mk == markers[0] else None)
-        ax.set_xlabel("z (m)")
-        ax.set_ylabel(lab.split(":")[1].split("vs")[0].strip())
-        ax.set_title(lab)
-        if i == 1:
-            ax.invert_yaxis()
-        ax.grid(alpha=0.3)
-    _legend_outside(fig, axes)
-    _save(fig, figdir / "trajectories.png")
-    plt.close(fig)
-    figs.append(("Trajectories (top and side views)", "figures/trajectories.png"))
-    done(1)
-
-    if truth is not None:
-        fig, ax = plt.subplots(figsize=(12, 4.5))
-        for meth, per in est.items():
-            errs = [errors_per_frame(per[mk], truth.positions[mk]) for mk in per if mk in truth.positions]
-            if errs:
-                n = min(len(e) for e in errs)
-                with np.errstate(all="ignore"), warnings.catch_warnings():
-                    warnings.simplefilter("ignore", RuntimeWarning)
-                    mean_err = np.nanmean([e[:n] for e in errs], axis=0)
-                ax.semilogy(mean_err, method_linestyle(meth), color=method_colour(meth), label=meth)
-        ax.set_xlabel("frame")
-        ax.set_ylabel("3-D error (m), mean over markers")
-        ax.grid(alpha=0.3, which="both")
-        _legend_outside(fig, ax)
-        _save(fig, figdir / "error.png")
+            progress(k, len(FIGURES))
+        made = make(data, plt)
+        if made is None:
+            continue
+        fig, caption = made
+        buf = io.BytesIO()
+        fig.savefig(buf, format="png", dpi=DPI)
         plt.close(fig)
-        figs.append(("3-D error per frame", "figures/error.png"))
-    done(2)
+        out.append((name, caption, buf.getvalue()))
+    if progress is not None:
+        progress(len(FIGURES), len(FIGURES))
+    return out
 
-    if obs:
-        fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
-        for c, ax in enumerate(axes):
-            for i, (mk, Y) in enumerate(sorted(obs.items())):
-                ax.plot(Y[:, 2 * c], Y[:, 2 * c + 1], ".", ms=2, color=np.array(marker_rgb(mcolours, mk, i)) / 255,
-                        label=mk)
-            ax.set_title(("left", "right")[c] + " camera: detections (px)")
-            ax.invert_yaxis()
-            ax.set_aspect("equal", adjustable="datalim")
-            ax.grid(alpha=0.3)
-        for ax in axes:
-            ax.set(xlabel="u (px)", ylabel="v (px)")
-        _legend_outside(fig, axes)
-        _save(fig, figdir / "image_tracks.png")
-        plt.close(fig)
-        figs.append(("Image-plane tracks", "figures/image_tracks.png"))
-    done(3)
 
-    target_csvs = [f for f in sorted((src / "estimates").glob("[!.]*.csv"))
-                   if "alpha" in (f.read_text().split("\n", 1)[0].split(","))]
-    if target_csvs:
-        fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
-        if (clip / "target_truth.csv").is_file():
-            tt = read_csv(clip / "target_truth.csv")
-            axes[0].plot(tt["t"], tt["alpha"], "k-", lw=2.5, alpha=0.5, label="truth")
-            axes[1].plot(tt["t"], tt["distance"], "k-", lw=2.5, alpha=0.5, label="truth")
-        for f in target_csvs:
-            cols = read_csv(f)
-            col, ls = method_colour(f.stem), method_linestyle(f.stem)
-            axes[0].plot(cols["t"], cols["alpha"], ls, color=col, lw=1, label=f.stem)
-            axes[1].plot(cols["t"], cols["distance"], ls, color=col, lw=1, label=f.stem)
-        axes[0].set(xlabel="t (s)", ylabel="α (rad)", title="target angle α")
-        axes[1].set(xlabel="t (s)", ylabel="z (m)", title="target distance z")
-        for ax in axes:
-            ax.grid(alpha=0.3)
-        _legend_outside(fig, axes)
-        _save(fig, figdir / "target.png")
-        plt.close(fig)
-        figs.append(("Four-point target: α and z", "figures/target.png"))
-    done(4)
+# ---------------------------------------------------------------- tables
 
-    if _consistency_figure(src, figdir, method_colour, plt):
-        figs.append(("Filter consistency: NEES and NIS", "figures/consistency.png"))
-    done(5)
 
-    lines = [f"# stereotrack report: {clip.name}", "",
-             f"{metrics.get('frames', '?')} frames, dt = {metrics.get('dt', float('nan')):.4g} s; "
-             + ("errors against the rendered ground truth." if metrics.get("has_truth") else "no ground truth (real footage)."),
-             "", *checks_section(metrics), "## Metrics", "", metrics_table(metrics), "", *consistency_section(metrics)]
-    for title, rel in figs:
-        lines += [f"## {title}", "", f"![{title}]({rel})", ""]
+def _col(methods: dict, title: str, key: str, fmt, best=None, sub: str | None = None) -> Column:
+    vals = [(e.get(key) or {}).get(sub) if sub else e.get(key) for e in methods.values()]
+    return Column(title, vals, fmt, best)
+
+
+def _keep(cols: list[Column]) -> list[Column]:
+    """Columns that hold at least one value."""
+    return [c for c in cols if any(v is not None and not (isinstance(v, float) and np.isnan(v)) for v in c.values)]
+
+
+def point_table(metrics: dict) -> Table | None:
+    """Per point method: errors against truth (mm), reprojection (px), gate counts, speed."""
+    ms = {m: e for m, e in metrics.get("methods", {}).items() if not e.get("target")}
+    if not ms:
+        return None
+    mm, px = number(".2f", 1000), number(".2f")
+    cols = _keep([_col(ms, "3-D RMSE (mm)", "rmse", mm, "min"), _col(ms, "mean (mm)", "mean", mm, "min"),
+                  _col(ms, "median (mm)", "median", mm, "min"), _col(ms, "final (mm)", "final", mm, "min"),
+                  _col(ms, "reproj. RMSE (px)", "reprojection_rmse_px", px, "min"),
+                  _col(ms, "gated", "gated", number("d")), _col(ms, "restarts", "restarts", number("d")),
+                  _col(ms, "steps/s", "steps_per_second", number(",.0f"), "max")])
+    notes = [f"**{m}**: {e['note']}" for m, e in ms.items() if e.get("note")]
+    notes += [f"**{m}** runs away (over {RUNAWAY:g}× the run's median error): clipped in the figures"
+              for m in runaways(metrics)]
+    return Table("method", list(ms), cols, notes)
+
+
+def target_table(metrics: dict) -> Table | None:
+    """Per four-point target method: α (mrad) and distance (mm) errors, valid frames, speed."""
+    ms = {m: e for m, e in metrics.get("methods", {}).items() if e.get("target")}
+    if not ms:
+        return None
+    cols = _keep([_col(ms, "α RMSE (mrad)", "alpha_rmse_rad", number(".2f", 1000), "min"),
+                  _col(ms, "z RMSE (mm)", "distance_rmse_m", number(".2f", 1000), "min"),
+                  _col(ms, "valid frames", "valid_frames", number("d"), "max"), _col(ms, "gated", "gated", number("d")),
+                  _col(ms, "steps/s", "steps_per_second", number(",.0f"), "max")])
+    return Table("target method", list(ms), cols)
+
+
+def consistency_table(metrics: dict) -> Table | None:
+    """Per filter: NEES/3 and NIS/dof (1 when consistent) and the share of frames in the 95 % band."""
+    ms = {m: e for m, e in metrics.get("methods", {}).items() if e.get("nees_position") or e.get("nis")}
+    if not ms:
+        return None
+    ratio, share = number(".2f"), number(".0f", 100, " %")
+    cols = _keep([_col(ms, "NEES/3", "nees_position", ratio, 1.0, "normalized_mean"),
+                  _col(ms, "NEES in 95 % band", "nees_position", share, 0.95, "in_95"),
+                  _col(ms, "NIS/dof", "nis", ratio, 1.0, "normalized_mean"),
+                  _col(ms, "NIS in 95 % band", "nis", share, 0.95, "in_95")])
+    return Table("filter", list(ms), cols)
+
+
+TABLE_INTRO = {
+    "consistency": "NEES/3 and NIS/dof average 1, and 95 % of frames fall inside the χ² band, when a filter's "
+                   "covariance matches its actual errors; far above 1 means over-confident, far below under-confident.",
+    "metrics": "Best value per column in bold. steps/s is wall-clock speed on this machine and varies with its load; "
+               "compare methods within one run.",
+}
+
+
+def tables(metrics: dict) -> list[tuple[str, str, Table]]:
+    """(section title, intro, table) of every table the run has."""
+    out = []
+    for title, intro, t in (("Metrics", TABLE_INTRO["metrics"], point_table(metrics)),
+                            ("Four-point target", "", target_table(metrics)),
+                            ("Filter consistency", TABLE_INTRO["consistency"], consistency_table(metrics))):
+        if t is not None:
+            out.append((title, intro, t))
+    return out
+
+
+# ---------------------------------------------------------------- pages
+
+
+def check_lines(metrics: dict) -> tuple[int, list[tuple[bool, str]]]:
+    """(failed checks, (passed, Markdown line) per check, failed first)."""
+    checks = metrics.get("checks") or []
+    failed = [c for c in checks if not c.get("ok")]
+    lines = [(bool(c.get("ok")), f"`{c.get('name')}`: {c.get('message')}")
+             for c in sorted(checks, key=lambda c: bool(c.get("ok")))]
+    behind = {m: e["behind_camera"] for m, e in metrics.get("methods", {}).items() if e.get("behind_camera")}
+    if behind:
+        lines.append((False, "estimates behind a camera (counted, not drawn): "
+                      + ", ".join(f"{m} {n}" for m, n in behind.items())))
+    return len(failed), lines
+
+
+def checks_section(metrics: dict) -> list[str]:
+    """The report's "Checks" section: every input check, failed ones first."""
+    if not metrics.get("checks"):
+        return []
+    failed, lines = check_lines(metrics)
+    head = (f"**{failed} check(s) failed: look before trusting the numbers below.**" if failed
+            else "All input checks passed.")
+    return ["## Checks", "", head, "", *[f"- {'✅' if ok else '⚠️'} {x}" for ok, x in lines], ""]
+
+
+def _summary_line(metrics: dict) -> str:
+    return (f"{metrics.get('frames', '?')} frames, dt = {metrics.get('dt', float('nan')):.4g} s; "
+            + ("errors against the rendered ground truth." if metrics.get("has_truth")
+               else "no ground truth (real footage)."))
+
+
+def markdown_report(data: ReportData, figures: list[tuple[str, str, str]], replay: str) -> str:
+    """report.md: checks, tables, then figures (name, caption, relative path)."""
+    lines = [f"# stereotrack report: {data.name}", "", _summary_line(data.metrics), "",
+             f"Replay the run: `{replay}`", "", *checks_section(data.metrics)]
+    for title, intro, t in tables(data.metrics):
+        lines += [f"## {title}", "", *([intro, ""] if intro else []), to_markdown(t), ""]
+    for _, caption, rel in figures:
+        head, _, rest = caption.partition("; ")
+        lines += [f"## {head}", "", f"![{head}]({rel})", "", *([f"*{rest[0].upper()}{rest[1:]}.*", ""] if rest else [])]
+    return "\n".join(lines)
+
+
+def html_report(data: ReportData, figures: list[tuple[str, str, bytes]], replay: str) -> str:
+    """report.html: the same content with figures embedded and a legend of method colours."""
+    failed, checks = check_lines(data.metrics)
+    body = [f"<h1>stereotrack report: {inline(data.name)}</h1><p>{inline(_summary_line(data.metrics))}</p>",
+            f"<p>Replay the run in rerun: <code>{inline(replay)}</code></p>"]
+    if checks:
+        head = f"{failed} check(s) failed: look before trusting the numbers below." if failed else "All input checks passed."
+        body.append(f"<div class='checks{' failed' if failed else ''}'><b>Checks: {head}</b><ul>"
+                    + "".join(f"<li class={'pass' if ok else 'fail'}>{inline(x)}</li>" for ok, x in checks)
+                    + "</ul></div>")
+    body.append("<p>" + " &nbsp; ".join(H.swatch(method_hex(m), m) for m in data.metrics.get("methods", {}))
+                + " &nbsp; <span class=swatch style='background:#000;opacity:.55'></span>truth (dashed)</p>")
+    for title, intro, t in tables(data.metrics):
+        body += [f"<h2>{title}</h2>", f"<p class=note>{inline(intro)}</p>" if intro else "", to_html(t)]
+    if figures:
+        body.append("<h2>Figures</h2>")
+    body += [H.figure(png, caption) for _, caption, png in figures]
+    if not figures:
+        body.append("<p class=note>No figures (a batch draws them with <code>--figures</code>).</p>")
+    return H.page(f"stereotrack report: {data.name}", body)
+
+
+def write_report(clip: str | Path | Clip, out_dir: str | Path | None = None,
+                 progress: Callable[[int, int], None] | None = None, in_dir: str | Path | None = None,
+                 figures: bool = True) -> Path:
+    """Write ``report.md``, ``report.html`` and (with ``figures``) ``figures/*.png`` into
+    ``out_dir`` (default ``CLIP/out``) from the stage files in ``in_dir`` (default ``out_dir``);
+    ``progress`` gets (figures done, figures in all). Returns report.md's path."""
+    clip_ = Clip.open(clip)
+    out_dir = Path(out_dir) if out_dir else clip_.folder / "out"
+    data = load_report_data(clip_, Path(in_dir) if in_dir else out_dir, out_dir)
+    figs = render_figures(data, progress) if figures else []
+    for name, _, png in figs:
+        write_bytes(out_dir / "figures" / f"{name}.png", png)
+    replay = f"stereotrack view {out_dir}"
+    write_text(out_dir / "report.html", html_report(data, figs, replay))
     path = out_dir / "report.md"
-    write_text(path, "\n".join(lines))
+    write_text(path, markdown_report(data, [(n, c, f"figures/{n}.png") for n, c, _ in figs], replay))
     return path

@@ -45,24 +45,26 @@ def process_clip(
     time_offset: str | float | None = "auto",
     fps: float | None = None,
     force: bool = False,
+    figures: bool = True,
 ) -> RunResult:
     """Detect, estimate, report and record one clip folder into ``out_dir`` (default CLIP/out).
 
     ``marker_specs`` (``--markers`` syntax) name the markers of real footage; without them the
     clip's ``markers.yaml``, else its ``scenario.yaml``, gives the colours. ``fps`` (``--fps``)
-    wins over every frame rate the clip states (see :attr:`pipeline.clip.Clip.fps`).
+    wins over every frame rate the clip states (see :attr:`pipeline.clip.Clip.fps`). ``figures``:
+    whether the report draws its figures (a batch leaves them out unless ``--figures``).
 
     With ``lock`` the output folder is locked for the run (a second run on it fails at once,
     naming the holder) and temporary files left there by a killed run are removed first."""
     out_dir = Path(out_dir) if out_dir else Clip.open(clip).folder / "out"
     if not lock:
         return _process_clip(Clip.open(clip, fps), out_dir, detector, methods, marker_specs, recording,
-                             images_in_recording, stage, progress, calib_units, configs, time_offset, force)
+                             images_in_recording, stage, progress, calib_units, configs, time_offset, force, figures)
     with OutputLock(out_dir, f"stereotrack run {clip}"):
         for stale in list(out_dir.rglob(".*.partial-*")):
             stale.unlink(missing_ok=True) if stale.is_file() else shutil.rmtree(stale, ignore_errors=True)
         return _process_clip(Clip.open(clip, fps), out_dir, detector, methods, marker_specs, recording,
-                             images_in_recording, stage, progress, calib_units, configs, time_offset, force)
+                             images_in_recording, stage, progress, calib_units, configs, time_offset, force, figures)
 
 
 def run_description(clip: Path, detector: str, metrics: dict) -> str:
@@ -85,33 +87,26 @@ def _process_clip(clip_: Clip, out_dir: Path, detector: str, methods: list[str] 
                   recording: bool, images_in_recording: bool, stage: Callable[[str], None] | None,
                   progress: Callable[[int, int], None] | None, calib_units: str | None,
                   configs: dict[str, dict] | None = None, time_offset: str | float | None = "auto",
-                  force: bool = False) -> RunResult:
+                  force: bool = False, figures: bool = True) -> RunResult:
     t0 = time.perf_counter()
     say = stage or (lambda s: None)
     clip = clip_.path  # the clip is read once, handed to every stage
     recorder = Recorder(out_dir / "run.rrd", 1.0 / clip_.fps, name=f"stereotrack run {clip.name}") if recording else None
     try:
-        say("detect")
+        say("detect (frame pairs)")
         sink = recorder.log_frame if recorder is not None and images_in_recording else None
         det = detect_clip(clip_, detector, marker_specs, out_dir=out_dir, progress=progress,  # type: ignore[arg-type]
                           calib_units=calib_units, frame_sink=sink, force=force)
         say("estimate")
         est = estimate_clip(clip_, methods, out_dir=out_dir, progress=progress, calib_units=calib_units,
-                            configs=configs, detections=(det.observations, det.footage), time_offset=time_offset)
-        say("report")
-        report = write_report(clip_, out_dir, progress=progress)
+                            configs=configs, detections=(det.observations, det.footage), time_offset=time_offset,
+                            describe=lambda what: say(f"estimate ({what})"))
+        say("report (figures)" if figures else "report")
+        report = write_report(clip_, out_dir, progress=progress, figures=figures)
         rrd = None
         if recorder is not None:
-            say("recording")
-            truth = est.truth.positions if est.truth else None
-            series = {}
-            for m, tr in est.target_tracks.items():
-                series[f"target/alpha/{m}"] = tr.extra["alpha"]
-                series[f"target/distance/{m}"] = tr.extra["distance"]
-            if est.target is not None and est.target.alpha is not None and est.target.distance is not None:
-                series["target/alpha/truth"], series["target/distance/truth"] = est.target.alpha, est.target.distance
-            rrd = recorder.finish(est.rig, est.observations, est.tracks, truth, series, det.marker_colours, progress,
-                                  run_description(clip, detector, est.metrics))
+            say("recording (methods)")
+            rrd = recorder.finish(est, det.marker_colours, progress, run_description(clip, detector, est.metrics))
     except BaseException:
         if recorder is not None:
             recorder.abort()

@@ -17,6 +17,7 @@ from pipeline.batch import find_clips, run_batch
 from pipeline.cli import app
 from pipeline.io import read_csv
 from pipeline.run import process_clip
+from pipeline.style import TRUTH_RGB_VIEWER
 from renderers.render import render_clip
 from renderers.scenario import parse_scenario
 from tests.conftest import REPO
@@ -113,7 +114,7 @@ def test_recording_read_back(e2e_run):
         assert p["frame"] == started.tolist()
         np.testing.assert_allclose(np.array(p["Points3D:positions"])[:, 0], tr.position[started], atol=1e-5)
         colours.add(p["Points3D:colors"][0][0])
-        e = cols[f"/metrics/error/{meth}/red"]
+        e = cols[f"/metrics/error/red/{meth}"]
         want = np.linalg.norm(tr.position - truth, axis=1)
         np.testing.assert_allclose(np.array(e["Scalars:scalars"])[:, 0], want[e["frame"]], rtol=1e-9)
     assert len(colours) == len(METHODS)  # one colour per method
@@ -127,12 +128,18 @@ def test_run_cli_on_sample_clip(tmp_path):
     assert "kalman_bucy" in result.output and (clip / "out" / "run.rrd").is_file()
     metrics = json.loads((clip / "out" / "metrics.json").read_text())["methods"]
     assert metrics["kalman_bucy"]["alpha_rmse_rad"] < 0.05
-    # a run with the four-point target shows its α and z, each method named, truth in black
+    # a run with the four-point target shows its α and z, each method named, truth in the viewer's grey;
+    # the true plate's outline and each target method's centre in 3-D
     cols, _, reader = read_recording(clip / "out" / "run.rrd")
     origins = [o for c in blueprint_columns(reader).values() for v in c.get("ViewBlueprint:space_origin", []) for o in v]
     assert "/metrics/target/alpha" in origins and "/metrics/target/distance" in origins
     assert cols["/metrics/target/alpha/kalman_bucy"]["SeriesLines:names"][0] == ["kalman_bucy"]
-    assert cols["/metrics/target/alpha/truth"]["SeriesLines:colors"][0] == [packed((0, 0, 0))]
+    assert cols["/metrics/target/alpha/truth"]["SeriesLines:colors"][0] == [packed(TRUTH_RGB_VIEWER)]
+    assert len(cols["/world/truth/plate"]["LineStrips3D:strips"][0][0]) == 5  # a closed outline of 4 corners
+    centre = cols["/world/estimates/kalman_bucy/points"]["Points3D:positions"]
+    truth = read_csv(clip / "truth.csv")
+    corners = np.array([truth["x"], truth["y"], truth["z"]]).T[truth["frame"] == 10]
+    np.testing.assert_allclose(centre[10][0], corners.mean(axis=0), atol=0.03)
 
 
 def test_cli_errors_are_one_line(tmp_path):
@@ -292,10 +299,14 @@ def test_recording_shows_what_the_run_was(e2e_run):
         seen = cols[f"/world/left/estimates/{meth}"]
         want = e2e_run.estimate.rig.left.project(tr.position[seen["frame"]])
         np.testing.assert_allclose(np.array(seen["Points2D:positions"])[:, 0], want, atol=1e-3)
-        for kind in ("error", "reprojection"):
-            series = cols[f"/metrics/{kind}/{meth}/red"]
-            assert series["SeriesLines:names"][0] == [f"{meth} · red"]
+        for kind in ("error", "reprojection"):  # one plot per marker, one line per method
+            series = cols[f"/metrics/{kind}/red/{meth}"]
+            assert series["SeriesLines:names"][0] == [meth]
             assert series["SeriesLines:colors"][0] == [packed(method_rgb(meth))]
+    assert "/world/uncertainty/ekf" in cols and "/world/uncertainty/alphabeta" not in cols  # filters' ellipsoids
+    hidden = [p for p, c in bp.items() if c.get("EntityBehavior:visible") == [[False]] or
+              c.get("EntityBehavior:visible") == [False]]
+    assert any("/overrides/world/uncertainty/ekf/" in p for p in hidden), hidden  # shown on one click
 
 
 def test_the_viewer_dies_with_view(e2e_run, tmp_path):

@@ -1,6 +1,8 @@
-"""Screenshots of what a person sees: a recording in rerun's web viewer, in headless Chromium.
+"""Screenshots of what a person sees: a recording in rerun's web viewer, or an HTML report
+(report.html, summary.html), in headless Chromium.
 
     python tools/screenshots.py RUN.rrd [-o DIR] [--wait 20] [--chromium /usr/bin/chromium]
+    python tools/screenshots.py out/report.html [-o DIR] [--full-page]
 
 Starts the rerun viewer that the pinned rerun-sdk ships (``rerun --serve-web``) on local ports, opens it
 with Playwright driving Debian's ``chromium`` (``pip install playwright``; not a project dependency),
@@ -28,7 +30,10 @@ def main() -> None:
     ap.add_argument("--size", default="1600x1000")
     ap.add_argument("--rerun", default=shutil.which("rerun") or str(Path(sys.executable).with_name("rerun")),
                     help="the rerun viewer executable (the one the project's rerun-sdk installs)")
+    ap.add_argument("--full-page", action="store_true", help="HTML: the whole page, not the first screen")
     args = ap.parse_args()
+    if args.recording.suffix == ".html":
+        return shoot_html(args)
     from playwright.sync_api import sync_playwright
 
     rerun = args.rerun
@@ -52,6 +57,23 @@ def main() -> None:
     finally:  # the rerun entry point runs the viewer binary as a child: end the whole group
         os.killpg(server.pid, signal.SIGTERM)
         server.wait(timeout=10)
+
+
+def shoot_html(args) -> None:
+    """A screenshot of a local HTML page (its figures are embedded, so nothing else is served)."""
+    from playwright.sync_api import sync_playwright
+
+    w, h = (int(v) for v in args.size.split("x"))
+    args.out.mkdir(parents=True, exist_ok=True)
+    path = args.out / f"{args.recording.parent.name}_{args.recording.stem}.png"
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=args.chromium, args=["--no-sandbox"])
+        page = browser.new_page(viewport={"width": w, "height": h})
+        page.goto(args.recording.resolve().as_uri())
+        page.wait_for_load_state("load")
+        page.screenshot(path=str(path), full_page=args.full_page)
+        browser.close()
+    print(f"wrote {path}")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,176 @@
+"""A batch's summary: the per-method leaderboard (mean and median 3-D RMSE across clips with 95 %
+confidence intervals, runaways, failures, speed) and the per-clip table, written as
+``summary.html`` (self-contained, linking each clip's report), ``summary.md``, ``summary.csv``
+(one row per clip and method) and ``summary_methods.csv`` (one row per method)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from pipeline import html as H
+from pipeline.io import write_csv, write_text
+from pipeline.metrics import runaways
+from pipeline.style import method_hex
+from pipeline.tables import Column, Table, inline, number, to_html, to_markdown
+
+if TYPE_CHECKING:
+    from pipeline.batch import ClipOutcome
+
+SUMMARY_COLUMNS = ["clip", "status", "method", "rmse_m", "final_m", "reprojection_rmse_px", "steps_per_second",
+                   "attempts", "error"]
+METHOD_COLUMNS = ["method", "clips", "mean_rmse_m", "mean_ci_low_m", "mean_ci_high_m", "median_rmse_m",
+                  "median_ci_low_m", "median_ci_high_m", "runaways", "failures", "median_steps_per_second"]
+
+
+def mean_ci(x: np.ndarray, level: float = 0.95) -> tuple[float, float]:
+    """Student-t interval for the mean of ``x`` (NaNs when fewer than two values), its lower end
+    clipped at 0 (errors are never negative; few, skewed clips can put the t interval below)."""
+    from scipy import stats
+
+    if len(x) < 2:
+        return math.nan, math.nan
+    half = stats.t.ppf(0.5 + level / 2, len(x) - 1) * np.std(x, ddof=1) / math.sqrt(len(x))
+    return max(0.0, float(np.mean(x) - half)), float(np.mean(x) + half)
+
+
+def median_ci(x: np.ndarray, level: float = 0.95) -> tuple[float, float]:
+    """Distribution-free interval for the median: the order statistics whose ranks the binomial
+    (n, ½) puts around the middle with at least ``level`` coverage (NaNs when n < 6, where even
+    the extremes cover less than 95 %)."""
+    from scipy import stats
+
+    n, q = len(x), (1 - level) / 2
+    if n == 0:
+        return math.nan, math.nan
+    k = int(stats.binom.ppf(q, n, 0.5))
+    r = k if stats.binom.cdf(k, n, 0.5) > q else k + 1  # the largest r with P(Bin ≤ r − 1) ≤ q
+    if r < 1:
+        return math.nan, math.nan
+    s = np.sort(x)
+    return float(s[r - 1]), float(s[n - r])
+
+
+@dataclass
+class MethodRow:
+    """One method across the batch's clips."""
+    method: str
+    rmse: list[float] = field(default_factory=list)
+    speed: list[float] = field(default_factory=list)
+    runaways: int = 0
+    failures: int = 0
+
+    def values(self) -> dict[str, Any]:
+        x = np.array(self.rmse)
+        lo, hi = mean_ci(x)
+        mlo, mhi = median_ci(x)
+        return {"method": self.method, "clips": len(x), "mean_rmse_m": float(x.mean()) if len(x) else None,
+                "mean_ci_low_m": lo, "mean_ci_high_m": hi, "median_rmse_m": float(np.median(x)) if len(x) else None,
+                "median_ci_low_m": mlo, "median_ci_high_m": mhi, "runaways": self.runaways, "failures": self.failures,
+                "median_steps_per_second": float(np.median(self.speed)) if self.speed else None}
+
+
+def method_rows(outcomes: list[ClipOutcome]) -> list[dict[str, Any]]:
+    """Per method (in order of first appearance): 3-D RMSE across the clips that scored it, the
+    clips where it ran away (over 10× that clip's median; see :func:`pipeline.metrics.runaways`),
+    the clips where it gave no score (no estimate, or the clip failed), its median speed."""
+    rows: dict[str, MethodRow] = {}
+    for o in outcomes:
+        for m, e in (o.metrics or {}).get("methods", {}).items():
+            if not e.get("target"):
+                rows.setdefault(m, MethodRow(m))
+    for o in outcomes:
+        methods = (o.metrics or {}).get("methods", {})
+        away = set(runaways(o.metrics)) if o.metrics else set()
+        for m, row in rows.items():
+            e = methods.get(m)
+            if e is None:
+                row.failures += 1
+                continue
+            v = e.get("rmse")
+            if isinstance(v, (int, float)) and math.isfinite(v):
+                row.rmse.append(float(v))
+            elif (o.metrics or {}).get("has_truth"):
+                row.failures += 1
+            if e.get("steps_per_second"):
+                row.speed.append(float(e["steps_per_second"]))
+            row.runaways += m in away
+    return [r.values() for r in rows.values()]
+
+
+def interval(lo: float, hi: float) -> str:
+    """An interval in m as ``lo–hi`` mm (``—`` when there is none)."""
+    return "—" if not (math.isfinite(lo) and math.isfinite(hi)) else f"{1000 * lo:.2f}–{1000 * hi:.2f}"
+
+
+def leaderboard(rows: list[dict[str, Any]]) -> Table:
+    """The per-method table (mm), best mean and median marked."""
+    mm = number(".2f", 1000)
+    get = lambda k: [r[k] for r in rows]  # noqa: E731
+    cols = [Column("clips", get("clips"), number("d")),
+            Column("mean 3-D RMSE (mm)", get("mean_rmse_m"), mm, "min"),
+            Column("95 % CI of mean", [interval(r["mean_ci_low_m"], r["mean_ci_high_m"]) for r in rows]),
+            Column("median (mm)", get("median_rmse_m"), mm, "min"),
+            Column("95 % CI of median", [interval(r["median_ci_low_m"], r["median_ci_high_m"]) for r in rows]),
+            Column("runaways", get("runaways"), number("d"), "min"),
+            Column("failures", get("failures"), number("d"), "min"),
+            Column("steps/s (median)", get("median_steps_per_second"), number(",.0f"))]
+    return Table("method", [r["method"] for r in rows], cols,
+                 ["Intervals across clips: Student t for the mean (lower end clipped at 0), binomial order "
+                  "statistics for the median (none below 6 clips). A runaway's error is over 10× its clip's median; "
+                  "a failure scored nothing. steps/s is wall-clock and varies with load."])
+
+
+def clip_table(outcomes: list[ClipOutcome], methods: list[str], link: bool) -> Table:
+    """One row per clip: status, attempts, warnings, and each method's 3-D RMSE (mm)."""
+    from pipeline.batch import clip_warnings
+
+    def rmse(o, m):
+        return ((o.metrics or {}).get("methods", {}).get(m) or {}).get("rmse")
+
+    cols = [Column("status", [o.status for o in outcomes]), Column("attempts", [o.attempts for o in outcomes], str),
+            Column("warnings", [len(clip_warnings(o)) for o in outcomes], str),
+            *[Column(m, [rmse(o, m) for o in outcomes], number(".2f", 1000)) for m in methods],
+            Column("error", [o.error or "" for o in outcomes])]
+    links = [f"{o.clip}/report.html" if link and o.status != "failed" else None for o in outcomes]
+    return Table("clip", [o.clip for o in outcomes], cols, links=links)
+
+
+def write_summary(out_root: Path, outcomes: list[ClipOutcome]) -> list[dict[str, Any]]:
+    """``summary.csv``, ``summary_methods.csv``, ``summary.md`` and ``summary.html``; returns
+    the per-method rows (for the terminal)."""
+    from pipeline.batch import clip_warnings
+
+    rows = []
+    for o in outcomes:
+        methods = o.metrics.get("methods", {}) if o.metrics else {}
+        if not methods:
+            rows.append((o.clip, o.status, "", "", "", "", "", o.attempts, o.error))
+        for m, e in methods.items():
+            rows.append((o.clip, o.status, m, e.get("rmse", ""), e.get("final", ""), e.get("reprojection_rmse_px", ""),
+                         e.get("steps_per_second", ""), o.attempts, o.error))
+    write_csv(out_root / "summary.csv", SUMMARY_COLUMNS, rows)
+    per_method = method_rows(outcomes)
+    write_csv(out_root / "summary_methods.csv", METHOD_COLUMNS, [[r[k] for k in METHOD_COLUMNS] for r in per_method])
+    board = leaderboard(per_method)
+    point = [r["method"] for r in per_method]
+    n_fail = sum(o.status == "failed" for o in outcomes)
+    head = f"{len(outcomes)} clips, {n_fail} failed."
+    notes = [(o.clip, w) for o in outcomes for w in clip_warnings(o)]
+    md = ["# stereotrack batch summary", "", head, "", "## Methods across clips", "", to_markdown(board), "",
+          "## Clips (3-D RMSE, mm)", "", to_markdown(clip_table(outcomes, point, False)), ""]
+    if notes:
+        md += ["## Warnings", "", *[f"- **{c}**: {w}" for c, w in notes], ""]
+    write_text(out_root / "summary.md", "\n".join(md))
+    body = ["<h1>stereotrack batch summary</h1>", f"<p>{head}</p>",
+            "<p>" + " &nbsp; ".join(H.swatch(method_hex(m), m) for m in point) + "</p>",
+            "<h2>Methods across clips</h2>", to_html(board),
+            "<h2>Clips (3-D RMSE, mm; each links to its report)</h2>", to_html(clip_table(outcomes, point, True))]
+    if notes:
+        body += ["<h2>Warnings</h2><ul>", *[f"<li><b>{inline(c)}</b>: {inline(w)}</li>" for c, w in notes], "</ul>"]
+    write_text(out_root / "summary.html", H.page("stereotrack batch summary", body))
+    return per_method

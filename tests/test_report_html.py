@@ -1,0 +1,137 @@
+"""What a person sees: report.html self-contained and complete, method colours distinct, figures
+drawn only from the run's own methods, runaways clipped, the batch leaderboard."""
+
+from __future__ import annotations
+
+import shutil
+from html.parser import HTMLParser
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.clip import Clip
+from pipeline.io import read_csv
+from pipeline.report import FIGURES, load_report_data, write_report
+from pipeline.style import PALETTE, TRUTH_RGB, delta_e, method_rgb
+from tests.test_pipeline import e2e_run  # noqa: F401  (the module's end-to-end run)
+
+#: the smallest CIE76 ΔE between any two methods' colours, and between a method and the truth
+MIN_DELTA_E = 30.0
+
+
+class _Page(HTMLParser):
+    """Every attribute value and the text of row headers."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.attrs: list[tuple[str, str]] = []
+        self.rows: list[str] = []
+        self._in_row = False
+
+    def handle_starttag(self, tag, attrs):
+        self.attrs += [(k, v or "") for k, v in attrs]
+        if tag in ("th", "td"):
+            self._in_row = tag == "th" and ("scope", "row") in attrs
+
+    def handle_data(self, data):
+        if self._in_row and data.strip():
+            self.rows.append(data.strip())
+            self._in_row = False
+
+
+def parse(path: Path) -> _Page:
+    page = _Page()
+    page.feed(path.read_text())
+    return page
+
+
+def legend_labels(fig) -> set[str]:
+    return {t.get_text() for leg in fig.legends for t in leg.get_texts()}
+
+
+def test_method_colours_are_distinct():
+    """No two registered methods' colours closer than MIN_DELTA_E (CIE76 in CIELAB), nor any to
+    the truth's black; the measure itself: black to white is 100."""
+    from pipeline.estimators import registry
+
+    names = list(registry())
+    assert delta_e((0, 0, 0), (255, 255, 255)) == pytest.approx(100, abs=0.1)
+    worst = min(delta_e(method_rgb(a), method_rgb(b)) for i, a in enumerate(names) for b in names[i + 1:])
+    assert worst >= MIN_DELTA_E, worst
+    assert min(delta_e(method_rgb(m), TRUTH_RGB) for m in names) >= MIN_DELTA_E
+    assert min(delta_e(a, b) for i, a in enumerate(PALETTE) for b in PALETTE[i + 1:]) >= MIN_DELTA_E
+
+
+def test_report_html_is_self_contained_and_lists_every_method(e2e_run):  # noqa: F811
+    html = e2e_run.out_dir / "report.html"
+    page = parse(html)
+    sources = [v for k, v in page.attrs if k == "src"]
+    assert sources and all(v.startswith("data:image/png;base64,") for v in sources)
+    assert not [v for k, v in page.attrs if k in ("href", "src") and "://" in v]
+    methods = list(e2e_run.estimate.metrics["methods"])
+    assert set(methods) <= set(page.rows)
+    text = html.read_text()
+    assert all(f"</span>{m}" in text for m in methods)  # the colour legend
+    assert "stereotrack view" in text and "Checks" in text
+
+
+def test_figures_draw_the_runs_methods_only(e2e_run, tmp_path):  # noqa: F811
+    """A stale estimate CSV from an earlier run (a method not in metrics.json) is not drawn; every
+    figure's legend lists every method it plots and the truth."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = tmp_path / "out"
+    shutil.copytree(e2e_run.out_dir, out)
+    shutil.copy(out / "estimates" / "ekf.csv", out / "estimates" / "stale_method.csv")
+    write_report(Clip.open(e2e_run.clip), out)
+    assert "stale_method" not in (out / "report.html").read_text() + (out / "report.md").read_text()
+    data = load_report_data(Clip.open(e2e_run.clip), out, out)
+    assert "stale_method" not in data.point
+    figs = dict(FIGURES)
+    methods = set(e2e_run.estimate.metrics["methods"])
+    assert legend_labels(figs["trajectories"](data, plt)[0]) == methods | {"truth"}
+    assert legend_labels(figs["error"](data, plt)[0]) == methods
+    plt.close("all")
+
+
+def test_runaways_are_clipped_and_named(e2e_run, tmp_path):  # noqa: F811
+    """A method whose error is far above the others' sets no axis: the error figure's y range is
+    that of the tracking methods, and the caption and tables name the runaway."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    data = load_report_data(Clip.open(e2e_run.clip), e2e_run.out_dir, e2e_run.out_dir)
+    T = data.truth["red"]
+    data.point["runaway"] = {"red": T + np.array([0.0, 0.0, 5.0])}  # 5 m off every frame
+    data.metrics["methods"]["runaway"] = {"rmse": 5.0}
+    fig, caption = dict(FIGURES)["error"](data, plt)
+    assert "runaway (RMSE 5e+03 mm)" in caption and fig.axes[0].get_ylim()[1] < 1000  # mm
+    plt.close("all")
+
+
+def test_batch_summary_html(tmp_path):
+    """Three clips: summary.html has one row per method with its confidence intervals, and every
+    link resolves to a clip's report."""
+    from pipeline.batch import run_batch
+    from tests.conftest import REPO
+
+    inp = tmp_path / "in"
+    for name in ("a", "b", "c"):
+        shutil.copytree(REPO / "data" / "clips" / "sample_small", inp / name)
+    out = tmp_path / "out"
+    run_batch(inp, out, workers=1, methods=["triangulation", "ekf"], images=False)
+    page = parse(out / "summary.html")
+    assert page.rows[:2] == ["triangulation", "ekf"] and {"a", "b", "c"} <= set(page.rows)
+    links = [v for k, v in page.attrs if k == "href"]
+    assert len(links) == 3 and all((out / v).is_file() for v in links)
+    text = (out / "summary.html").read_text()
+    assert "95 % CI of mean" in text and text.count("–") >= 2  # an interval per method
+    board, long = read_csv(out / "summary_methods.csv"), read_csv(out / "summary.csv")
+    for m, clips, mean in zip(board["method"], board["clips"], board["mean_rmse_m"], strict=True):
+        assert clips == 3 and mean == pytest.approx(np.mean(long["rmse_m"][long["method"] == m]), rel=1e-6)
