@@ -1,7 +1,8 @@
-"""Batch throughput: clips per minute for 1 and 2 local workers, a 2-worker Dask LocalCluster, and
-a Dask scheduler with two worker processes of their own on 127.0.0.1 (``--scheduler-file``, the
-path users take to a real cluster), over the same folder of clips, in one run. Each row is printed
-as it is measured.
+"""Batch throughput: clips per minute for 1 and 2 local workers, each with and without per-clip
+report figures (``--figures``; the default draws none, the leaderboard is always written), a
+2-worker Dask LocalCluster, and a Dask scheduler with two worker processes of their own on
+127.0.0.1 (``--scheduler-file``, the path users take to a real cluster), over the same folder of
+clips, in one run. Each row is printed as it is measured.
 
     python benchmarks/batch.py [--clips 12] [--frames 60]
 """
@@ -53,29 +54,35 @@ def main() -> None:
     args = ap.parse_args()
     print(f"# batch throughput ({args.clips} clips of {args.frames} frames, 640×480 MP4, 3 markers, methods "
           f"{', '.join(METHODS)}; {os.cpu_count()} cores)\n")
-    print("| setup | clips/min | vs 1 worker |")
-    print("|---|---|---|", flush=True)
+    print("| setup | clips/min | vs 1 worker (default) | default vs --figures, same workers |")
+    print("|---|---|---|---|", flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         inp = Path(tmp) / "in"
         base = load_scenario("multi_marker").with_overrides(frames=args.frames)
         render_clips([(base.with_overrides(seed=s), inp / f"clip{s}") for s in range(args.clips)], "mp4", 2)
-        first = None
-        setups = (("local, 1 worker", 1, None), ("local, 2 workers", 2, None),
-                  ("Dask LocalCluster, 2 workers (start-up included)", 2, "local"),
-                  ("Dask scheduler + 2 worker processes, --scheduler-file", 2, "file"))
-        for label, workers, sched in setups:
+        first, with_figures = None, {}
+        setups = (("local, 1 worker, --figures", 1, None, True), ("local, 1 worker", 1, None, False),
+                  ("local, 2 workers, --figures", 2, None, True), ("local, 2 workers", 2, None, False),
+                  ("Dask LocalCluster, 2 workers (start-up included)", 2, "local", False),
+                  ("Dask scheduler + 2 worker processes, --scheduler-file", 2, "file", False))
+        for label, workers, sched, figures in setups:
             out = Path(tmp) / "out"
             shutil.rmtree(out, ignore_errors=True)
             with contextlib.ExitStack() as stack:
                 sched_file = stack.enter_context(dask_processes(Path(tmp), workers)) if sched == "file" else None
                 t0 = time.perf_counter()
                 res = run_batch(inp, out, workers=workers, scheduler=None if sched == "file" else sched,
-                                scheduler_file=sched_file, methods=METHODS)
+                                scheduler_file=sched_file, methods=METHODS, figures=figures)
                 dt = time.perf_counter() - t0
             assert all(o.status == "ok" for o in res), [o.error for o in res if o.status != "ok"]
             cpm = args.clips / dt * 60
-            first = first or cpm
-            print(f"| {label} | {cpm:.1f} | {cpm / first:.2f}× |", flush=True)
+            if figures:
+                with_figures[workers] = cpm
+            elif first is None:
+                first = cpm
+            vs_one = f"{cpm / first:.2f}×" if first else ""
+            ratio = f"{cpm / with_figures[workers]:.2f}×" if not figures and sched is None else ""
+            print(f"| {label} | {cpm:.1f} | {vs_one} | {ratio} |", flush=True)
 
 
 if __name__ == "__main__":

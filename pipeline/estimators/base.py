@@ -22,6 +22,7 @@ group ``stereotrack.estimators`` (see :func:`registry`).
 
 from __future__ import annotations
 
+import functools
 import math
 import statistics
 import time
@@ -39,6 +40,23 @@ from pipeline.errors import StereotrackError
 
 Kind = Literal["point", "target"]
 ENTRY_POINT_GROUP = "stereotrack.estimators"
+
+
+def expm(M: np.ndarray) -> np.ndarray:
+    """``scipy.linalg.expm``, remembered: the continuous-time filters exponentiate the same few
+    matrices every frame (same model, same dt), so each is computed once. Read-only result; scipy
+    is imported on first use, not when the registry loads."""
+    M = np.ascontiguousarray(M, dtype=float)
+    return _expm(M.tobytes(), M.shape)
+
+
+@functools.lru_cache(maxsize=256)
+def _expm(data: bytes, shape: tuple[int, ...]) -> np.ndarray:
+    from scipy.linalg import expm as scipy_expm
+
+    E = scipy_expm(np.frombuffer(data).reshape(shape))
+    E.flags.writeable = False
+    return E
 
 
 def transition(dt: float, dim: int = 3) -> np.ndarray:

@@ -23,10 +23,9 @@ from typing import Literal
 
 import numpy as np
 from pydantic import Field
-from scipy.linalg import expm, solve_continuous_are
 
 from pipeline.errors import StereotrackError
-from pipeline.estimators.base import Step, register
+from pipeline.estimators.base import Step, expm, register
 from pipeline.estimators.four_point import TargetConfig, TargetEstimator
 
 C4 = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
@@ -60,6 +59,8 @@ def check_model(A: np.ndarray, C: np.ndarray) -> None:
 
 def steady_state_gain(A: np.ndarray, C: np.ndarray, GQG: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(K, P) from the algebraic Riccati equation; an unstable ``A − K C`` is an error."""
+    from scipy.linalg import solve_continuous_are
+
     try:
         P = solve_continuous_are(A.T, C.T, GQG, R)
     except (np.linalg.LinAlgError, ValueError) as exc:

@@ -13,9 +13,8 @@ import math
 
 import cv2
 import numpy as np
-from scipy.linalg import expm
 
-from pipeline.estimators.base import Step, register
+from pipeline.estimators.base import Step, expm, register
 from pipeline.estimators.four_point import (
     TargetEstimator,
     TargetMeasurement,
