@@ -69,7 +69,7 @@ def filterpy_ekf(rig, dt: float, Y: np.ndarray) -> np.ndarray:
     Q, R, analytic Jacobian; no gate): the plain reference implementation."""
     from filterpy.kalman import ExtendedKalmanFilter
 
-    from pipeline.camera import StereoMeasurementModel
+    from pipeline.core.camera import StereoMeasurementModel
     from pipeline.estimators.base import InitConfig, Initiator, transition, white_noise_acceleration
 
     model = StereoMeasurementModel(rig, 1.0)
@@ -89,7 +89,7 @@ def filterpy_ekf(rig, dt: float, Y: np.ndarray) -> np.ndarray:
 def plain_ekf(rig, dt: float, Y: np.ndarray) -> np.ndarray:
     """The same filter as the plainest numpy loop: no gate, no missing rows, no diagnostics, the
     projection and its Jacobian inline (the best plain implementation to compare speed against)."""
-    from pipeline.camera import StereoMeasurementModel
+    from pipeline.core.camera import StereoMeasurementModel
     from pipeline.estimators.base import InitConfig, Initiator, transition, white_noise_acceleration
 
     model = StereoMeasurementModel(rig, 1.0)

@@ -23,7 +23,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 from _common import LiveDoc, add_output_args, output_dir
 
-from pipeline.io import write_text
+from pipeline.core.io import write_text
 from renderers.render import render_clip
 from renderers.scenario import load_scenario, parse_scenario
 

@@ -19,7 +19,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from _common import LiveDoc, add_output_args, output_dir
 
-from pipeline.io import atomic_path, write_text
+from pipeline.core.io import atomic_path, write_text
 from pipeline.soifer import (
     BEST_SETTINGS,
     EXACT_FORMULA_SETTINGS,

@@ -29,10 +29,10 @@ import matplotlib.pyplot as plt
 import numpy as np
 from _common import LiveDoc, add_output_args, output_dir
 
-from pipeline.camera import triangulate
+from pipeline.core.alphabeta import ABFilter
+from pipeline.core.camera import triangulate
+from pipeline.core.io import atomic_path, write_text
 from pipeline.estimators import create
-from pipeline.estimators.alphabeta import ABFilter
-from pipeline.io import atomic_path, write_text
 from renderers.motion import simulate_truth
 from renderers.scenario import load_scenario
 

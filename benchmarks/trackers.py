@@ -27,9 +27,9 @@ import argparse
 import numpy as np
 from _common import LiveDoc, add_output_args, output_dir
 
+from pipeline.core.io import write_text
+from pipeline.core.sync import resolve_sync
 from pipeline.estimators import create, methods, registry
-from pipeline.io import write_text
-from pipeline.sync import resolve_sync
 from renderers.motion import simulate_truth
 from renderers.scenario import load_scenario, parse_scenario
 

@@ -16,7 +16,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from pipeline.errors import StereotrackError
+from pipeline.core.errors import StereotrackError
 
 
 @dataclass(frozen=True)

@@ -18,8 +18,8 @@ import cv2
 import numpy as np
 
 from detectors.blob import BlobDetector, Detection, MarkerColor
-from pipeline.errors import StereotrackError
-from pipeline.estimators.alphabeta import ABFilter
+from pipeline.core.alphabeta import ABFilter
+from pipeline.core.errors import StereotrackError
 
 CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.1)
 

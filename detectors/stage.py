@@ -15,11 +15,11 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from detectors.blob import BlobDetector, Detection, MarkerColor
-from detectors.frames import CameraReader, StereoFrameSource
+from detectors.markers import resolve_marker_specs
 from detectors.meanshift import MeanShiftTracker
-from pipeline.camera import StereoRig
-from pipeline.checks import Check, colour_checks, rig_for_frames, warn_failed
-from pipeline.clip import (
+from pipeline.core.camera import StereoRig
+from pipeline.core.checks import Check, colour_checks, rig_for_frames, warn_failed
+from pipeline.core.clip import (
     CLIP_INFO,
     DETECT_INFO,
     DETECTION_COLUMNS,
@@ -27,10 +27,10 @@ from pipeline.clip import (
     Clip,
     FootageInfo,
     observations_from_columns,
-    resolve_marker_specs,
 )
-from pipeline.errors import StereotrackError
-from pipeline.io import write_csv, write_json
+from pipeline.core.errors import StereotrackError
+from pipeline.core.frames import CameraReader, StereoFrameSource
+from pipeline.core.io import write_csv, write_json
 
 #: The detect stage's record beside detections.csv: frames, frame size, markers used, checks.
 #: A clip folder (or a batch's input root) may name its markers here, in ``--markers`` syntax.
@@ -332,7 +332,7 @@ def summarize(rows: list[tuple], clip: Clip, n_frames: int, n_cams: int) -> list
 def _footage_to_grid(clip: Clip) -> dict[str, np.ndarray] | None:
     """Per camera, each footage frame's frame on the clip's grid (a video that dropped frames is
     shorter than the truth), from timestamps.csv; None without one."""
-    from pipeline.sync import nominal_frames
+    from pipeline.core.sync import nominal_frames
 
     if clip.timestamps is None:
         return None

@@ -3,7 +3,7 @@
 Kill-safe by construction: each attempt at a clip writes into its own ``OUT/.<name>.partial-<id>``
 folder, writes ``manifest.json`` (sizes and checksums of every output, version, settings) last, and
 is swapped into ``OUT/<name>`` only then; a rerun verifies manifests and redoes anything that does
-not verify (``force`` redoes everything). Workers die with the batch (:mod:`pipeline.lifeline`),
+not verify (``force`` redoes everything). Workers die with the batch (:mod:`pipeline.core.lifeline`),
 one batch at a time holds the output folder's lock, and one failing clip is recorded with its
 error and never stops the others.
 """
@@ -18,27 +18,15 @@ import os
 import shutil
 import traceback
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from pipeline.camera import has_calibration
-from pipeline.errors import StereotrackError
-from pipeline.io import check_replaceable, ensure_dir, write_json
-from pipeline.lifeline import OutputLock, die_with_parent, ignore_sigint, still_parented
+from pipeline.core.camera import has_calibration
+from pipeline.core.errors import StereotrackError
+from pipeline.core.io import check_replaceable, ensure_dir, write_json
+from pipeline.core.lifeline import OutputLock, die_with_parent, ignore_sigint, still_parented
 from pipeline.manifest import MANIFEST, verify_manifest, write_manifest
-
-
-@dataclass
-class ClipOutcome:
-    clip: str
-    status: str  # "ok", "failed", "skipped" (complete from an earlier batch, manifest verified)
-    metrics: dict = field(default_factory=dict)
-    error: str = ""
-    warnings: list[str] = field(default_factory=list)
-    #: attempts made: 1, more when a worker died under an attempt and Dask ran the clip again; an
-    #: outcome that no attempt finished starts at 0 and counts the attempts whose worker died
-    attempts: int = 1
+from pipeline.summary import ClipOutcome, write_summary
 
 
 def find_clips(input_dir: str | Path, skip: Path | None = None) -> list[Path]:
@@ -114,7 +102,8 @@ def _process_one(clip: str, key: str, out_root: str, settings: dict[str, Any],
     import uuid
     import warnings
 
-    from pipeline.clip import input_files, resolve_marker_specs
+    from detectors.markers import resolve_marker_specs
+    from pipeline.core.clip import input_files
     from pipeline.run import process_clip
 
     clip_p, final = Path(clip), Path(out_root) / key
@@ -211,7 +200,8 @@ def run_batch(
     settings and from the same inputs; anything else (including leftovers of a killed batch) is
     redone, with a warning saying why when it had complete outputs.
     """
-    from pipeline.clip import MARKERS_FILE, read_markers_file
+    from detectors.markers import read_markers_file
+    from pipeline.core.clip import MARKERS_FILE
 
     input_dir = Path(input_dir)
     out_root = Path(output_dir)
@@ -261,8 +251,6 @@ def run_batch(
                 o.attempts += 1
                 o.warnings.append(f"{key}: the worker running an attempt at it ({worker}) died")
         ordered = [outcomes[keys[c]] for c in clips]
-        from pipeline.summary import write_summary
-
         write_summary(out_root, ordered)
     return ordered
 
@@ -286,7 +274,7 @@ def _complete(key: str, final: Path, settings: dict, clip: Path) -> ClipOutcome 
     warning saying why when outputs were there but no longer count."""
     import warnings
 
-    from pipeline.clip import input_files
+    from pipeline.core.clip import input_files
 
     if not final.is_dir():
         return None
@@ -334,7 +322,7 @@ def _run_local(todo: list[Path], keys: dict[Path, str], out_root: Path, settings
     when the batch is interrupted (Ctrl-C, SIGTERM) instead of finishing their clips."""
     from concurrent.futures.process import BrokenProcessPool
 
-    from pipeline.lifeline import end_pool, signals_deferred
+    from pipeline.core.lifeline import end_pool, signals_deferred
 
     ctx = mp.get_context("spawn")
     stages = ctx.Queue() if on_stage is not None else None
@@ -428,10 +416,3 @@ def _checked_scheduler_file(path: Path) -> Path:
 def _first_line(exc: BaseException) -> str:
     lines = str(exc).strip().splitlines()
     return lines[0] if lines else type(exc).__name__
-
-
-def clip_warnings(o: ClipOutcome) -> list[str]:
-    """A clip's warnings: those raised while processing it, else its failed input checks."""
-    if o.warnings:
-        return o.warnings
-    return [c.get("message", "") for c in (o.metrics or {}).get("checks", []) if not c.get("ok")]

@@ -20,10 +20,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline.camera import LENGTH_UNITS, UNDISTORT_CRITERIA, Camera, StereoRig, save_calibration
-from pipeline.clip import IMAGE_EXTS, VIDEO_EXTS
-from pipeline.errors import StereotrackError
-from pipeline.io import atomic_path, write_text
+from pipeline.core.camera import LENGTH_UNITS, UNDISTORT_CRITERIA, Camera, StereoRig, save_calibration
+from pipeline.core.errors import StereotrackError
+from pipeline.core.frames import IMAGE_EXTS, VIDEO_EXTS
+from pipeline.core.io import atomic_path, write_text
 from renderers.board import Board
 
 #: a calibration is poor (a warning names the cause) above this RMS (px), below this share of each

@@ -14,7 +14,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
-from pipeline.errors import StereotrackError
+from pipeline.core.errors import StereotrackError
 
 app = typer.Typer(
     help="Track objects in stereo video: render synthetic clips, detect markers, estimate 3-D tracks.",
@@ -163,7 +163,7 @@ def detect_cmd(
 ) -> None:
     """Find the markers in every frame; write detections.csv and print a per-camera summary."""
     from detectors.stage import detect_clip
-    from pipeline.clip import Clip
+    from pipeline.core.clip import Clip
 
     clip_ = Clip(clip, fps)
 
@@ -207,7 +207,7 @@ def _print_time(fps: float, source: str) -> None:
 
 
 def _print_sync(metrics: dict) -> None:
-    from pipeline.sync import SyncEstimate
+    from pipeline.core.sync import SyncEstimate
 
     sync = metrics.get("sync")
     if sync:
@@ -241,9 +241,9 @@ def estimate_cmd(
     fps: FpsOption = None,
 ) -> None:
     """Estimate 3-D tracks with each method; write estimates/<method>.csv and metrics.json."""
-    from pipeline.clip import Clip
+    from pipeline.core.clip import Clip
+    from pipeline.core.sync import parse_time_offset
     from pipeline.estimate import estimate_clip
-    from pipeline.sync import parse_time_offset
 
     configs = _configs(config)
     offset = parse_time_offset(time_offset)
@@ -337,8 +337,8 @@ def run_cmd(
 
     A clip folder of real footage needs two videos (or PNG folders), a calibration and its markers
     (--markers or a markers.yaml in the folder)."""
+    from pipeline.core.sync import parse_time_offset
     from pipeline.run import DEFAULT_SCENARIO, process_clip
-    from pipeline.sync import parse_time_offset
 
     t0 = __import__("time").perf_counter()
     configs = _configs(config)
@@ -346,7 +346,7 @@ def run_cmd(
     target = target or DEFAULT_SCENARIO
     clip = Path(target)
     if clip.is_file() and clip.suffix.lower() not in (".yaml", ".yml"):
-        from pipeline.clip import VIDEO_EXTS
+        from pipeline.core.frames import VIDEO_EXTS
 
         why = ("is a single video: a one-camera clip, which `stereotrack detect` reads; `run` needs a stereo clip folder "
                "(left/right videos and a calibration)") if clip.suffix.lower() in VIDEO_EXTS else \
@@ -408,7 +408,7 @@ def view_cmd(
         return
     else:
         cmd = [viewer]
-    from pipeline.lifeline import terminate_with_parent
+    from pipeline.core.lifeline import terminate_with_parent
 
     rc = subprocess.run([*cmd, *map(str, rrds)], check=False, preexec_fn=terminate_with_parent).returncode
     if rc:
@@ -476,7 +476,7 @@ def batch_cmd(
     Markers: --markers for every clip, else each clip's markers.yaml, else INPUT_DIR/markers.yaml,
     else the colours of a rendered clip (clip.json)."""
     from pipeline.batch import run_batch
-    from pipeline.sync import parse_time_offset
+    from pipeline.core.sync import parse_time_offset
 
     configs = _configs(config)
     offset = parse_time_offset(time_offset)
@@ -513,8 +513,7 @@ class _ClipStages:
 
 def _print_batch(outcomes: list, output: Path) -> None:
     """The per-method leaderboard, the clips that failed or warned, and where the summary is."""
-    from pipeline.batch import clip_warnings
-    from pipeline.summary import method_rows
+    from pipeline.summary import clip_warnings, method_rows
 
     rows = method_rows(outcomes)
     table = Table(title=f"{len(outcomes)} clips: 3-D RMSE (mm) of each method across clips",
@@ -599,7 +598,7 @@ def main() -> None:
     SIGTERM one line and exit 130/143, with locks released and temporary files and workers gone."""
     import os
 
-    from pipeline.lifeline import install_signal_handlers, received_signal
+    from pipeline.core.lifeline import install_signal_handlers, received_signal
 
     warnings.showwarning = _show_warning
     install_signal_handlers()
@@ -632,7 +631,7 @@ def main() -> None:
 def _interrupted() -> None:
     import signal
 
-    from pipeline.lifeline import received_signal
+    from pipeline.core.lifeline import received_signal
 
     sig = received_signal() or signal.SIGINT
     console.print(f"[bold red]interrupted[/] ({signal.Signals(sig).name}): stopped; nothing half-written was kept",

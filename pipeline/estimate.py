@@ -1,5 +1,5 @@
 """The estimate stage: ``out/detections.csv`` + ``calib.yaml`` → ``out/estimates/<method>.csv`` and,
-when the clip has truth, ``out/metrics.json`` (schemas in :mod:`pipeline.clip`)."""
+when the clip has truth, ``out/metrics.json`` (schemas in :mod:`pipeline.core.clip`)."""
 
 from __future__ import annotations
 
@@ -12,9 +12,9 @@ from typing import Any
 import numpy as np
 
 from pipeline import consistency
-from pipeline.camera import StereoRig
-from pipeline.checks import Check, jump_checks, rig_for_frames, stereo_checks, warn_failed
-from pipeline.clip import (
+from pipeline.core.camera import StereoRig
+from pipeline.core.checks import Check, jump_checks, rig_for_frames, stereo_checks, warn_failed
+from pipeline.core.clip import (
     ESTIMATE_COLUMNS,
     TARGET_COLUMNS,
     Clip,
@@ -25,14 +25,14 @@ from pipeline.clip import (
     footage_info,
     load_detections,
 )
-from pipeline.errors import StereotrackError
+from pipeline.core.errors import StereotrackError
+from pipeline.core.io import write_csv, write_json
+from pipeline.core.sync import SyncEstimate, grid_length, resolve_sync
 from pipeline.estimators import Estimator, Track, create, registry
 from pipeline.estimators import methods as registered_methods
 from pipeline.estimators.base import is_builtin, origin
-from pipeline.io import write_csv, write_json
 from pipeline.manifest import stereotrack_version
 from pipeline.metrics import compute_metrics
-from pipeline.sync import SyncEstimate, grid_length, resolve_sync
 
 
 @dataclass
@@ -53,7 +53,7 @@ def estimate_pixel_sigma(rig: StereoRig, observations: dict[str, np.ndarray]) ->
     """Detection noise (px) from the data: the DLT leaves one degree of freedom of the four
     stereo coordinates, so the squared reprojection residual of a triangulated point is
     ``σ² χ²(1)``; σ̂² is its mean over all frames and markers. None without stereo frames."""
-    from pipeline.camera import triangulate
+    from pipeline.core.camera import triangulate
 
     sq = []
     for Y in observations.values():
@@ -196,7 +196,7 @@ def estimate_clip(
 def _timestamps(clip: Clip, setting: str | float | None) -> dict[str, np.ndarray] | None:
     """The clip's per-camera frame times (timestamps.csv), unless ``--time-offset`` says otherwise:
     ``off`` ignores them, a number of seconds wins over them (with a warning)."""
-    from pipeline.clip import TIMESTAMPS
+    from pipeline.core.clip import TIMESTAMPS
 
     ts = clip.timestamps if setting != "off" else None
     if ts is not None and isinstance(setting, float):  # the command line wins over the clip's own file

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import StereotrackError
-from pipeline.io import atomic_path, write_csv
+from pipeline.core.errors import StereotrackError
+from pipeline.core.io import atomic_path, write_csv
 
 FORMATS = ("trc", "c3d", "csv")
 
@@ -29,9 +29,9 @@ class Tracks:
 
 
 def read_tracks(out_dir: Path, method: str, fps: float) -> Tracks:
-    """``out_dir/estimates/<method>.csv`` (through :func:`pipeline.clip.read_positions`) as
+    """``out_dir/estimates/<method>.csv`` (through :func:`pipeline.core.clip.read_positions`) as
     frames × markers × 3."""
-    from pipeline.clip import read_positions
+    from pipeline.core.clip import read_positions
 
     pos, n = read_positions(out_dir / "estimates" / f"{method}.csv")
     markers = list(pos)

@@ -15,7 +15,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from pipeline.io import write_json
+from pipeline.core.io import write_json
 
 MANIFEST = "manifest.json"
 #: The output every complete clip has: a manifest that does not list it is not a complete record.

@@ -4,14 +4,26 @@ files)."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from pipeline import consistency
+from pipeline.core.camera import StereoRig
+from pipeline.core.clip import ClipTruth, TargetInfo
+from pipeline.estimators.base import Track
 
-if TYPE_CHECKING:
-    from pipeline.estimate import EstimateResult
+
+class Estimates(Protocol):
+    """What the metrics need of a run's estimates (the estimate stage's result has it)."""
+
+    n_frames: int
+    dt: float
+    rig: StereoRig
+    tracks: dict[str, dict[str, Track]]
+    truth: ClipTruth | None
+    target: TargetInfo | None
+    target_tracks: dict[str, Track]
 
 
 def errors_per_frame(est: np.ndarray, truth: np.ndarray) -> np.ndarray:
@@ -65,7 +77,7 @@ def _note_too_short(entry: dict[str, Any], method: str, n_frames: int) -> None:
         entry["note"] = f"needs at least {need} frames; this clip has {n_frames}: no estimate"
 
 
-def compute_metrics(res: EstimateResult) -> dict[str, Any]:
+def compute_metrics(res: Estimates) -> dict[str, Any]:
     """Per method: error statistics against truth (all markers pooled, and per marker),
     reprojection RMSE (px), time per step, and for filters the consistency of their covariance
     (NEES on position against truth, NIS of their innovations; :mod:`pipeline.consistency`)."""

@@ -23,8 +23,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from pipeline.camera import StereoRig
-from pipeline.io import partial_beside
+from pipeline.core.camera import StereoRig
+from pipeline.core.io import partial_beside
 from pipeline.metrics import errors_per_frame, runaways
 from pipeline.style import TRUTH_RGB_VIEWER, marker_rgb, method_rgb
 

@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import html as H
-from pipeline.clip import Clip, load_detections, positions_from_columns
-from pipeline.errors import StereotrackError
-from pipeline.io import read_csv, read_json_mapping, write_bytes, write_text
+from pipeline.core.clip import Clip, load_detections, positions_from_columns
+from pipeline.core.errors import StereotrackError
+from pipeline.core.io import read_csv, read_json_mapping, write_bytes, write_text
 from pipeline.metrics import RUNAWAY, errors_per_frame, runaways
 from pipeline.style import TRUTH_STYLE, marker_rgb, method_colour, method_hex, method_linestyle
 from pipeline.tables import Column, Table, inline, number, to_html, to_markdown
@@ -57,7 +57,7 @@ class ReportData:
 def _hide_behind_camera(clip: Clip, est: dict[str, dict[str, np.ndarray]], units: str | None) -> None:
     """Points behind either camera set to NaN: counted in the metrics and the Checks section,
     never drawn as if they were metres in front of the rig."""
-    from pipeline.camera import has_calibration, load_calibration
+    from pipeline.core.camera import has_calibration, load_calibration
 
     if not est or not has_calibration(clip.folder):
         return

@@ -9,9 +9,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from detectors.stage import DetectResult, detect_clip
-from pipeline.clip import Clip
+from pipeline.core.clip import Clip
+from pipeline.core.lifeline import OutputLock
 from pipeline.estimate import EstimateResult, estimate_clip
-from pipeline.lifeline import OutputLock
 from pipeline.recording import Recorder
 from pipeline.report import write_report
 
@@ -51,7 +51,7 @@ def process_clip(
 
     ``marker_specs`` (``--markers`` syntax) name the markers of real footage; without them the
     clip's ``markers.yaml``, else its ``scenario.yaml``, gives the colours. ``fps`` (``--fps``)
-    wins over every frame rate the clip states (see :attr:`pipeline.clip.Clip.fps`). ``figures``:
+    wins over every frame rate the clip states (see :attr:`pipeline.core.clip.Clip.fps`). ``figures``:
     whether the report draws its figures (a batch leaves them out unless ``--figures``).
 
     With ``lock`` the output folder is locked for the run (a second run on it fails at once,

@@ -8,9 +8,9 @@ from typing import Any
 
 from pydantic import ValidationError
 
-from pipeline.errors import StereotrackError
+from pipeline.core.errors import StereotrackError
+from pipeline.core.io import read_yaml_mapping
 from pipeline.estimators import registry
-from pipeline.io import read_yaml_mapping
 
 
 def load_method_configs(path: str | Path) -> dict[str, dict[str, Any]]:

@@ -8,23 +8,39 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from pipeline import html as H
-from pipeline.io import write_csv, write_text
+from pipeline.core.io import write_csv, write_text
 from pipeline.metrics import runaways
 from pipeline.style import method_hex
 from pipeline.tables import Column, Table, inline, number, to_html, to_markdown
-
-if TYPE_CHECKING:
-    from pipeline.batch import ClipOutcome
 
 SUMMARY_COLUMNS = ["clip", "status", "method", "rmse_m", "final_m", "reprojection_rmse_px", "steps_per_second",
                    "attempts", "error"]
 METHOD_COLUMNS = ["method", "clips", "mean_rmse_m", "mean_ci_low_m", "mean_ci_high_m", "median_rmse_m",
                   "median_ci_low_m", "median_ci_high_m", "runaways", "failures", "median_steps_per_second"]
+
+
+@dataclass
+class ClipOutcome:
+    clip: str
+    status: str  # "ok", "failed", "skipped" (complete from an earlier batch, manifest verified)
+    metrics: dict = field(default_factory=dict)
+    error: str = ""
+    warnings: list[str] = field(default_factory=list)
+    #: attempts made: 1, more when a worker died under an attempt and Dask ran the clip again; an
+    #: outcome that no attempt finished starts at 0 and counts the attempts whose worker died
+    attempts: int = 1
+
+
+def clip_warnings(o: ClipOutcome) -> list[str]:
+    """A clip's warnings: those raised while processing it, else its failed input checks."""
+    if o.warnings:
+        return o.warnings
+    return [c.get("message", "") for c in (o.metrics or {}).get("checks", []) if not c.get("ok")]
 
 
 def mean_ci(x: np.ndarray, level: float = 0.95) -> tuple[float, float]:
@@ -127,8 +143,6 @@ def leaderboard(rows: list[dict[str, Any]]) -> Table:
 
 def clip_table(outcomes: list[ClipOutcome], methods: list[str], link: bool) -> Table:
     """One row per clip: status, attempts, warnings, and each method's 3-D RMSE (mm)."""
-    from pipeline.batch import clip_warnings
-
     def rmse(o, m):
         return ((o.metrics or {}).get("methods", {}).get(m) or {}).get("rmse")
 
@@ -143,8 +157,6 @@ def clip_table(outcomes: list[ClipOutcome], methods: list[str], link: bool) -> T
 def write_summary(out_root: Path, outcomes: list[ClipOutcome]) -> list[dict[str, Any]]:
     """``summary.csv``, ``summary_methods.csv``, ``summary.md`` and ``summary.html``; returns
     the per-method rows (for the terminal)."""
-    from pipeline.batch import clip_warnings
-
     rows = []
     for o in outcomes:
         methods = o.metrics.get("methods", {}) if o.metrics else {}

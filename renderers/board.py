@@ -4,7 +4,7 @@ poses, with the rig that made them as the truth ``stereotrack calibrate`` must r
 A plane needs no rasteriser: each pixel (sampled ``SUPERSAMPLE``² times) is a ray through the
 camera's exact model — ``cv2.undistortPoints`` inverts the lens distortion, so distorted rigs are
 drawn exactly — intersected with the board's plane, and the board's texture is looked up where it
-lands. The same camera model (:class:`pipeline.camera.Camera`) renders the clips and reads them.
+lands. The same camera model (:class:`pipeline.core.camera.Camera`) renders the clips and reads them.
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline.camera import UNDISTORT_CRITERIA, Camera, StereoRig
-from pipeline.io import atomic_path, ensure_dir
+from pipeline.core.camera import UNDISTORT_CRITERIA, Camera, StereoRig
+from pipeline.core.io import atomic_path, ensure_dir
 
 SUPERSAMPLE = 3  # samples per pixel and axis (anti-aliasing of the square edges)
 BACKGROUND = 110  # grey level around the board

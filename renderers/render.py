@@ -21,10 +21,10 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from pipeline.camera import StereoRig, save_calibration
-from pipeline.clip import CLIP_INFO, TIMESTAMPS
-from pipeline.errors import ClipError, StereotrackError
-from pipeline.io import write_json, write_text
+from pipeline.core.camera import StereoRig, save_calibration
+from pipeline.core.clip import CLIP_INFO, TIMESTAMPS
+from pipeline.core.errors import ClipError, StereotrackError
+from pipeline.core.io import write_json, write_text
 from renderers.motion import Truth, simulate_truth
 from renderers.scenario import CalibrationErrorSpec, Scenario, clip_description
 from renderers.truth import frame_times, project_truth, write_target_truth, write_timestamps, write_truth
@@ -211,7 +211,7 @@ _PROGRESS: mp.Queue | None = None
 
 def _worker_init(parent_pid: int, progress: mp.Queue | None) -> None:
     """Die with the parent; one OpenCV thread (blur, encoding) per worker, as llvmpipe has one."""
-    from pipeline.lifeline import die_with_parent, ignore_sigint
+    from pipeline.core.lifeline import die_with_parent, ignore_sigint
 
     die_with_parent(parent_pid)
     ignore_sigint()
@@ -323,7 +323,7 @@ def perturbed_rig(rig: StereoRig, err: CalibrationErrorSpec, seed: int) -> Stere
     """The calibration a user would have: focal lengths, principal points, baseline length, the
     second camera's rotation and k1, k2 perturbed by the spec's standard deviations, drawn from
     ``[err.seed or seed, 50000]``."""
-    from pipeline.camera import Camera
+    from pipeline.core.camera import Camera
 
     rng = np.random.default_rng([err.seed if err.seed is not None else seed, 50_000])
 
@@ -371,7 +371,7 @@ def render_clips(
     ``workers=1`` renders here, in this process, one camera after the other. A folder that
     stereotrack did not render (and is not empty) is refused before any work starts.
     """
-    from pipeline.io import check_replaceable, ensure_dir
+    from pipeline.core.io import check_replaceable, ensure_dir
 
     dirs = [Path(d) for _, d in jobs]
     for d in dirs:  # before any work: a folder stereotrack did not render is never replaced
@@ -420,7 +420,7 @@ def _render_pool(jobs: list[tuple[Scenario, str | Path]], stagings: list[Path], 
     thread each, a user's own LP_NUM_THREADS aside); a clip is finished when both its cameras are."""
     import concurrent.futures as cf
 
-    from pipeline.lifeline import end_pool, signals_deferred
+    from pipeline.core.lifeline import end_pool, signals_deferred
 
     total = sum(s.frames for s, _ in jobs)
     ctx = mp.get_context("spawn")

@@ -14,9 +14,9 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from pipeline.camera import StereoRig
-from pipeline.errors import ScenarioError
-from pipeline.io import read_yaml_mapping
+from pipeline.core.camera import StereoRig
+from pipeline.core.errors import ScenarioError
+from pipeline.core.io import read_yaml_mapping
 
 Vec3 = tuple[float, float, float]
 Color = tuple[int, int, int]
@@ -118,7 +118,7 @@ class RigSpec(_Model):
 
     def build(self) -> StereoRig:
         """The rig that renders the clip (``calib_true.yaml`` when a calibration error is asked for)."""
-        from pipeline.camera import Camera
+        from pipeline.core.camera import Camera
 
         if self.matrices is not None:
             m = self.matrices
@@ -404,8 +404,8 @@ def _resolve_calibration(data: dict, source: str | Path) -> dict:
     rig = data.get("rig") if isinstance(data, dict) else None
     if not isinstance(rig, dict) or not isinstance(rig.get("calibration"), str) or rig.get("matrices") is not None:
         return data
-    from pipeline.camera import load_calibration
-    from pipeline.errors import StereotrackError
+    from pipeline.core.camera import load_calibration
+    from pipeline.core.errors import StereotrackError
 
     base = Path(source).parent if Path(str(source)).is_file() else Path(".")
     path = base / rig["calibration"]

@@ -8,8 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.camera import Camera, StereoRig
-from pipeline.errors import RenderBackendError
+from pipeline.core.camera import Camera, StereoRig
+from pipeline.core.errors import RenderBackendError
 from renderers.motion import Truth, distractor_positions
 from renderers.scenario import Scenario
 

@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.camera import Camera, StereoRig
-from pipeline.clip import TARGET_TRUTH_COLUMNS, TIMESTAMP_COLUMNS, TRUTH_COLUMNS, TRUTH_EXTRA_COLUMNS
-from pipeline.io import write_csv
+from pipeline.core.camera import Camera, StereoRig
+from pipeline.core.clip import TARGET_TRUTH_COLUMNS, TIMESTAMP_COLUMNS, TRUTH_COLUMNS, TRUTH_EXTRA_COLUMNS
+from pipeline.core.io import write_csv
 from renderers.motion import Truth, distractor_positions
 from renderers.scenario import Scenario
 

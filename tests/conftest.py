@@ -87,7 +87,7 @@ def ball_reference() -> dict[int, tuple[float, float]]:
     """ball2.mp4's ball centre per left frame from a strict HSV range (confident frames only): the
     reference that the detectors and learned marker ranges are measured against."""
     from detectors.blob import BlobDetector, MarkerColor
-    from detectors.frames import StereoFrameSource
+    from pipeline.core.frames import StereoFrameSource
 
     strict = BlobDetector([MarkerColor.parse("ball:35-55:70:60")], min_area=800)
     ref = {}

@@ -17,7 +17,7 @@ import psutil
 import pytest
 
 from pipeline.batch import run_batch
-from pipeline.io import read_csv
+from pipeline.core.io import read_csv
 from pipeline.manifest import MANIFEST, verify_manifest
 from tests.conftest import REPO
 
@@ -168,7 +168,7 @@ def test_corrupted_output_is_redone(reference, tmp_path):
 
 
 def test_run_is_locked_and_cleans_leftovers(tmp_path, monkeypatch, capsys):
-    from pipeline.lifeline import OutputLock
+    from pipeline.core.lifeline import OutputLock
     from tests.test_inputs import cli
 
     clip = tmp_path / "clip"
@@ -186,7 +186,7 @@ def test_run_is_locked_and_cleans_leftovers(tmp_path, monkeypatch, capsys):
 
 
 def test_stale_lock_is_taken_over_with_a_warning(tmp_path):
-    from pipeline.lifeline import LOCK_NAME, OutputLock
+    from pipeline.core.lifeline import LOCK_NAME, OutputLock
 
     tmp_path.joinpath(LOCK_NAME).write_text(json.dumps({"pid": 999999, "host": "elsewhere", "command": "old batch"}))
     with pytest.warns(UserWarning, match="taking over the lock of PID 999999"), OutputLock(tmp_path, "new"):

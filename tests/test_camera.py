@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.camera import (
+from pipeline.core.camera import (
     Camera,
     StereoRig,
     cv_to_gl_pose,
@@ -15,7 +15,7 @@ from pipeline.camera import (
     project_jacobian,
     save_calibration,
 )
-from pipeline.errors import CalibrationError
+from pipeline.core.errors import CalibrationError
 
 
 @pytest.fixture

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 
 from detectors.blob import BlobDetector, MarkerColor
-from detectors.frames import StereoFrameSource
 from detectors.meanshift import MeanShiftTracker
 from detectors.stage import detect_clip, label_four_points
-from pipeline.clip import load_detections
-from pipeline.errors import ClipError, StereotrackError
-from pipeline.io import read_csv
+from pipeline.core.clip import load_detections
+from pipeline.core.errors import ClipError, StereotrackError
+from pipeline.core.frames import StereoFrameSource
+from pipeline.core.io import read_csv
 from renderers.render import render_clip
 from renderers.scenario import parse_scenario
 from tests.conftest import BALL, needs_ball, small_multi_marker
@@ -54,7 +54,7 @@ def test_distractors_never_reported(png_clip, tmp_path):
     assert set(cols["marker"]) <= {"red", "green", "blue"}
     # the magenta cube's projection never hosts a detection
     rig_cube = np.array([0.5, -0.3, 3.0])
-    from pipeline.camera import load_calibration
+    from pipeline.core.camera import load_calibration
 
     rig = load_calibration(png_clip)
     cube_uv = rig.left.project(rig_cube[None])[0]

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from filterpy.kalman import ExtendedKalmanFilter
 
-from pipeline.camera import Camera, StereoRig, triangulate
-from pipeline.errors import CalibrationError, StereotrackError
+from pipeline.core.alphabeta import ABFilter
+from pipeline.core.camera import Camera, StereoRig, triangulate
+from pipeline.core.errors import CalibrationError, StereotrackError
 from pipeline.estimators import create, methods
-from pipeline.estimators.alphabeta import ABFilter
 from pipeline.estimators.base import transition, white_noise_acceleration
 
 POINT_METHODS = methods("point")

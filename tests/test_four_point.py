@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.camera import StereoRig
-from pipeline.errors import StereotrackError
+from pipeline.core.camera import StereoRig
+from pipeline.core.errors import StereotrackError
 from pipeline.estimators import create
 from pipeline.estimators.four_point import alpha_z_from_y, measure_camera, measure_stereo
 from pipeline.estimators.kalman_bucy import (

@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 
 from detectors.stage import detect_clip
-from pipeline.camera import load_calibration
-from pipeline.errors import ScenarioError
-from pipeline.io import read_csv
+from pipeline.core.camera import load_calibration
+from pipeline.core.errors import ScenarioError
+from pipeline.core.io import read_csv
 from renderers.render import render_clip
 from renderers.scenario import load_scenario, parse_scenario
 from tests.conftest import REPO

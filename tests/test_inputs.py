@@ -15,13 +15,13 @@ import numpy as np
 import pytest
 
 from detectors.blob import BlobDetector, MarkerColor
-from detectors.frames import StereoFrameSource
 from detectors.stage import detect_clip
-from pipeline.camera import Camera, StereoRig, load_calibration, save_calibration, triangulate
-from pipeline.clip import load_detections
-from pipeline.errors import ClipError
+from pipeline.core.camera import Camera, StereoRig, load_calibration, save_calibration, triangulate
+from pipeline.core.clip import load_detections
+from pipeline.core.errors import ClipError
+from pipeline.core.frames import StereoFrameSource
+from pipeline.core.io import read_csv
 from pipeline.estimate import estimate_clip
-from pipeline.io import read_csv
 from pipeline.report import write_report
 from tests.conftest import BALL, REPO
 
@@ -370,7 +370,7 @@ def test_bad_input_is_one_line(case, detected_clip, tmp_path, monkeypatch, capsy
 
 
 def test_track_jump_check():
-    from pipeline.checks import jump_checks
+    from pipeline.core.checks import jump_checks
 
     t = np.arange(60)
     smooth = np.column_stack([100 + 2 * t, 120 + t, 80 + 2 * t, 120 + t]).astype(float)

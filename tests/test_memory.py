@@ -9,7 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline.camera import StereoRig, save_calibration
+from pipeline.core.camera import StereoRig, save_calibration
 from tests.conftest import REPO
 
 #: peak RSS allowed for `run` on 600 frames of 320×240 (the whole process: Python, OpenCV, rerun,

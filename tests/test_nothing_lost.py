@@ -22,8 +22,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from pipeline.batch import run_batch
-from pipeline.errors import StereotrackError
-from pipeline.io import read_csv
+from pipeline.core.errors import StereotrackError
+from pipeline.core.io import read_csv
 from pipeline.manifest import MANIFEST, verify_manifest
 from tests.conftest import REPO
 from tests.test_inputs import RED, assert_one_line_error, cli, real_copy, snapshot
@@ -161,7 +161,7 @@ def test_markers_precedence_in_a_batch(tmp_path):
 
 
 def test_calib_units_flag_over_a_declared_unit_warns_naming_both(tmp_path):
-    from pipeline.camera import load_calibration, save_calibration
+    from pipeline.core.camera import load_calibration, save_calibration
 
     rig = load_calibration(SAMPLE)
     save_calibration(rig, tmp_path / "calib.yaml", units="mm")
@@ -299,7 +299,7 @@ def _write_yaml_or_bytes(path: Path, data, raw: bytes | None) -> None:
 @given(data=st.one_of(YAMLISH, st.lists(SPEC_CHARS, max_size=4), st.fixed_dictionaries({"markers": YAMLISH})),
        raw=st.none() | st.binary(max_size=80))
 def test_fuzz_markers_yaml(tmp_path, data, raw):
-    from pipeline.clip import read_markers_file
+    from detectors.markers import read_markers_file
 
     path = tmp_path / "markers.yaml"
     _write_yaml_or_bytes(path, data, raw)
@@ -349,7 +349,7 @@ CALIB_TEXT = (SAMPLE / "calib.yaml").read_text()
                                                                                    max_size=20),
        raw=st.none() | st.binary(max_size=200))
 def test_fuzz_calibration(tmp_path, cut, length, insert, raw):
-    from pipeline.camera import load_calibration
+    from pipeline.core.camera import load_calibration
 
     path = tmp_path / "calib.yaml"
     if raw is not None:
@@ -370,7 +370,7 @@ CSV_CELL = st.one_of(st.sampled_from(["", "nan", "inf", "-1", "0", "3", "1e400",
 def test_fuzz_detection_csv(tmp_path, rows, header, raw):
     import csv
 
-    from pipeline.clip import DETECTION_COLUMNS, load_detections
+    from pipeline.core.clip import DETECTION_COLUMNS, load_detections
 
     path = tmp_path / "detections.csv"
     if raw is not None:

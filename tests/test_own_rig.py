@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from detectors.stage import detect_clip
-from pipeline.clip import Clip
+from pipeline.core.clip import Clip
 from pipeline.estimate import estimate_clip
 from tests.conftest import BALL
 from tests.test_inputs import RED, assert_one_line_error, cli, real_copy
@@ -109,7 +109,7 @@ def test_export_round_trip_trc_c3d_csv(estimated, monkeypatch, capsys):
     CSVs' positions to 1e-6 m, the marker names, the frame rate and the unit; gaps stay gaps."""
     import ezc3d
 
-    from pipeline.clip import read_positions
+    from pipeline.core.clip import read_positions
 
     for fmt in ("trc", "c3d", "csv"):
         rc, _out, err = cli(monkeypatch, capsys, "export", estimated, "--format", fmt)
@@ -135,7 +135,7 @@ def test_export_round_trip_trc_c3d_csv(estimated, monkeypatch, capsys):
 def test_estimates_say_which_frames_were_held(estimated, tmp_path):
     """Triangulation holds its last point through frames without both cameras: `predicted` says so,
     on exactly those frames."""
-    from pipeline.io import read_csv
+    from pipeline.core.io import read_csv
 
     clip = tmp_path / "clip"
     shutil.copytree(estimated, clip)
@@ -198,7 +198,7 @@ def distortion_error(est, true, hulls) -> np.ndarray:
         cv2.fillConvexPoly(mask, np.round(hull).astype(np.int32), 1)
     grid = np.stack(np.meshgrid(np.arange(5, w - 5, 10.0), np.arange(5, h - 5, 10.0)), -1).reshape(-1, 2)
     grid = grid[mask[grid[:, 1].astype(int), grid[:, 0].astype(int)] > 0]
-    from pipeline.camera import UNDISTORT_CRITERIA
+    from pipeline.core.camera import UNDISTORT_CRITERIA
 
     xy = cv2.undistortPoints(grid.reshape(-1, 1, 2), true.K, np.asarray(true.D), criteria=UNDISTORT_CRITERIA).reshape(-1, 2)
     X = np.column_stack([xy, np.ones(len(xy))])
@@ -222,7 +222,7 @@ def test_calibrate_recovers_the_rendered_rig(chessboard_pairs, tmp_path, monkeyp
     under 0.2 px at the 95th percentile, near the coverage's edge), the second camera named as on
     the left; calib.yaml in metres with the image size."""
     from pipeline.calibrate import calibrate, find_pairs
-    from pipeline.camera import load_calibration
+    from pipeline.core.camera import load_calibration
     from renderers.board import Board
 
     truth = board_rig()
@@ -323,7 +323,7 @@ def test_loose_window_on_real_footage(tmp_path, ball_reference, scale):
     """ball2.mp4: a window drawn as the ball's bounding box, or 1.5× it, learns a range that finds
     the ball on ≥ 90 % of the reference's frames, within 3 px (median) of the strict-HSV reference.
     (The range learned from every pixel of the window: 1.5× gave a median of 3.1 px.)"""
-    from pipeline.clip import load_detections
+    from pipeline.core.clip import load_detections
 
     u, v = ball_reference[100]
     spec = f"ball@{window_around(u, v, 20.6, scale)}@100"  # the ball's radius at frame 100: 20.6 px
@@ -348,8 +348,8 @@ def test_loose_window_on_an_orange_ball_before_a_brown_wall(skin_wall, tmp_path)
     hue, a skin-toned hand, motion blur), window = the ball's bounding box in frame 0: found on
     ≥ 90 % of the frames where truth shows it, within 3 px (median). The range learned from every
     pixel of the window selected 98 % of the frame and found the ball on no frame."""
-    from pipeline.clip import load_detections
-    from pipeline.io import read_csv
+    from pipeline.core.clip import load_detections
+    from pipeline.core.io import read_csv
 
     truth = read_csv(skin_wall / "truth.csv")
     u, v, z = truth["u_left"][0], truth["v_left"][0], truth["z"][0]
@@ -372,7 +372,7 @@ def test_window_whose_colour_is_everywhere_stops_unless_forced():
     """A red disc in the window and eight like it elsewhere: the range selects 8× more outside the
     window than inside, which stops with the advice; --force keeps it."""
     from detectors.blob import MarkerColor
-    from pipeline.errors import StereotrackError
+    from pipeline.core.errors import StereotrackError
 
     img = np.full((240, 320, 3), 180, np.uint8)
     for k in range(9):
@@ -416,7 +416,7 @@ def test_unsized_calibration_made_at_another_size_is_named(tmp_path, factor, nam
     """The stereo_calib layout records no image size: a calibration made at twice or half the
     frames' size is named as such (it used to read as "left/right swapped" or an epipolar
     warning), and one made at the frames' size stays silent."""
-    from pipeline.camera import load_calibration
+    from pipeline.core.camera import load_calibration
     from tests.test_inputs import SAMPLE, failed_checks
 
     clip = real_copy(tmp_path / "clip")
@@ -440,7 +440,7 @@ def test_colour_check_tells_one_large_object_from_the_background():
     """The colour-range rule itself: a mask 10× the blob the filters found is the background when it
     is scattered, and one large object (a tray the roundness filter measures smaller) when 90 % of
     it is one connected part."""
-    from pipeline.checks import colour_checks
+    from pipeline.core.checks import colour_checks
 
     scattered = [(0.05, 15000.0, 1500.0, 200.0, 0.3)] * 10
     one_tray = [(0.05, 15000.0, 1500.0, 200.0, 0.9)] * 10

@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 
 from pipeline.batch import find_clips, run_batch
 from pipeline.cli import app
-from pipeline.io import read_csv
+from pipeline.core.io import read_csv
 from pipeline.run import process_clip
 from pipeline.style import TRUTH_RGB_VIEWER
 from renderers.render import render_clip

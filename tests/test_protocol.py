@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from pipeline.camera import StereoMeasurementModel, StereoRig, triangulate
 from pipeline.cli import app
 from pipeline.consistency import band, nees
+from pipeline.core.camera import StereoMeasurementModel, StereoRig, triangulate
 from pipeline.estimators import Initiator, create, methods, registry
 from pipeline.estimators.base import InitConfig, transition, white_noise_acceleration
 from pipeline.estimators.spsa import _cost, camera_tuples

@@ -9,9 +9,9 @@ import sys
 import cv2
 import numpy as np
 
-from pipeline.camera import load_calibration
-from pipeline.clip import TARGET_TRUTH_COLUMNS, TRUTH_COLUMNS, TRUTH_EXTRA_COLUMNS
-from pipeline.io import read_csv
+from pipeline.core.camera import load_calibration
+from pipeline.core.clip import TARGET_TRUTH_COLUMNS, TRUTH_COLUMNS, TRUTH_EXTRA_COLUMNS
+from pipeline.core.io import read_csv
 
 HUE = {"red": 0, "green": 1, "blue": 2}
 

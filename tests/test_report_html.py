@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.clip import Clip
-from pipeline.io import read_csv
+from pipeline.core.clip import Clip
+from pipeline.core.io import read_csv
 from pipeline.report import FIGURES, load_report_data, write_report
 from pipeline.style import PALETTE, TRUTH_RGB, delta_e, method_rgb
 from tests.test_pipeline import e2e_run  # noqa: F401  (the module's end-to-end run)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.errors import ScenarioError
+from pipeline.core.errors import ScenarioError
 from renderers.motion import simulate_truth
 from renderers.scenario import builtin_scenarios, load_scenario, parse_scenario
 from renderers.truth import project_truth
@@ -124,19 +124,22 @@ def test_marker_never_in_view_warns_not_fatal(tmp_path):
 
 
 def test_clip_description_written_and_derived_alike(tmp_path):
-    """A rendered clip's clip.json, and the description derived from scenario.yaml for a clip made
-    before clip.json existed, say the same thing (fps, markers and colours, the target)."""
+    """A rendered clip's clip.json says what its scenario.yaml says (fps, markers and colours, the
+    target); without clip.json the clip is footage like any other (its markers must be given)."""
     import json
     import shutil
 
-    from pipeline.clip import Clip
+    from pipeline.core.clip import Clip
+    from renderers.scenario import clip_description, load_scenario
     from tests.conftest import REPO
 
     for name in ("sample_small", "four_point_small"):
         clip = tmp_path / name
         shutil.copytree(REPO / "data" / "clips" / name, clip)
         written = Clip(clip).info
-        (clip / "clip.json").unlink()
-        derived = json.loads(json.dumps(Clip(clip).info))
+        derived = json.loads(json.dumps(clip_description(load_scenario(clip / "scenario.yaml"))))
         assert written == derived and written["markers"]
+        (clip / "clip.json").unlink()
+        assert Clip(clip).info == {}
+        (clip / "clip.json").write_text(json.dumps(written))
     assert Clip(tmp_path / "four_point_small").info["target"]["radius"] > 0

@@ -12,8 +12,8 @@ import shutil
 import numpy as np
 import pytest
 
+from pipeline.core.sync import estimate_offset, resolve_sync
 from pipeline.estimators import create
-from pipeline.sync import estimate_offset, resolve_sync
 from renderers.motion import simulate_truth
 from renderers.scenario import load_scenario, parse_scenario
 

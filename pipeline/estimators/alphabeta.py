@@ -22,6 +22,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
+from pipeline.core.alphabeta import ABFilter
 from pipeline.estimators.base import (
     NAN3,
     Estimator,
@@ -35,34 +36,6 @@ from pipeline.estimators.base import (
     stereo_consistent,
 )
 from pipeline.estimators.kalman_common import update_gated_run
-
-
-class ABFilter:
-    """Alpha-beta(-gamma) filter over independent channels (a vector state per channel)."""
-
-    def __init__(self, x0: np.ndarray, dt: float, alpha: float, beta: float, gamma: float | None = None) -> None:
-        self.x = np.asarray(x0, dtype=float).copy()
-        self.v = np.zeros_like(self.x)
-        self.a = np.zeros_like(self.x)
-        self.dt, self.alpha, self.beta, self.gamma = dt, alpha, beta, gamma
-
-    def predict(self) -> np.ndarray:
-        dt = self.dt
-        if self.gamma is None:
-            self.x = self.x + self.v * dt
-        else:
-            self.x = self.x + self.v * dt + 0.5 * self.a * dt * dt
-            self.v = self.v + self.a * dt
-        return self.x
-
-    def correct(self, z: np.ndarray) -> None:
-        """Correct the channels whose measurement is finite."""
-        ok = np.isfinite(z)
-        r = np.where(ok, np.nan_to_num(z) - self.x, 0.0)
-        self.x = self.x + self.alpha * r
-        self.v = self.v + self.beta * r / self.dt
-        if self.gamma is not None:
-            self.a = self.a + 2.0 * self.gamma * r / self.dt**2
 
 
 class AlphaBetaConfig(EstimatorConfig):

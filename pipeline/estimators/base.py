@@ -5,7 +5,7 @@ State model for a moving point (Krivokon 2011, ch. II)::
     x = [p; v] ∈ R⁶,   x_k = A x_{k−1} + w_k,   A = [[I, dt·I], [0, I]]
     y_k = h(x_k) + v_k,   h(x) = [proj(P1, p); proj(P2, p)] ∈ R⁴  (pixels)
 
-with ``h`` the :class:`pipeline.camera.StereoMeasurementModel` of the rig. Every method — point
+with ``h`` the :class:`pipeline.core.camera.StereoMeasurementModel` of the rig. Every method — point
 and four-point target alike — is built from a pydantic config + the stereo rig + ``dt`` and has
 three equivalent paths that give the same numbers (tested):
 
@@ -35,8 +35,8 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from pipeline.camera import StereoMeasurementModel, StereoRig
-from pipeline.errors import StereotrackError
+from pipeline.core.camera import StereoMeasurementModel, StereoRig
+from pipeline.core.errors import StereotrackError
 
 Kind = Literal["point", "target"]
 ENTRY_POINT_GROUP = "stereotrack.estimators"

@@ -33,7 +33,7 @@ from typing import ClassVar, Literal
 import numpy as np
 from pydantic import Field
 
-from pipeline.camera import Camera, StereoRig
+from pipeline.core.camera import Camera, StereoRig
 from pipeline.estimators.base import Estimator, EstimatorConfig, Step, camera_gate, register
 
 Formula = Literal["exact", "paper"]

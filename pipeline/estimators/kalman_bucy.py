@@ -24,7 +24,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from pipeline.errors import StereotrackError
+from pipeline.core.errors import StereotrackError
 from pipeline.estimators.base import Step, expm, register
 from pipeline.estimators.four_point import TargetConfig, TargetEstimator
 

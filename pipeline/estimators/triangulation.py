@@ -1,5 +1,5 @@
 """Frame-by-frame stereo triangulation, the inverse of the measurement model
-(:func:`pipeline.camera.triangulate`, the homogeneous DLT; thesis ch. I; Hartley & Zisserman §12.2).
+(:func:`pipeline.core.camera.triangulate`, the homogeneous DLT; thesis ch. I; Hartley & Zisserman §12.2).
 
 The estimator holds no state beyond the last fix; every other method starts from the same
 triangulation through :class:`pipeline.estimators.base.Initiator`.

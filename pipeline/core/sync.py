@@ -18,13 +18,12 @@ jitter and dropped frames at once.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from pathlib import Path
 
 import numpy as np
 
-from pipeline.camera import StereoRig
-from pipeline.checks import EPIPOLAR_WARN_PX
-from pipeline.errors import StereotrackError
+from pipeline.core.camera import StereoRig
+from pipeline.core.checks import EPIPOLAR_WARN_PX
+from pipeline.core.errors import StereotrackError
 
 #: the offsets searched, in frames either side of zero (fewer for short clips: a quarter of them)
 MAX_SHIFT_FRAMES = 10.0
@@ -191,27 +190,6 @@ def parse_time_offset(value: str | None) -> str | float | None:
 
 
 # -- timestamps ----------------------------------------------------------------------------------
-
-
-def read_timestamps(path: str | Path) -> dict[str, np.ndarray]:
-    """``timestamps.csv`` → per camera an array of times indexed by frame (NaN where the camera has
-    no such frame); errors name the line."""
-    from pipeline.clip import TIMESTAMP_COLUMNS
-    from pipeline.io import read_csv
-
-    cols = read_csv(path, TIMESTAMP_COLUMNS, finite=["frame", "t"])
-    out: dict[str, np.ndarray] = {}
-    for cam in ("left", "right"):
-        sel = cols["camera"] == cam
-        frames = cols["frame"][sel]
-        if np.any(frames < 0) or np.any(frames != np.round(frames)):
-            raise StereotrackError("frame numbers must be whole and non-negative", path)
-        t = np.full(int(frames.max()) + 1 if len(frames) else 0, np.nan)
-        t[frames.astype(int)] = cols["t"][sel]
-        out[cam] = t
-    if not len(out["left"]) or not len(out["right"]):
-        raise StereotrackError("needs rows for both cameras (left and right)", path)
-    return out
 
 
 def nominal_frames(t: np.ndarray, fps: float) -> np.ndarray:

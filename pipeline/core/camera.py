@@ -18,8 +18,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline.errors import CalibrationError
-from pipeline.io import atomic_path
+from pipeline.core.errors import CalibrationError
+from pipeline.core.io import atomic_path
 
 #: Iterations of ``cv2.undistortPoints``: OpenCV's default of 5 leaves strong distortion
 #: under-corrected by tenths of a pixel at the image corners

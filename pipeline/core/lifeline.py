@@ -23,7 +23,7 @@ import time
 import warnings
 from pathlib import Path
 
-from pipeline.errors import StereotrackError
+from pipeline.core.errors import StereotrackError
 
 LOCK_NAME = ".stereotrack.lock"
 #: How often a child checks that its parent is alive (s): the bound on how long it can outlive it.
@@ -146,7 +146,7 @@ class OutputLock:
     def __enter__(self) -> OutputLock:
         import fcntl
 
-        from pipeline.io import ensure_dir
+        from pipeline.core.io import ensure_dir
 
         ensure_dir(self.folder)
         while True:

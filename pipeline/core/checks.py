@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.camera import StereoRig
-from pipeline.errors import ClipError
+from pipeline.core.camera import StereoRig
+from pipeline.core.errors import ClipError
 
 #: Median epipolar distance (px) of matched detections above which the cameras' detections are
 #: taken not to correspond (a rendered clip gives ~0.1 px, a good real rig well under 1 px).
@@ -96,7 +96,7 @@ def unsized_calibration_check(rig: StereoRig, frame_size: tuple[int, int], calib
 def stereo_checks(rig: StereoRig, observations: dict[str, np.ndarray], calib: str = "calib.yaml") -> list[Check]:
     """Left/right swapped (most triangulations behind a camera), non-corresponding detections
     (median epipolar distance) and points behind a camera, over all markers' two-camera frames."""
-    from pipeline.camera import triangulate
+    from pipeline.core.camera import triangulate
 
     Y = np.vstack([v for v in observations.values()]) if observations else np.empty((0, 4))
     Y = Y[np.all(np.isfinite(Y), axis=1)]

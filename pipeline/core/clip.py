@@ -7,7 +7,7 @@ a rendered clip adds ``clip.json`` (fps, markers and their colours, the four-poi
 description — written by the renderer from its scenario), ``scenario.yaml``, ``truth.csv`` and
 ``target_truth.csv``. :class:`Clip` loads each piece once, when first asked; every stage takes a
 ``Clip`` (or a path, opened here) so that nothing downstream needs to know how the clip was made.
-Frames themselves are decoded by :mod:`detectors.frames`.
+Frames themselves are decoded by :mod:`pipeline.core.frames`.
 """
 
 from __future__ import annotations
@@ -20,16 +20,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 from pydantic import BaseModel, ConfigDict, Field
 
-from pipeline.camera import CALIB_NAMES, EXTRINSICS_NAMES, INTRINSICS_NAMES, StereoRig, has_calibration, load_calibration
-from pipeline.checks import Check
-from pipeline.errors import ClipError, StereotrackError
-from pipeline.io import check_frame_column, read_csv, read_json_mapping
+from pipeline.core.camera import CALIB_NAMES, EXTRINSICS_NAMES, INTRINSICS_NAMES, StereoRig, has_calibration, load_calibration
+from pipeline.core.checks import Check
+from pipeline.core.errors import ClipError, StereotrackError
+from pipeline.core.frames import CameraReader, StereoFrameSource, find_camera_source
+from pipeline.core.io import check_frame_column, read_csv, read_json_mapping
 
-VIDEO_EXTS = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm")
-IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 CLIP_INFO = "clip.json"
 DETECT_INFO = "detect.json"
 MARKERS_FILE = "markers.yaml"
@@ -122,8 +120,8 @@ class Clip:
     # -- what the clip is ----------------------------------------------------------------------
     @cached_property
     def info(self) -> dict[str, Any]:
-        """``clip.json`` (rendered clips), else the same description derived from an older
-        clip's ``scenario.yaml``, else ``{}`` (real footage)."""
+        """``clip.json`` (rendered clips), else ``{}`` (real footage; a clip rendered before
+        clip.json existed is re-rendered, or given its markers like real footage)."""
         path = self.folder / CLIP_INFO
         if path.is_file():
             info = read_json_mapping(path, "clip description")
@@ -133,10 +131,6 @@ class Clip:
             except (KeyError, TypeError, ValueError):
                 raise ClipError("unreadable clip description (markers need 'name' and 'rgb'; fps a number)", path) from None
             return info
-        if (self.folder / "scenario.yaml").is_file() and self.path.is_dir():
-            from renderers.scenario import clip_description, load_scenario  # clips rendered before clip.json
-
-            return clip_description(load_scenario(self.folder / "scenario.yaml"))
         return {}
 
     @property
@@ -152,7 +146,7 @@ class Clip:
             return ClipSettings()
         from pydantic import ValidationError
 
-        from pipeline.io import read_yaml_mapping
+        from pipeline.core.io import read_yaml_mapping
 
         try:
             return ClipSettings.model_validate(read_yaml_mapping(path))
@@ -185,8 +179,6 @@ class Clip:
         stamped = self._timestamps_rate()
         if stamped is not None:
             return stamped, TIMESTAMPS
-        from detectors.frames import CameraReader
-
         try:
             reader = CameraReader(self.camera_source("left") if self.path.is_dir() else self.path)
             reader.close()
@@ -205,7 +197,6 @@ class Clip:
         path = self.folder / TIMESTAMPS
         if not (self.path.is_dir() and path.is_file()):
             return None
-        from pipeline.sync import read_timestamps
 
         return read_timestamps(path)
 
@@ -281,8 +272,6 @@ def footage_info(clip: Path, out_dir: Path) -> FootageInfo:
             return FootageInfo(int(d["frames"]), tuple(d["frame_size"]), checks, list(d.get("cameras", [])))  # type: ignore[arg-type]
         except (ValueError, KeyError, TypeError) as exc:
             raise StereotrackError(f"unreadable detect record ({exc}): rerun `stereotrack detect`", info) from None
-    from detectors.frames import StereoFrameSource
-
     try:
         src = StereoFrameSource(clip, allow_unequal=True, prefetch=False)
     except StereotrackError:
@@ -290,18 +279,6 @@ def footage_info(clip: Path, out_dir: Path) -> FootageInfo:
     for r in src.readers:
         r.close()
     return FootageInfo(len(src), src.size, [])
-
-
-def find_camera_source(clip_dir: Path, name: str) -> Path:
-    """``<name>.<video ext>`` or a ``<name>/`` folder of frames inside ``clip_dir``."""
-    for ext in VIDEO_EXTS:
-        p = clip_dir / f"{name}{ext}"
-        if p.is_file():
-            return p
-    if (clip_dir / name).is_dir():
-        return clip_dir / name
-    raise ClipError(f"no {name} video ({'/'.join(e[1:] for e in VIDEO_EXTS)}) or {name}/ frame folder", clip_dir)
-
 
 
 #: Files of a clip folder that a run reads besides the footage (each only where present).
@@ -423,43 +400,19 @@ def find_target(clip: Clip, target_radius: float | None, obs: dict[str, np.ndarr
     return info
 
 
-def read_markers_file(path: str | Path) -> list[str]:
-    """``markers.yaml``: a list of ``--markers`` specs, or a mapping with key ``markers`` holding one."""
-    path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (OSError, yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise StereotrackError(f"cannot read marker list ({str(exc).splitlines()[0]})", path) from None
-    if isinstance(data, dict):
-        if set(data) != {"markers"}:
-            raise StereotrackError(f"expected one key 'markers', found {', '.join(map(str, data))}", path)
-        data = data["markers"]
-    if not isinstance(data, list) or not data or not all(isinstance(s, str) for s in data):
-        raise StereotrackError("'markers' must be a non-empty list of specs such as 'ball:30-60:60:60', "
-                               "'red=#e61e1e' or 'ball@100,120,40,40'", path)
-    from detectors.blob import MarkerColor
-
-    for spec in data:  # validate now, naming the file
-        try:
-            if MarkerColor.parse_window(spec) is None:
-                MarkerColor.parse(spec)
-        except StereotrackError as exc:
-            raise StereotrackError(str(exc), path) from None
-    return data
-
-
-def resolve_marker_specs(clip: Path, specs: list[str] | None, default: list[str] | None = None) -> list[str] | None:
-    """The marker specs that apply to ``clip``, by one precedence: ``--markers`` (``specs``), else the
-    clip's own ``markers.yaml``, else ``default`` (a batch root's ``markers.yaml``); None leaves the
-    colours to a rendered clip's description. ``--markers`` that differ from the clip's own file are
-    used with a warning naming both."""
-    folder = clip if clip.is_dir() else clip.parent
-    own = folder / MARKERS_FILE
-    if specs:
-        if own.is_file() and read_markers_file(own) != list(specs):
-            warnings.warn(f"{own}: --markers {','.join(specs)} used instead of this file's "
-                          f"{','.join(read_markers_file(own))}", stacklevel=2)
-        return specs
-    if own.is_file():
-        return read_markers_file(own)
-    return default
+def read_timestamps(path: str | Path) -> dict[str, np.ndarray]:
+    """``timestamps.csv`` → per camera an array of times indexed by frame (NaN where the camera has
+    no such frame); errors name the line."""
+    cols = read_csv(path, TIMESTAMP_COLUMNS, finite=["frame", "t"])
+    out: dict[str, np.ndarray] = {}
+    for cam in ("left", "right"):
+        sel = cols["camera"] == cam
+        frames = cols["frame"][sel]
+        if np.any(frames < 0) or np.any(frames != np.round(frames)):
+            raise StereotrackError("frame numbers must be whole and non-negative", path)
+        t = np.full(int(frames.max()) + 1 if len(frames) else 0, np.nan)
+        t[frames.astype(int)] = cols["t"][sel]
+        out[cam] = t
+    if not len(out["left"]) or not len(out["right"]):
+        raise StereotrackError("needs rows for both cameras (left and right)", path)
+    return out

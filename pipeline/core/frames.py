@@ -14,10 +14,24 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline.clip import IMAGE_EXTS, find_camera_source
-from pipeline.errors import ClipError
+from pipeline.core.errors import ClipError
+
+VIDEO_EXTS = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm")
+IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
 _FRAME_NUMBER = re.compile(r"(\d+)$")
+
+
+def find_camera_source(clip_dir: Path, name: str) -> Path:
+    """``<name>.<video ext>`` or a ``<name>/`` folder of frames inside ``clip_dir``."""
+    for ext in VIDEO_EXTS:
+        p = clip_dir / f"{name}{ext}"
+        if p.is_file():
+            return p
+    if (clip_dir / name).is_dir():
+        return clip_dir / name
+    raise ClipError(f"no {name} video ({'/'.join(e[1:] for e in VIDEO_EXTS)}) or {name}/ frame folder", clip_dir)
+
 
 
 def index_frame_files(folder: Path) -> dict[int, Path]:

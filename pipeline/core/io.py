@@ -1,4 +1,4 @@
-"""Atomic file output and the CSV tables of the clip-folder contract (:mod:`pipeline.clip`)."""
+"""Atomic file output and the CSV tables of the clip-folder contract (:mod:`pipeline.core.clip`)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.errors import StereotrackError
+from pipeline.core.errors import StereotrackError
 
 
 @contextlib.contextmanager

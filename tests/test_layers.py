@@ -1,0 +1,93 @@
+"""The structure drawn from the imports: ``pipeline.core`` imports nothing outside itself; the
+renderers, detectors and estimators stand on it alone; the stages stack above in data-flow order
+(estimate → metrics → report / recording → run → batch → cli); no circles. Every import counts,
+those inside functions and under ``TYPE_CHECKING`` included."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+from tests.conftest import REPO
+
+PACKAGES = ("pipeline", "detectors", "renderers")
+
+#: (layer, module prefixes), lowest first; a module may import its own group and lower layers only
+LAYERS: list[tuple[int, tuple[str, ...]]] = [
+    (0, ("pipeline.core",)),
+    (1, ("renderers",)), (1, ("detectors",)), (1, ("pipeline.estimators",)),
+    (2, ("pipeline.consistency", "pipeline.settings", "pipeline.soifer", "pipeline.manifest", "pipeline.tables",
+         "pipeline.html", "pipeline.style")),
+    (3, ("pipeline.metrics",)),
+    (4, ("pipeline.estimate",)),
+    (5, ("pipeline.report", "pipeline.recording", "pipeline.export", "pipeline.calibrate", "pipeline.summary")),
+    (6, ("pipeline.run",)),
+    (7, ("pipeline.batch",)),
+    (8, ("pipeline.cli",)),
+]
+
+
+def module_name(path: Path) -> str:
+    parts = list(path.relative_to(REPO).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def imports() -> dict[str, set[str]]:
+    """Module → the project modules it imports (anywhere in its source)."""
+    mods = {module_name(p): p for pkg in PACKAGES for p in (REPO / pkg).rglob("*.py")}
+    graph: dict[str, set[str]] = {}
+    for name, path in mods.items():
+        found = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                targets = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+            elif isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            else:
+                continue
+            found |= {t for t in targets if t in mods and t != name}
+        graph[name] = found
+    return graph
+
+
+def group(module: str) -> tuple[int, str]:
+    """(layer, group) of a module: the longest matching prefix."""
+    best = max(((len(p), layer, p) for layer, prefixes in LAYERS for p in prefixes
+                if module == p or module.startswith(p + ".")), default=None)
+    assert best is not None, f"{module} is in no layer: add it to LAYERS"
+    return best[1], best[2] if best[1] else "pipeline.core"
+
+
+def test_imports_follow_the_data_flow():
+    wrong = []
+    for mod, targets in imports().items():
+        if mod in PACKAGES:
+            continue
+        layer, grp = group(mod)
+        for t in targets:
+            if t in PACKAGES:
+                continue
+            t_layer, t_grp = group(t)
+            if t_grp != grp and t_layer >= layer:
+                wrong.append(f"{mod} → {t}")
+    assert not wrong, "imports against the data flow:\n" + "\n".join(sorted(wrong))
+
+
+def test_no_import_circles():
+    graph = imports()
+    state: dict[str, int] = {}
+    cycles = []
+
+    def visit(m: str, path: list[str]) -> None:
+        state[m] = 1
+        for t in sorted(graph.get(m, ())):
+            if state.get(t) == 1:
+                cycles.append(" → ".join([*path[path.index(t):], t]))
+            elif t not in state:
+                visit(t, [*path, t])
+        state[m] = 2
+
+    for m in sorted(graph):
+        if m not in state:
+            visit(m, [m])
+    assert not cycles, "import circles:\n" + "\n".join(cycles)
