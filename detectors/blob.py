@@ -283,19 +283,19 @@ class BlobDetector:
                 x, y, w, h = roi
                 sub = bgr[y : y + h, x : x + w]
                 if sub.size:
-                    found = self._detect_one(mk, sub, cv2.cvtColor(sub, cv2.COLOR_BGR2HSV), x, y)
+                    found = self.detect_marker(mk, sub, cv2.cvtColor(sub, cv2.COLOR_BGR2HSV), x, y)
                 expect = (expected_area or {}).get(mk.name)
                 if found and expect and found[0].area < 0.4 * expect:
                     windowed = found
                     found = self._detect_coarse(mk, bgr) if self.coarse and bgr.shape[1] >= 640 \
-                        else self._detect_one(mk, bgr, whole(), 0, 0)
+                        else self.detect_marker(mk, bgr, whole(), 0, 0)
                     if not found or windowed[0].score * windowed[0].area >= found[0].score * found[0].area:
                         found = windowed
             if not found:
                 if self.coarse and bgr.shape[1] >= 640 and self.backend == "components":
                     found = self._detect_coarse(mk, bgr)
                 else:
-                    found = self._detect_one(mk, bgr, whole(), 0, 0)
+                    found = self.detect_marker(mk, bgr, whole(), 0, 0)
             out += found[: self.max_per_marker]
         return out
 
@@ -317,13 +317,15 @@ class BlobDetector:
             x0, y0 = max(2 * x - 6, 0), max(2 * y - 6, 0)
             x1, y1 = min(2 * (x + w) + 6, W), min(2 * (y + h) + 6, H)
             sub = bgr[y0:y1, x0:x1]
-            for d in self._detect_one(mk, sub, cv2.cvtColor(sub, cv2.COLOR_BGR2HSV), x0, y0):
+            for d in self.detect_marker(mk, sub, cv2.cvtColor(sub, cv2.COLOR_BGR2HSV), x0, y0):
                 if not any(abs(d.u - e.u) < 1 and abs(d.v - e.v) < 1 for e in found):
                     found.append(d)
         found.sort(key=lambda d: (-d.score * d.area))
         return found
 
-    def _detect_one(self, mk: MarkerColor, bgr: np.ndarray, hsv: np.ndarray, ox: int, oy: int) -> list[Detection]:
+    def detect_marker(self, mk: MarkerColor, bgr: np.ndarray, hsv: np.ndarray, ox: int = 0, oy: int = 0) -> list[Detection]:
+        """One marker's blobs in ``bgr`` (its HSV given), best first; ``ox, oy``: the image's
+        offset in the frame (a search window)."""
         mask = mk.mask(hsv)
         if self.backend == "simpleblob":
             found = [Detection(mk.name, kp.pt[0] + ox, kp.pt[1] + oy, np.pi * (kp.size / 2) ** 2, 1.0)

@@ -11,23 +11,17 @@ is the back-projection centroid inside the final window.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Literal
 
 import cv2
 import numpy as np
 
+from detectors.base import Detector, register
 from detectors.blob import BlobDetector, Detection, MarkerColor
 from pipeline.core.alphabeta import ABFilter
 from pipeline.core.errors import StereotrackError
 
 CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.1)
-
-
-@dataclass
-class TrackState:
-    window: tuple[int, int, int, int]
-    lost: bool
 
 
 class MeanShiftTracker:
@@ -159,3 +153,25 @@ class MeanShiftTracker:
 
         best = max(range(1, n), key=preference)
         return float(x0 + cents[best, 0]), float(y0 + cents[best, 1]), float(stats[best, 4] * 255.0)
+
+
+@register
+class MeanShiftDetector(Detector):
+    """Meanshift tracking of each marker (one :class:`MeanShiftTracker` per marker and camera)."""
+
+    name = "meanshift"
+
+    def __init__(self, markers: list[MarkerColor], groups: dict[str, list[str]] | None = None,
+                 roi: tuple[int, int, int, int] | None = None) -> None:
+        super().__init__(markers, groups, roi)
+        self.trackers = [MeanShiftTracker(m, self.name, roi) for m in markers]  # type: ignore[arg-type]
+
+    def detect(self, frame: np.ndarray) -> list[Detection]:
+        return [d for t in self.trackers if (d := t.update(frame)) is not None]
+
+
+@register
+class CamShiftDetector(MeanShiftDetector):
+    """CamShift: meanshift whose window adapts to the marker's apparent size."""
+
+    name = "camshift"

@@ -3,20 +3,16 @@ per-camera summary, with pixel errors against ``truth.csv`` when the clip has on
 
 from __future__ import annotations
 
-import statistics
-from collections import deque
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Literal
 
 import cv2
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
-from detectors.blob import BlobDetector, Detection, MarkerColor
+from detectors.base import create_detector
+from detectors.blob import BlobDetector, MarkerColor
 from detectors.markers import resolve_marker_specs
-from detectors.meanshift import MeanShiftTracker
 from pipeline.core.camera import StereoRig
 from pipeline.core.checks import Check, colour_checks, rig_for_frames, warn_failed
 from pipeline.core.clip import (
@@ -37,7 +33,6 @@ from pipeline.core.io import write_csv, write_json
 #: Whole frames sampled per camera for the colour-range checks.
 CHECK_SAMPLES = 10
 CAMERAS = ("left", "right")
-DetectorName = Literal["blob", "meanshift", "camshift"]
 
 
 @dataclass
@@ -111,31 +106,9 @@ def markers_for_clip(clip: Clip, specs: list[str] | None, left_frame: Callable[[
     return colors, groups
 
 
-def label_four_points(points: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
-    """Order four image points as Soifer, Fursov & Kharitonov number them: 2 and 4 on the rotation axis (the pair
-    2R apart, not foreshortened, i.e. the longer diagonal), 2 to the right; 1 above the axis.
-    With the previous frame's labelled points, keep labels by optimal assignment instead, so
-    labels never swap while the target moves."""
-    if previous is not None and np.all(np.isfinite(previous)):
-        cost = np.linalg.norm(points[:, None, :] - previous[None, :, :], axis=2)
-        rows, cols = linear_sum_assignment(cost)
-        out = np.empty_like(points)
-        out[cols] = points[rows]
-        return out
-    d = np.linalg.norm(points[:, None] - points[None], axis=2)
-    pairs = [((0, 1), (2, 3)), ((0, 2), (1, 3)), ((0, 3), (1, 2))]
-    (a, b), (c, e) = max(pairs, key=lambda pr: max(d[pr[0]], d[pr[1]]))
-    axis, other = ((a, b), (c, e)) if d[a, b] >= d[c, e] else ((c, e), (a, b))
-    p2, p4 = sorted(axis, key=lambda i: -points[i, 0])
-    direction = points[p2] - points[p4]
-    normal = np.array([direction[1], -direction[0]])  # points "up" (−y) for a rightward axis
-    p1, p3 = sorted(other, key=lambda i: -float((points[i] - points[p4]) @ normal))
-    return points[[p1, p2, p3, p4]]
-
-
 def detect_clip(
     clip: str | Path | Clip,
-    detector: DetectorName = "blob",
+    detector: str = "blob",
     marker_specs: list[str] | None = None,
     roi: tuple[int, int, int, int] | None = None,
     allow_unequal: bool = False,
@@ -169,18 +142,8 @@ def detect_clip(
     specs = resolve_marker_specs(clip, marker_specs)
     markers, groups = markers_for_clip(clip_, specs, lambda k: _left_frame(source, k), learned, force)
     n_cams = 2 if source.stereo else 1
-    if detector == "blob":
-        blob = BlobDetector(markers, max_per_marker=4)
-    elif detector in ("meanshift", "camshift"):
-        if groups:
-            raise StereotrackError("meanshift/camshift track one point per colour: use blob for a one-colour target")
-        trackers = [[MeanShiftTracker(m, detector, roi) for m in markers] for _ in range(n_cams)]
-    else:
-        raise StereotrackError(f"unknown detector {detector!r} (blob, meanshift, camshift)")
+    finders = [create_detector(detector, markers, groups, roi) for _ in range(n_cams)]
     rows: list[tuple] = []
-    previous: dict[tuple[int, str], np.ndarray] = {}
-    windows: list[dict[str, tuple[int, int, int, int]]] = [{}, {}]  # blob search windows per camera
-    areas: list[dict[str, deque]] = [{}, {}]  # recent blob areas per camera and marker
     grouped = {n for names in groups.values() for n in names}
     total = len(source)
     sample_at = set(np.linspace(0, max(total - 1, 0), min(CHECK_SAMPLES, max(total, 1))).astype(int).tolist())
@@ -193,23 +156,11 @@ def detect_clip(
         images = [fr.left] if n_cams == 1 else [fr.left, fr.right]
         for c, img in enumerate(images):
             if img is None:  # a missing frame file: no detection in this camera
-                windows[c] = {}
+                finders[c].reset()
                 continue
             if fr.index in sample_at:
                 _sample_colours(sampler, img, CAMERAS[c], grouped | set(groups), samples)
-            if detector == "blob":
-                expected = {m: statistics.median(a) for m, a in areas[c].items() if a}
-                dets = _best_per_marker(blob.detect(img, rois=windows[c], expected_area=expected), groups, previous, c)
-                windows[c] = {d.marker: _window(d, img.shape) for d in dets if d.marker not in grouped}
-                seen = {d.marker for d in dets}
-                for d in dets:
-                    areas[c].setdefault(d.marker, deque(maxlen=5)).append(d.area)
-                for m in list(areas[c]):
-                    if m not in seen:
-                        areas[c].pop(m)
-            else:
-                dets = [d for t in trackers[c] if (d := t.update(img)) is not None]
-            for d in dets:
+            for d in finders[c].detect(img):
                 u, v = d.u, d.v
                 if rig is not None:
                     u, v = rig.cameras[c].undistort(np.array([[u, v]]))[0]
@@ -260,42 +211,12 @@ def _sample_colours(sampler: BlobDetector, img: np.ndarray, cam: str, skip: set[
             continue
         mask = mk.mask(hsv)
         mask_px = int(cv2.countNonZero(mask)) * scale
-        found = sampler._detect_one(mk, small, hsv, 0, 0)
+        found = sampler.detect_marker(mk, small, hsv)
         areas = [*sorted((d.area * scale for d in found), reverse=True), 0.0, 0.0]
         stats = cv2.connectedComponentsWithStats(mask, connectivity=8)[2]
         one = float(stats[1:, cv2.CC_STAT_AREA].max()) * scale / mask_px if len(stats) > 1 and mask_px else 0.0
         samples.setdefault((mk.name, cam), []).append((mask_px / (img.shape[0] * img.shape[1]), mask_px, areas[0],
                                                       areas[1], one))
-
-
-def _window(d: Detection, shape: tuple[int, ...]) -> tuple[int, int, int, int]:
-    """Search window for the next frame: the blob's size plus room for fast motion."""
-    r = max(np.sqrt(d.area / np.pi), 2.0)
-    half = int(3 * r + 24)
-    x0, y0 = max(int(d.u) - half, 0), max(int(d.v) - half, 0)
-    return x0, y0, min(2 * half, shape[1] - x0), min(2 * half, shape[0] - y0)
-
-
-def _best_per_marker(dets: list[Detection], groups: dict[str, list[str]], previous: dict, cam: int) -> list[Detection]:
-    out: list[Detection] = []
-    by: dict[str, list[Detection]] = {}
-    for d in dets:
-        by.setdefault(d.marker, []).append(d)
-    for name, ds in by.items():
-        if name in groups:
-            if len(ds) < 4:
-                continue  # fewer than four points: the target is skipped this frame
-            ds = sorted(ds, key=lambda d: -d.area)[:4]
-            pts = np.array([[d.u, d.v] for d in ds])
-            labelled = label_four_points(pts, previous.get((cam, name)))
-            previous[(cam, name)] = labelled
-            lookup = {(round(d.u, 6), round(d.v, 6)): d for d in ds}
-            for point_name, p in zip(groups[name], labelled, strict=True):
-                d = lookup[(round(p[0], 6), round(p[1], 6))]
-                out.append(Detection(point_name, d.u, d.v, d.area, d.score))
-        else:
-            out.append(ds[0])
-    return out
 
 
 def summarize(rows: list[tuple], clip: Clip, n_frames: int, n_cams: int) -> list[CameraSummary]:

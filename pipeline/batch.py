@@ -207,6 +207,10 @@ def run_batch(
     out_root = Path(output_dir)
     if fps is not None and not (math.isfinite(fps) and fps > 0):
         raise StereotrackError(f"--fps must be a positive number of frames per second, not {fps:g}")
+    from detectors.base import registry as detectors
+
+    if detector not in detectors():
+        raise StereotrackError(f"unknown detector {detector!r} ({', '.join(detectors())})")
     clips = find_clips(input_dir, skip=out_root.resolve())
     if not clips:
         raise StereotrackError("no clip folders here (a clip holds left/right videos or frame folders and a calibration)",
@@ -322,14 +326,14 @@ def _run_local(todo: list[Path], keys: dict[Path, str], out_root: Path, settings
     when the batch is interrupted (Ctrl-C, SIGTERM) instead of finishing their clips."""
     from concurrent.futures.process import BrokenProcessPool
 
-    from pipeline.core.lifeline import end_pool, signals_deferred
+    from pipeline.core.lifeline import child_environment, end_pool, signals_deferred
 
     ctx = mp.get_context("spawn")
     stages = ctx.Queue() if on_stage is not None else None
     pool = cf.ProcessPoolExecutor(max_workers=max(1, workers), mp_context=ctx, initializer=_worker_init,
                                   initargs=(os.getpid(), workers > 1, stages))
     try:
-        with signals_deferred():  # submitting spawns the workers
+        with signals_deferred(), child_environment():  # submitting spawns the workers
             futs = {pool.submit(_process_one, str(c), keys[c], str(out_root), settings, os.getpid()): keys[c]
                     for c in todo}
         pending = set(futs)
@@ -382,8 +386,11 @@ def _dask_client(workers: int, scheduler: str | None, scheduler_file: str | Path
 
     from dask.distributed import Client, LocalCluster
 
-    cluster = LocalCluster(n_workers=max(1, workers), threads_per_worker=1, processes=True,
-                           dashboard_address=None, silence_logs=logging.WARNING) if scheduler == "local" else None
+    from pipeline.core.lifeline import child_environment
+
+    with child_environment():
+        cluster = LocalCluster(n_workers=max(1, workers), threads_per_worker=1, processes=True,
+                               dashboard_address=None, silence_logs=logging.WARNING) if scheduler == "local" else None
     where = scheduler_file if scheduler_file is not None else scheduler
     # Dask's own setting (DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT) wins; 10 s otherwise
     timeout = os.environ.get("DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT", "10s")

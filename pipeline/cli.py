@@ -67,13 +67,18 @@ def scenarios_cmd() -> None:
 
 @app.command("methods")
 def methods_cmd() -> None:
-    """List every estimator (built-in and plugins): name, kind and what it does."""
+    """List every estimator and detector (built-in and plugins): name and what it does."""
+    from detectors.base import registry as detectors
     from pipeline.estimators import registry
 
     table = Table("method", "kind", "description", title="estimators (--methods, --config)")
     for name, cls in registry().items():
         table.add_row(name, cls.kind, cls.description())
     out.print(table)
+    found = Table("detector", "description", title="detectors (--detector)")
+    for name, det in detectors().items():
+        found.add_row(name, (det.__doc__ or "").strip().splitlines()[0])
+    out.print(found)
 
 
 @app.command("render")
@@ -121,6 +126,8 @@ MarkersOption = Annotated[list[str] | None, typer.Option(
     "--markers", help="Marker colour, NAME:HLO-HHI[:SMIN[:VMIN]] (OpenCV HSV), NAME=#RRGGBB, or NAME@x,y,w,h to learn "
     "the range from that window of the first left frame; repeatable or comma-separated. Default: the clip's "
     "markers.yaml, else the colours of a rendered clip (clip.json).")]
+DetectorOption = Annotated[str, typer.Option(
+    help="A registered detector: blob, meanshift, camshift, or a plugin's (`stereotrack methods` lists them).")]
 CalibUnitsOption = Annotated[str | None, typer.Option(
     "--calib-units", help="Length unit of the calibration's T (m, cm or mm). Default: the 'units' the file declares, "
     "else metres. Given, it overrides the file's, with a warning naming both when they differ; outputs are in metres.")]
@@ -152,7 +159,7 @@ def _fmt(v: float | None, spec: str = ".3f") -> str:
 @app.command("detect")
 def detect_cmd(
     clip: Annotated[Path, typer.Argument(help="Clip folder (left/right videos or PNG folders) or a single video.")],
-    detector: Annotated[str, typer.Option(help="blob, meanshift or camshift.")] = "blob",
+    detector: DetectorOption = "blob",
     markers: MarkersOption = None,
     roi: Annotated[str | None, typer.Option(help="Initial tracking window x,y,w,h (meanshift/camshift).")] = None,
     allow_unequal: Annotated[bool, typer.Option("--allow-unequal", help="Truncate unequal left/right lengths.")] = False,
@@ -323,7 +330,7 @@ def run_cmd(
                                                 help="Where a rendered clip goes (default runs/<scenario>).")] = None,
     frames: Annotated[int | None, typer.Option(help="Override the scenario's frame count.")] = None,
     seed: Annotated[int | None, typer.Option(help="Override the scenario's seed.")] = None,
-    detector: Annotated[str, typer.Option(help="blob, meanshift or camshift.")] = "blob",
+    detector: DetectorOption = "blob",
     methods: Annotated[str | None, typer.Option(help="Comma-separated methods (default: all).")] = None,
     fmt: Annotated[str, typer.Option("--format", help="Rendered clip format: mp4 or png.")] = "mp4",
     markers: MarkersOption = None,
@@ -460,7 +467,7 @@ def batch_cmd(
                                                         help="Dask scheduler file (dask scheduler --scheduler-file).")] = None,
     dask: Annotated[str | None, typer.Option("--dask", help="'local' runs a Dask LocalCluster here.")] = None,
     force: Annotated[bool, typer.Option("--force", help="Redo clips whose outputs are complete.")] = False,
-    detector: Annotated[str, typer.Option(help="blob, meanshift or camshift.")] = "blob",
+    detector: DetectorOption = "blob",
     methods: Annotated[str | None, typer.Option(help="Comma-separated methods (default: all).")] = None,
     markers: MarkersOption = None,
     calib_units: CalibUnitsOption = None,

@@ -420,25 +420,19 @@ def _render_pool(jobs: list[tuple[Scenario, str | Path]], stagings: list[Path], 
     thread each, a user's own LP_NUM_THREADS aside); a clip is finished when both its cameras are."""
     import concurrent.futures as cf
 
-    from pipeline.core.lifeline import end_pool, signals_deferred
+    from pipeline.core.lifeline import child_environment, end_pool, signals_deferred
 
     total = sum(s.frames for s, _ in jobs)
     ctx = mp.get_context("spawn")
     q: mp.Queue = ctx.Queue()
-    saved = os.environ.get("LP_NUM_THREADS")
-    os.environ["LP_NUM_THREADS"] = saved or "1"
-    try:
-        pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
-                                      initargs=(os.getpid(), q))
-    finally:
-        if saved is None:
-            del os.environ["LP_NUM_THREADS"]
+    pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
+                                  initargs=(os.getpid(), q))
     frames_done: dict[tuple[int, int], int] = {}
     counts: list[list] = [[None, None] for _ in jobs]
     cams_done = [0] * len(jobs)
     results: list[RenderResult | None] = [None] * len(jobs)
     try:
-        with signals_deferred():  # submitting spawns the workers
+        with signals_deferred(), child_environment({"LP_NUM_THREADS": "1"}):  # submitting spawns the workers
             futs = {pool.submit(_render_job, scen.model_dump_json(), c, str(stagings[j]), fmt, j): (j, c)
                     for j, (scen, _) in enumerate(jobs) for c in range(2)}
         pending = set(futs)

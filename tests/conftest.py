@@ -3,14 +3,17 @@
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
-import pytest
-
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):  # before numpy loads: tiny
+    os.environ.setdefault(_var, "1")  # matrices, where BLAS threads cost 2–15× on a loaded machine
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
-from renderers.render import render_clip
-from renderers.scenario import load_scenario, parse_scenario
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+
+from renderers.render import render_clip  # noqa: E402
+from renderers.scenario import load_scenario, parse_scenario  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 SHARED = REPO.parent / "shared"

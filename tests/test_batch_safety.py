@@ -272,3 +272,22 @@ def test_batch_on_a_real_dask_scheduler_and_worker(reference, tmp_path):
             assert clip_outputs(out / f"clip{i}") == clip_outputs(ref_out / f"clip{i}"), i
     finally:
         _stop(procs)
+
+
+def test_child_processes_start_with_one_blas_thread(monkeypatch):
+    """Workers and render processes start with one BLAS/OpenMP thread unless the user chose a
+    number; this process's own environment is left as it was."""
+    import subprocess
+    import sys
+
+    from pipeline.core.lifeline import child_environment
+
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.delenv("LP_NUM_THREADS", raising=False)
+    monkeypatch.setenv("MKL_NUM_THREADS", "3")
+    code = "import os; print(os.environ['OMP_NUM_THREADS'], os.environ['MKL_NUM_THREADS'], os.environ['LP_NUM_THREADS'])"
+    with child_environment({"LP_NUM_THREADS": "1"}):
+        seen = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert seen == ["1", "3", "1"]
+    assert "OMP_NUM_THREADS" not in os.environ and "LP_NUM_THREADS" not in os.environ
+    assert os.environ["MKL_NUM_THREADS"] == "3"

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from detectors.blob import BlobDetector, MarkerColor
+from detectors.blob_tracker import label_four_points
 from detectors.meanshift import MeanShiftTracker
-from detectors.stage import detect_clip, label_four_points
+from detectors.stage import detect_clip
 from pipeline.core.clip import load_detections
 from pipeline.core.errors import ClipError, StereotrackError
 from pipeline.core.frames import StereoFrameSource

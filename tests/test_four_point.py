@@ -88,6 +88,11 @@ def test_unobservable_model_is_a_clear_error():
 
 
 def test_table1_reproduction():
+    """Soifer's Table 1, 60 fixed seeds. With the paper's own settings the π/3 row is the paper's
+    to ±15 % in every SNR column (measured 0.92–1.08×); the π/6 row cannot be matched (our filter
+    gives 0.34–0.42× the paper's errors here; docs/soifer.md shows the same gap) and is held below 0.5×. Both
+    settings decrease with SNR and filter: the raw measurement's error is at least 2× the
+    filtered one in every column (measured 2.2–3.5×; a filter that does nothing gives 1×)."""
     from pipeline.soifer import BEST_SETTINGS, PAPER, PAPER_SETTINGS, table1
 
     ours = table1(BEST_SETTINGS, seeds=60)
@@ -96,8 +101,13 @@ def test_table1_reproduction():
         for res in (ours[a0]["filtered"], theirs[a0]["filtered"]):
             assert all(a > b for a, b in itertools.pairwise(res)), res  # decreases with SNR
         assert all(o <= p for o, p in zip(ours[a0]["filtered"], paper, strict=True)), (a0, ours[a0])
-        assert all(t <= 2 * p for t, p in zip(theirs[a0]["filtered"], paper, strict=True)), (a0, theirs[a0])
-        assert all(o < r for o, r in zip(ours[a0]["filtered"], ours[a0]["raw"], strict=True))
+        ratio = np.array(theirs[a0]["filtered"]) / np.array(paper)
+        if a0 > 1.0:  # π/3
+            assert np.all((ratio > 0.85) & (ratio < 1.15)), (a0, ratio)
+        else:  # π/6
+            assert np.all(ratio < 0.5), (a0, ratio)
+        for res in (ours[a0], theirs[a0]):
+            assert np.all(np.array(res["raw"]) >= 2.0 * np.array(res["filtered"])), (a0, res)
 
 
 def test_table1_truth_and_priors():

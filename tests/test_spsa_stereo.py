@@ -67,8 +67,11 @@ def test_spsa_stereo_stays_finite_through_gaps_and_recovers(receding):
 
 @pytest.mark.parametrize("start_error", [0.3, 1.0])
 def test_spsa_stereo_converges_from_a_wrong_start(receding, start_error):
-    """Given a start ``start_error`` metres off (random direction) with a velocity 0.5 m/s off, the
-    error falls under 5 cm within 20 frames and stays under triangulation's afterwards."""
+    """Given a start ``start_error`` metres off (random direction) with a velocity 0.5 m/s off: the
+    first update jumps to the measurement (gain 1, by construction), so what is tested is the rest.
+    The velocity, which no single measurement gives, is within 0.2 m/s of the truth on average over
+    frames 20–40 (the predict-only baseline from the same start stays 0.5 m/s off and fails the
+    same bound); the position is within 5 cm at frame 20 and beats triangulation afterwards."""
     rig, dt, X, V = receding
     tri_late, ours_late = [], []
     for seed in SEEDS:
@@ -76,12 +79,16 @@ def test_spsa_stereo_converges_from_a_wrong_start(receding, start_error):
         u, w = rng.normal(size=3), rng.normal(size=3)
         state = np.r_[X[0] + start_error * u / np.linalg.norm(u), V[0] + 0.5 * w / np.linalg.norm(w)]
         Y = noisy(rig, X, 1.5, seed)
-        P = create("spsa_stereo", rig, dt, {"seed": seed, "init": {"mode": "given", "state": tuple(state)}}).run(Y).position
-        e = err(P, X)
+        given = {"seed": seed, "init": {"mode": "given", "state": tuple(state)}}
+        tr = create("spsa_stereo", rig, dt, given).run(Y)
+        e = err(tr.position, X)
         assert e[0] == pytest.approx(start_error)
         assert e[20] < 0.05, (seed, e[:25])
+        assert np.mean(err(tr.velocity[20:40], V[20:40])) < 0.2, seed
+        carried = create("predict_only", rig, dt, given).run(Y)
+        assert np.mean(err(carried.velocity[20:40], V[20:40])) > 0.2  # the bound can fail
         tri_late.append(rmse(create("triangulation", rig, dt).run(Y).position[20:], X[20:]))
-        ours_late.append(rmse(P[20:], X[20:]))
+        ours_late.append(rmse(tr.position[20:], X[20:]))
     assert np.mean(ours_late) * 1.5 < np.mean(tri_late)
 
 

@@ -25,6 +25,30 @@ from pathlib import Path
 
 from pipeline.core.errors import StereotrackError
 
+#: What every child process stereotrack starts reads at start-up: one BLAS / OpenMP thread each.
+#: The estimators' matrices are tiny (3×3 to 12×12): on a loaded 2-core machine a threaded BLAS
+#: makes small ``expm`` and ``solve`` calls 2–15× slower, and the workers already fill the cores.
+CHILD_THREADS = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+@contextlib.contextmanager
+def child_environment(extra: dict[str, str] | None = None):
+    """Within the block, child processes start with :data:`CHILD_THREADS` and ``extra`` in their
+    environment (a value the user set wins); this process's own settings are restored after."""
+    wanted = {**CHILD_THREADS, **(extra or {})}
+    saved = {k: os.environ.get(k) for k in wanted}
+    for k, v in wanted.items():
+        os.environ.setdefault(k, v)
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
 LOCK_NAME = ".stereotrack.lock"
 #: How often a child checks that its parent is alive (s): the bound on how long it can outlive it.
 POLL_S = 0.2

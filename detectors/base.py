@@ -1,0 +1,69 @@
+"""The detector role: one object per camera that finds the markers in each frame and owns its
+search state (windows, recent sizes, labels, tracked histograms), and the registry the CLI's
+choices come from. Detectors register themselves like estimators do (Stone Soup's one base per
+role); ``tests/test_detector_protocol.py`` runs every registered one through the same checks."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import ClassVar
+
+import numpy as np
+
+from detectors.blob import Detection, MarkerColor
+from pipeline.core.errors import StereotrackError
+
+
+class Detector(ABC):
+    """Finds each marker in one camera's frames, one frame at a time.
+
+    ``markers``: the colour ranges to find; ``groups``: a one-colour four-point target's colour
+    name → its four point names (the detector labels the points); ``roi``: a user's first search
+    window (x, y, w, h), for detectors that start from one."""
+
+    #: the name the CLI and ``detect.json`` use
+    name: ClassVar[str]
+    #: whether it can label a one-colour four-point target's points
+    labels_targets: ClassVar[bool] = False
+
+    def __init__(self, markers: list[MarkerColor], groups: dict[str, list[str]] | None = None,
+                 roi: tuple[int, int, int, int] | None = None) -> None:
+        if not markers:
+            raise StereotrackError("no markers to detect: give --markers or a clip with clip.json")
+        if groups and not self.labels_targets:
+            raise StereotrackError(f"{self.name} tracks one point per colour: use blob for a one-colour target")
+        self.markers, self.groups, self.roi = markers, dict(groups or {}), roi
+
+    @abstractmethod
+    def detect(self, frame: np.ndarray) -> list[Detection]:
+        """The markers found in this BGR frame: at most one detection per marker (or per point of
+        a target), sub-pixel, in OpenCV's pixel convention."""
+
+    def reset(self) -> None:  # noqa: B027  (a detector without search state keeps nothing to forget)
+        """Forget the search state (the camera has no frame here: a dropped or missing frame)."""
+
+
+_REGISTRY: dict[str, type[Detector]] = {}
+
+
+def register(cls: type[Detector]) -> type[Detector]:
+    """Class decorator: make a detector available by its ``name``."""
+    _REGISTRY[cls.name] = cls
+    return cls
+
+
+def registry() -> dict[str, type[Detector]]:
+    """Every registered detector, the built-in ones first."""
+    import detectors.blob_tracker
+    import detectors.meanshift  # noqa: F401  (the imports register blob, meanshift and camshift)
+
+    return dict(_REGISTRY)
+
+
+def create_detector(name: str, markers: list[MarkerColor], groups: dict[str, list[str]] | None = None,
+                    roi: tuple[int, int, int, int] | None = None) -> Detector:
+    """A new detector of the registered kind ``name`` (one per camera)."""
+    reg = registry()
+    if name not in reg:
+        raise StereotrackError(f"unknown detector {name!r} ({', '.join(reg)})")
+    return reg[name](markers, groups, roi)

@@ -1,0 +1,102 @@
+"""The ``blob`` detector: :class:`~detectors.blob.BlobDetector` per frame, searching first in a
+window around each marker's last detection, rejecting a same-coloured blob much smaller than the
+marker's recent size, and labelling a one-colour four-point target's points consistently."""
+
+from __future__ import annotations
+
+import statistics
+from collections import deque
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from detectors.base import Detector, register
+from detectors.blob import BlobDetector, Detection, MarkerColor
+
+#: recent blob areas kept per marker (their median is the size a window's find must reach)
+AREA_MEMORY = 5
+
+
+def label_order(points: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
+    """The order (indices into ``points``) that numbers four image points as Soifer, Fursov &
+    Kharitonov do: 2 and 4 on the rotation axis (the pair 2R apart, not foreshortened, i.e. the
+    longer diagonal), 2 to the right; 1 above the axis. With the previous frame's labelled points,
+    keep labels by optimal assignment instead, so labels never swap while the target moves."""
+    if previous is not None and np.all(np.isfinite(previous)):
+        cost = np.linalg.norm(points[:, None, :] - previous[None, :, :], axis=2)
+        rows, cols = linear_sum_assignment(cost)
+        order = np.empty(4, dtype=int)
+        order[cols] = rows
+        return order
+    d = np.linalg.norm(points[:, None] - points[None], axis=2)
+    pairs = [((0, 1), (2, 3)), ((0, 2), (1, 3)), ((0, 3), (1, 2))]
+    (a, b), (c, e) = max(pairs, key=lambda pr: max(d[pr[0]], d[pr[1]]))
+    axis, other = ((a, b), (c, e)) if d[a, b] >= d[c, e] else ((c, e), (a, b))
+    p2, p4 = sorted(axis, key=lambda i: -points[i, 0])
+    direction = points[p2] - points[p4]
+    normal = np.array([direction[1], -direction[0]])  # points "up" (−y) for a rightward axis
+    p1, p3 = sorted(other, key=lambda i: -float((points[i] - points[p4]) @ normal))
+    return np.array([p1, p2, p3, p4])
+
+
+def label_four_points(points: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
+    """The four points in label order (see :func:`label_order`)."""
+    return points[label_order(points, previous)]
+
+
+def search_window(d: Detection, shape: tuple[int, ...]) -> tuple[int, int, int, int]:
+    """Search window for the next frame: the blob's size plus room for fast motion."""
+    r = max(np.sqrt(d.area / np.pi), 2.0)
+    half = int(3 * r + 24)
+    x0, y0 = max(int(d.u) - half, 0), max(int(d.v) - half, 0)
+    return x0, y0, min(2 * half, shape[1] - x0), min(2 * half, shape[0] - y0)
+
+
+@register
+class BlobTracker(Detector):
+    """Blob detection with per-marker search windows and target labelling (one per camera)."""
+
+    name = "blob"
+    labels_targets = True
+
+    def __init__(self, markers: list[MarkerColor], groups: dict[str, list[str]] | None = None,
+                 roi: tuple[int, int, int, int] | None = None) -> None:
+        super().__init__(markers, groups, roi)
+        self.blob = BlobDetector(markers, max_per_marker=4)
+        self.grouped = {n for names in self.groups.values() for n in names}
+        self.windows: dict[str, tuple[int, int, int, int]] = {}
+        self.areas: dict[str, deque] = {}
+        self.labelled: dict[str, np.ndarray] = {}
+
+    def reset(self) -> None:
+        self.windows = {}
+
+    def detect(self, frame: np.ndarray) -> list[Detection]:
+        expected = {m: statistics.median(a) for m, a in self.areas.items() if a}
+        dets = self._best_per_marker(self.blob.detect(frame, rois=self.windows, expected_area=expected))
+        self.windows = {d.marker: search_window(d, frame.shape) for d in dets if d.marker not in self.grouped}
+        seen = {d.marker for d in dets}
+        for d in dets:
+            self.areas.setdefault(d.marker, deque(maxlen=AREA_MEMORY)).append(d.area)
+        for m in list(self.areas):
+            if m not in seen:
+                self.areas.pop(m)
+        return dets
+
+    def _best_per_marker(self, dets: list[Detection]) -> list[Detection]:
+        """The best blob of each marker; a target's four largest, labelled (none when fewer)."""
+        by: dict[str, list[Detection]] = {}
+        for d in dets:
+            by.setdefault(d.marker, []).append(d)
+        out: list[Detection] = []
+        for name, ds in by.items():
+            if name not in self.groups:
+                out.append(ds[0])
+            elif len(ds) >= 4:  # fewer than four points: the target is skipped this frame
+                ds = sorted(ds, key=lambda d: -d.area)[:4]
+                pts = np.array([[d.u, d.v] for d in ds])
+                order = label_order(pts, self.labelled.get(name))
+                self.labelled[name] = pts[order]
+                out += [Detection(point, ds[i].u, ds[i].v, ds[i].area, ds[i].score)
+                        for point, i in zip(self.groups[name], order, strict=True)]
+        return out

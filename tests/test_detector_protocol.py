@@ -1,0 +1,50 @@
+"""Every registered detector honours the role (detectors/base.py): on a rendered clip it finds each
+marker within 1.5 px of its true projection in most frames, reports only known markers at most
+once per frame, and after ``reset`` (a missing frame) finds them again."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from detectors.base import Detector, create_detector, registry
+from detectors.blob import MarkerColor
+from pipeline.core.clip import Clip
+from pipeline.core.errors import StereotrackError
+from pipeline.core.frames import StereoFrameSource
+
+
+def test_registry_holds_the_built_in_detectors():
+    assert {"blob", "meanshift", "camshift"} <= set(registry())
+    assert all(issubclass(cls, Detector) and cls.name == name for name, cls in registry().items())
+    with pytest.raises(StereotrackError, match="unknown detector 'nope'"):
+        create_detector("nope", [MarkerColor.from_rgb("red", (230, 30, 30))])
+
+
+@pytest.mark.parametrize("name", sorted(registry()))
+def test_detector_finds_the_markers(name, png_clip):
+    clip = Clip(png_clip)
+    truth = clip.truth_table()
+    markers = [MarkerColor.from_rgb(m.name, m.rgb) for m in clip.markers]
+    det = create_detector(name, markers)
+    errs, frames = [], 0
+    for fr in StereoFrameSource(png_clip):
+        if fr.index == 12:
+            det.reset()  # as after a missing frame
+        found = det.detect(fr.left)
+        names = [d.marker for d in found]
+        assert len(names) == len(set(names)) and set(names) <= {m.name for m in markers}
+        frames += 1
+        for d in found:
+            row = (truth["frame"] == fr.index) & (truth["marker"] == d.marker) & (truth["visible_left"] > 0)
+            if row.any():
+                errs.append(np.hypot(d.u - truth["u_left"][row][0], d.v - truth["v_left"][row][0]))
+    visible = int(np.sum(truth["visible_left"] > 0))
+    assert len(errs) >= 0.9 * visible, (len(errs), visible)
+    assert np.median(errs) < 1.5, np.median(errs)
+
+
+@pytest.mark.parametrize("name", [n for n, c in sorted(registry().items()) if not c.labels_targets])
+def test_point_trackers_refuse_a_one_colour_target(name):
+    with pytest.raises(StereotrackError, match="one point per colour"):
+        create_detector(name, [MarkerColor.from_rgb("t", (200, 200, 30))], {"t": ["t_1", "t_2", "t_3", "t_4"]})
