@@ -50,20 +50,3 @@ def register(cls: type[Detector]) -> type[Detector]:
     """Class decorator: make a detector available by its ``name``."""
     _REGISTRY[cls.name] = cls
     return cls
-
-
-def registry() -> dict[str, type[Detector]]:
-    """Every registered detector, the built-in ones first."""
-    import detectors.blob_tracker
-    import detectors.meanshift  # noqa: F401  (the imports register blob, meanshift and camshift)
-
-    return dict(_REGISTRY)
-
-
-def create_detector(name: str, markers: list[MarkerColor], groups: dict[str, list[str]] | None = None,
-                    roi: tuple[int, int, int, int] | None = None) -> Detector:
-    """A new detector of the registered kind ``name`` (one per camera)."""
-    reg = registry()
-    if name not in reg:
-        raise StereotrackError(f"unknown detector {name!r} ({', '.join(reg)})")
-    return reg[name](markers, groups, roi)

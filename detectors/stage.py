@@ -10,7 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from detectors.base import create_detector
+from detectors import create_detector
 from detectors.blob import BlobDetector, MarkerColor
 from detectors.markers import resolve_marker_specs
 from pipeline.core.camera import StereoRig

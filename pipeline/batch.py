@@ -207,7 +207,7 @@ def run_batch(
     out_root = Path(output_dir)
     if fps is not None and not (math.isfinite(fps) and fps > 0):
         raise StereotrackError(f"--fps must be a positive number of frames per second, not {fps:g}")
-    from detectors.base import registry as detectors
+    from detectors import registry as detectors
 
     if detector not in detectors():
         raise StereotrackError(f"unknown detector {detector!r} ({', '.join(detectors())})")

@@ -68,7 +68,7 @@ def scenarios_cmd() -> None:
 @app.command("methods")
 def methods_cmd() -> None:
     """List every estimator and detector (built-in and plugins): name and what it does."""
-    from detectors.base import registry as detectors
+    from detectors import registry as detectors
     from pipeline.estimators import registry
 
     table = Table("method", "kind", "description", title="estimators (--methods, --config)")

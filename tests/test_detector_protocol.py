@@ -7,7 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from detectors.base import Detector, create_detector, registry
+from detectors import create_detector, registry
+from detectors.base import Detector
 from detectors.blob import MarkerColor
 from pipeline.core.clip import Clip
 from pipeline.core.errors import StereotrackError

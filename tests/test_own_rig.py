@@ -339,7 +339,7 @@ def skin_wall(tmp_path_factory) -> Path:
     from renderers.scenario import load_scenario
 
     clip = tmp_path_factory.mktemp("skin") / "clip"
-    render_clip(load_scenario("skin_wall").with_overrides(frames=45), clip, fmt="png", workers=1)
+    render_clip(load_scenario("skin_wall").with_overrides(frames=24), clip, fmt="png", workers=2)
     return clip
 
 
