@@ -67,8 +67,8 @@ def markers_for_clip(clip: Clip, specs: list[str] | None, left_frame: Callable[[
     its four point names. A ``NAME@x,y,w,h[@FRAME]`` spec learns its range from that window of
     the left camera's frame FRAME (default the first), read through ``left_frame``; the ranges
     chosen go into ``learned``; ``force`` keeps a learned range that selects far more than the
-    marker (see :meth:`MarkerColor.learn`)."""
-    specs = resolve_marker_specs(clip.path, specs)
+    marker (see :meth:`MarkerColor.learn`). ``specs`` are resolved already (see
+    :func:`detectors.markers.resolve_marker_specs`)."""
     if specs:
         colors = []
         for spec in specs:
@@ -130,60 +130,75 @@ def detect_clip(
     size is an error, or scaled with a warning when only the resolution differs.
     """
     clip_ = Clip.open(clip)
-    clip = clip_.path
-    source = StereoFrameSource(clip, allow_unequal=allow_unequal, fps=clip_.fps)
+    source = StereoFrameSource(clip_.path, allow_unequal=allow_unequal, fps=clip_.fps)
     out_dir = Path(out_dir) if out_dir else clip_.folder / "out"
     rig: StereoRig | None = None
     checks: list[Check] = []
     if clip_.has_calibration:
-        rig, size_check = rig_for_frames(clip_.rig(calib_units), source.size, clip)
+        rig, size_check = rig_for_frames(clip_.rig(calib_units), source.size, clip_.path)
         checks += [size_check] if size_check else []
     learned: dict[str, str] = {}
-    specs = resolve_marker_specs(clip, marker_specs)
+    specs = resolve_marker_specs(clip_.path, marker_specs)
     markers, groups = markers_for_clip(clip_, specs, lambda k: _left_frame(source, k), learned, force)
-    n_cams = 2 if source.stereo else 1
-    finders = [create_detector(detector, markers, groups, roi) for _ in range(n_cams)]
-    rows: list[tuple] = []
-    grouped = {n for names in groups.values() for n in names}
+    finders = [create_detector(detector, markers, groups, roi) for _ in range(2 if source.stereo else 1)]
+    scan = _scan(source, finders, rig, markers, {n for names in groups.values() for n in names} | set(groups),
+                 frame_sink, progress)
+    checks += colour_checks(scan.samples)
+    warn_failed(checks)
+    record = {"detector": detector, "markers": [m.spec() for m in markers], "learned": learned,
+              "marker_colours": {m.name: list(m.display_rgb()) for m in markers}}
+    return _write_detections(out_dir, clip_, source, scan, checks, record)
+
+
+@dataclass
+class _Scanned:
+    rows: list[tuple]
+    samples: dict[tuple[str, str], list]
+    frames: int
+    cameras: int
+
+
+def _scan(source: StereoFrameSource, finders: list, rig: StereoRig | None, markers: list[MarkerColor],
+          unsampled: set[str], frame_sink: Callable | None, progress: Callable[[int, int], None] | None) -> _Scanned:
+    """Every frame through each camera's detector (undistorted when there is a calibration), with
+    whole-frame colour samples from a few frames for the colour checks."""
     total = len(source)
     sample_at = set(np.linspace(0, max(total - 1, 0), min(CHECK_SAMPLES, max(total, 1))).astype(int).tolist())
-    samples: dict[tuple[str, str], list] = {}
+    out = _Scanned([], {}, 0, len(finders))
     sampler = BlobDetector(markers, max_per_marker=2)
-    n_done = 0
     for fr in source:
         if frame_sink is not None:
             frame_sink(fr.index, fr.left, fr.right)
-        images = [fr.left] if n_cams == 1 else [fr.left, fr.right]
-        for c, img in enumerate(images):
+        for c, img in enumerate([fr.left, fr.right][: len(finders)]):
             if img is None:  # a missing frame file: no detection in this camera
                 finders[c].reset()
                 continue
             if fr.index in sample_at:
-                _sample_colours(sampler, img, CAMERAS[c], grouped | set(groups), samples)
+                _sample_colours(sampler, img, CAMERAS[c], unsampled, out.samples)
             for d in finders[c].detect(img):
-                u, v = d.u, d.v
-                if rig is not None:
-                    u, v = rig.cameras[c].undistort(np.array([[u, v]]))[0]
-                rows.append((fr.index, CAMERAS[c], d.marker, u, v, d.area, d.score))
-        n_done = fr.index + 1
+                u, v = (d.u, d.v) if rig is None else rig.cameras[c].undistort(np.array([[d.u, d.v]]))[0]
+                out.rows.append((fr.index, CAMERAS[c], d.marker, u, v, d.area, d.score))
+        out.frames = fr.index + 1
         if progress is not None:
-            progress(n_done, total)
-    checks += colour_checks(samples)
-    warn_failed(checks)
+            progress(out.frames, total)
+    return out
+
+
+def _write_detections(out_dir: Path, clip: Clip, source: StereoFrameSource, scan: _Scanned, checks: list[Check],
+                      record: dict) -> DetectResult:
+    """``detections.csv`` and ``detect.json``; the result the estimate stage takes in memory."""
     path = out_dir / "detections.csv"
-    write_csv(path, DETECTION_COLUMNS, rows)
-    summaries = summarize(rows, clip_, n_done, n_cams)
+    write_csv(path, DETECTION_COLUMNS, scan.rows)
+    summaries = summarize(scan.rows, clip, scan.frames, scan.cameras)
     cameras = [asdict(s) for s in summaries]
     write_json(out_dir / DETECT_INFO, {
-        "clip": str(clip), "frames": n_done, "frame_size": list(source.size), "stereo": source.stereo,
-        "detector": detector, "markers": [m.spec() for m in markers], "learned": learned,
-        "marker_colours": {m.name: list(m.display_rgb()) for m in markers},
-        "checks": [c.as_dict() for c in checks], "cameras": cameras})
-    cols = {name: [r[i] for r in rows] for i, name in enumerate(DETECTION_COLUMNS)}
-    return DetectResult(path, rows, summaries, learned=learned, checks=checks,
-                        marker_colours={m.name: list(m.display_rgb()) for m in markers},
-                        observations=observations_from_columns(cols, n_done, path),
-                        footage=FootageInfo(n_done, tuple(source.size), checks, cameras))
+        "clip": str(clip.path), "frames": scan.frames, "frame_size": list(source.size), "stereo": source.stereo,
+        **record, "checks": [c.as_dict() for c in checks], "cameras": cameras})
+    cols = {name: [r[i] for r in scan.rows] for i, name in enumerate(DETECTION_COLUMNS)}
+    return DetectResult(path, scan.rows, summaries, learned=record["learned"], checks=checks,
+                        marker_colours=record["marker_colours"],
+                        observations=observations_from_columns(cols, scan.frames, path),
+                        footage=FootageInfo(scan.frames, tuple(source.size), checks, cameras))
 
 
 def _left_frame(source: StereoFrameSource, k: int) -> np.ndarray | None:

@@ -200,40 +200,19 @@ def run_batch(
     settings and from the same inputs; anything else (including leftovers of a killed batch) is
     redone, with a warning saying why when it had complete outputs.
     """
-    from detectors.markers import read_markers_file
-    from pipeline.core.clip import MARKERS_FILE
-
-    input_dir = Path(input_dir)
-    out_root = Path(output_dir)
-    if fps is not None and not (math.isfinite(fps) and fps > 0):
-        raise StereotrackError(f"--fps must be a positive number of frames per second, not {fps:g}")
-    from detectors import registry as detectors
-
-    if detector not in detectors():
-        raise StereotrackError(f"unknown detector {detector!r} ({', '.join(detectors())})")
+    input_dir, out_root = Path(input_dir), Path(output_dir)
+    settings = batch_settings(input_dir, detector, methods, marker_specs, calib_units, configs, images, time_offset,
+                              fps, figures)
     clips = find_clips(input_dir, skip=out_root.resolve())
     if not clips:
         raise StereotrackError("no clip folders here (a clip holds left/right videos or frame folders and a calibration)",
                                input_dir)
-    root_markers = read_markers_file(input_dir / MARKERS_FILE) if (input_dir / MARKERS_FILE).is_file() else None
-    settings = {"detector": detector, "methods": methods, "markers": marker_specs, "root_markers": root_markers,
-                "calib_units": calib_units, "configs": configs, "images": images, "time_offset": time_offset}
-    if fps is not None:  # recorded only when given, so manifests of earlier batches stay valid
-        settings["fps"] = fps
-    if figures:
-        settings["figures"] = True
     keys = {c: clip_key(c, input_dir) for c in clips}
     ensure_dir(out_root)
     with OutputLock(out_root, f"stereotrack batch {input_dir}"):
         _remove_leftovers(out_root)
-        outcomes: dict[str, ClipOutcome] = {}
-        todo = []
-        for c in clips:
-            done = None if force else _complete(keys[c], out_root / keys[c], settings, c)
-            if done is not None:
-                outcomes[keys[c]] = done
-            else:
-                todo.append(c)
+        outcomes = {keys[c]: o for c in clips if not force and (o := _complete(keys[c], out_root / keys[c], settings, c))}
+        todo = [c for c in clips if keys[c] not in outcomes]
         counter = _Counter(len(outcomes), len(clips), progress)
 
         def record(o: ClipOutcome) -> None:
@@ -249,14 +228,42 @@ def run_batch(
                 _run_dask(todo, keys, out_root, settings, workers, scheduler, scheduler_file, record)
         finally:
             dead = _remove_leftovers(out_root)  # attempts whose worker died, and anything an interrupt left
-        for key, worker in dead:
-            if key in outcomes:  # every attempt counts: those that died, and the one that finished
-                o = outcomes[key]
-                o.attempts += 1
-                o.warnings.append(f"{key}: the worker running an attempt at it ({worker}) died")
+        _count_dead_attempts(outcomes, dead)
         ordered = [outcomes[keys[c]] for c in clips]
         write_summary(out_root, ordered)
     return ordered
+
+
+def batch_settings(input_dir: Path, detector: str, methods: list[str] | None, marker_specs: list[str] | None,
+                   calib_units: str | None, configs: dict | None, images: bool, time_offset: str | float | None,
+                   fps: float | None, figures: bool) -> dict[str, Any]:
+    """The settings every clip runs with, checked before any work starts; the manifest records
+    them, and a clip made with other settings is redone."""
+    from detectors import registry as detectors
+    from detectors.markers import read_markers_file
+    from pipeline.core.clip import MARKERS_FILE
+
+    if fps is not None and not (math.isfinite(fps) and fps > 0):
+        raise StereotrackError(f"--fps must be a positive number of frames per second, not {fps:g}")
+    if detector not in detectors():
+        raise StereotrackError(f"unknown detector {detector!r} ({', '.join(detectors())})")
+    root_markers = read_markers_file(input_dir / MARKERS_FILE) if (input_dir / MARKERS_FILE).is_file() else None
+    settings = {"detector": detector, "methods": methods, "markers": marker_specs, "root_markers": root_markers,
+                "calib_units": calib_units, "configs": configs, "images": images, "time_offset": time_offset}
+    if fps is not None:  # recorded only when given, so manifests of earlier batches stay valid
+        settings["fps"] = fps
+    if figures:
+        settings["figures"] = True
+    return settings
+
+
+def _count_dead_attempts(outcomes: dict[str, ClipOutcome], dead: list[tuple[str, str]]) -> None:
+    """Every attempt counts: those whose worker died, and the one that finished."""
+    for key, worker in dead:
+        if key in outcomes:
+            o = outcomes[key]
+            o.attempts += 1
+            o.warnings.append(f"{key}: the worker running an attempt at it ({worker}) died")
 
 
 class _Counter:

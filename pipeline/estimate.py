@@ -71,6 +71,25 @@ def estimate_pixel_sigma(rig: StereoRig, observations: dict[str, np.ndarray]) ->
     return float(max(np.sqrt(np.mean(allsq)), 0.02))
 
 
+@dataclass
+class Observed:
+    """What the estimators are given: the rig (as the frames need it), the frame step and count,
+    each marker's observations (as detected, and with the right camera aligned to the left's
+    times), the time offset, truth, the target, the pixel noise estimated and the input checks."""
+
+    rig: StereoRig
+    dt: float
+    n: int
+    obs: dict[str, np.ndarray]
+    aligned: dict[str, np.ndarray]
+    sync: SyncEstimate
+    truth: ClipTruth | None
+    target: TargetInfo | None
+    checks: list[Check]
+    footage: FootageInfo
+    sigma: float | None
+
+
 def estimate_clip(
     clip: str | Path | Clip,
     methods: list[str] | None = None,
@@ -88,109 +107,149 @@ def estimate_clip(
 
     Detections are read from ``in_dir`` (default ``out_dir``, itself default ``CLIP/out``), or
     handed over in memory as ``detections`` (observations per marker and what the detect stage saw
-    of the footage) when the stages run together;
-    estimates and metrics go to ``out_dir``. Point methods run on each marker; on clips with a
-    four-point target the target methods
-    (raw measurement, Kalman–Bucy, PnP + KF) run on its four labelled points too. Input checks
+    of the footage) when the stages run together; estimates and metrics go to ``out_dir``. Point
+    methods run on each marker; on clips with a four-point target the target methods (raw
+    measurement, Kalman–Bucy, PnP + KF) run on its four labelled points too. Input checks
     (left/right swapped, epipolar consistency, points behind a camera, track jumps, and the
     detect stage's colour and image-size checks) are warned about and written to
     ``metrics.json`` under ``checks``. ``describe`` is told once what ``progress`` counts.
     """
     clip_ = Clip.open(clip)
-    clip = clip_.path
     out_dir = Path(out_dir) if out_dir else clip_.folder / "out"
-    in_dir = Path(in_dir) if in_dir else out_dir  # where the detect stage wrote (run: the same folder)
     reg = registry()
     for m in methods or []:
         if m not in reg:
             raise StereotrackError(f"unknown method {m!r} (known: {', '.join(reg)})")
+    seen = observe(clip_, Path(in_dir) if in_dir else out_dir, detections, calib_units, time_offset, target_radius)
+    methods = methods or registered_methods("point") + (registered_methods("target") if seen.target else [])
+    point = [m for m in methods if reg[m].kind == "point"]
+    target = [m for m in methods if reg[m].kind == "target"]
+    if target and seen.target is None:
+        raise StereotrackError(f"method(s) {', '.join(target)} require a four-point target; this clip has none", clip_.path)
+    count = _Count(len(point) * len(seen.obs) + len(target), progress)
+    if describe is not None:
+        describe(f"{count.total} tracks: {len(point)} methods × {len(seen.obs)} markers"
+                 + (f" + {len(target)} target methods" if target else ""))
+    configs = _with_pixel_noise(configs, methods, seen.sigma)
+    resolved: dict[str, dict[str, Any]] = {}
+    target_tracks = {m: _run_target(m, seen, configs.get(m, {}), out_dir, resolved, count) for m in target}
+    tracks = {m: _run_point(m, seen, configs.get(m), out_dir, resolved, count) for m in point}
+    result = EstimateResult(out_dir, seen.rig, seen.dt, seen.n, seen.obs, tracks, seen.truth, seen.target, target_tracks)
+    result.metrics = _metrics(result, seen, clip_, calib_units, resolved)
+    write_json(out_dir / "metrics.json", result.metrics)
+    return result
+
+
+class _Count:
+    """Tracks done, told to a progress callback."""
+
+    def __init__(self, total: int, progress: Callable[[int, int], None] | None) -> None:
+        self.done, self.total, self.progress = 0, total, progress
+
+    def tick(self) -> None:
+        self.done += 1
+        if self.progress is not None:
+            self.progress(self.done, self.total)
+
+
+def observe(clip: Clip, in_dir: Path, detections: tuple[dict[str, np.ndarray], FootageInfo] | None,
+            calib_units: str | None, time_offset: str | float | None, target_radius: float | None) -> Observed:
+    """The detections (in memory, else ``in_dir/detections.csv``) padded to the clip's frame grid,
+    the rig as the frames need it, the time offset resolved and applied, and the input checks."""
     det_path = in_dir / "detections.csv"
     if detections is None and not det_path.is_file():
         raise StereotrackError("no detections.csv: run `stereotrack detect` first", det_path)
-    footage = detections[1] if detections is not None else footage_info(clip, in_dir)
-    rig = clip_.rig(calib_units)
+    footage = detections[1] if detections is not None else footage_info(clip.path, in_dir)
+    rig, checks = _rig_for_footage(clip, footage, calib_units, warn_sized=detections is None)
+    ts = _timestamps(clip, time_offset)
+    grid = grid_length(ts, clip.fps) if ts is not None else None  # videos that dropped frames are shorter
+    truth = clip.truth(max(footage.frames, grid) if footage.frames is not None and grid is not None else footage.frames)
+    obs = detections[0] if detections is not None else load_detections(det_path, footage.frames)
+    if not obs:
+        raise StereotrackError("no detections in this clip", det_path)
+    n = max(max(len(v) for v in obs.values()), grid or 0, truth.n_frames if truth is not None else 0)
+    obs = {k: np.vstack([v, np.full((n - len(v), 4), np.nan)]) for k, v in obs.items()}
+    sync, aligned = resolve_sync(time_offset, rig, obs, clip.fps, ts)
+    new_checks = [_sync_check(sync), *stereo_checks(rig, aligned, clip.calibration_name),
+                  *jump_checks(obs, rig.image_size[0] or 640)]
+    warn_failed(new_checks)
+    return Observed(rig, 1.0 / clip.fps, n, obs, aligned, sync, truth, find_target(clip, target_radius, obs),
+                    checks + new_checks, footage, estimate_pixel_sigma(rig, aligned))
+
+
+def _rig_for_footage(clip: Clip, footage: FootageInfo, calib_units: str | None,
+                     warn_sized: bool) -> tuple[StereoRig, list[Check]]:
+    """The calibration as the frames need it (scaled as the detect stage did, or checked against
+    the footage's size when it did not say) and the checks so far."""
+    rig = clip.rig(calib_units)
     checks = list(footage.checks)
     sized = [c for c in checks if c.name in ("image_size", "calibration_size")]  # the detect stage's verdict
     if footage.frame_size is not None and not sized:
-        rig, size_check = rig_for_frames(rig, footage.frame_size, clip)
+        rig, size_check = rig_for_frames(rig, footage.frame_size, clip.path)
         checks += [size_check] if size_check else []
         warn_failed([size_check] if size_check else [])
     elif footage.frame_size is not None:
         if any(c.name == "image_size" for c in sized):
             rig = rig.scaled_to(footage.frame_size)  # as the detect stage did
-        if detections is None:  # `estimate` on its own says so too (`run`'s detect stage already has)
+        if warn_sized:  # `estimate` on its own says so too (`run`'s detect stage already has)
             warn_failed(sized)
-    dt = 1.0 / clip_.fps
-    ts = _timestamps(clip_, time_offset)
-    grid = grid_length(ts, clip_.fps) if ts is not None else None  # videos that dropped frames are shorter
-    truth = clip_.truth(max(footage.frames, grid) if footage.frames is not None and grid is not None else footage.frames)
-    obs = detections[0] if detections is not None else load_detections(det_path, footage.frames)
-    if not obs:
-        raise StereotrackError("no detections in this clip", det_path)
-    n = max(max(len(v) for v in obs.values()), grid or 0)
-    if truth is not None:
-        n = max(n, truth.n_frames)
-    obs = {k: np.vstack([v, np.full((n - len(v), 4), np.nan)]) for k, v in obs.items()}
-    sync, aligned = resolve_sync(time_offset, rig, obs, clip_.fps, ts)
-    new_checks = [_sync_check(sync), *stereo_checks(rig, aligned, clip_.calibration_name),
-                  *jump_checks(obs, rig.image_size[0] or 640)]
-    warn_failed(new_checks)
-    checks += new_checks
-    target = find_target(clip_, target_radius, obs)
-    methods = methods or registered_methods("point") + (registered_methods("target") if target else [])
-    configs = {k: dict(v) for k, v in (configs or {}).items()}
-    sigma = estimate_pixel_sigma(rig, aligned)
-    if sigma is not None:  # the measurement noise of methods that model it, unless configured
+    return rig, checks
+
+
+def _with_pixel_noise(configs: dict[str, dict] | None, methods: list[str], sigma: float | None) -> dict[str, dict]:
+    """The methods' settings, with the pixel noise estimated from the data for methods that
+    model it and were not told one."""
+    out = {k: dict(v) for k, v in (configs or {}).items()}
+    reg = registry()
+    if sigma is not None:
         for m in methods:
             if reg[m].knows_pixel_noise():
-                configs.setdefault(m, {}).setdefault("pixel_sigma", sigma)
-    tracks: dict[str, dict[str, Track]] = {}
-    target_tracks: dict[str, Track] = {}
-    resolved: dict[str, dict[str, Any]] = {}
-    point_methods = [m for m in methods if reg[m].kind == "point"]
-    target_methods = [m for m in methods if reg[m].kind == "target"]
-    if target_methods and target is None:
-        raise StereotrackError(f"method(s) {', '.join(target_methods)} require a four-point target; this clip has none", clip)
-    done, total = 0, len(point_methods) * len(obs) + len(target_methods)
-    if describe is not None:
-        describe(f"{total} tracks: {len(point_methods)} methods × {len(obs)} markers"
-                 + (f" + {len(target_methods)} target methods" if target_methods else ""))
-    for m in target_methods:
-        assert target is not None
-        Yt = np.stack([aligned.get(f"{target.name}_{j}", np.full((n, 4), np.nan)) for j in range(1, 5)], axis=1)
-        cfg = {"radius": target.radius, **(target.config if m != "four_point" else {}), **configs.get(m, {})}
-        est = create(m, rig, dt, cfg)
-        resolved[m] = est.config.model_dump(mode="json")
-        target_tracks[m] = _run_method(est, Yt, target.name)
-        _write_target_estimates(out_dir / "estimates" / f"{m}.csv", target.name, target_tracks[m], dt)
-        done += 1
-        if progress is not None:
-            progress(done, total)
-    for m in point_methods:
-        tracks[m] = {}
-        modelled = sync.applied and sync.source != "timestamps" and reg[m].models_time_offset
-        est = create(m, rig, dt, configs.get(m), time_offset=sync.offset_s if modelled else 0.0)
-        resolved[m] = est.config.model_dump(mode="json")
-        for marker, Y in (obs if modelled else aligned).items():  # the others see the right camera interpolated
-            tracks[m][marker] = _run_method(est, Y, marker)
-            done += 1
-            if progress is not None:
-                progress(done, total)
-        _write_estimates(out_dir / "estimates" / f"{m}.csv", tracks[m], dt, truth)
-    result = EstimateResult(out_dir, rig, dt, n, obs, tracks, truth, target, target_tracks)
-    result.metrics = compute_metrics(result)
-    result.metrics["pixel_sigma_estimate"] = sigma
-    result.metrics["calibration_units"] = calib_units
-    result.metrics["checks"] = [c.as_dict() for c in checks]
-    result.metrics["sync"] = sync.as_dict()
-    result.metrics["time"] = {"fps": clip_.fps, "dt_s": dt, "source": clip_.fps_source}
-    if footage.cameras:
-        result.metrics["detection"] = footage.cameras
-    result.metrics["stereotrack_version"] = stereotrack_version()
+                out.setdefault(m, {}).setdefault("pixel_sigma", sigma)
+    return out
+
+
+def _run_target(m: str, seen: Observed, config: dict, out_dir: Path, resolved: dict, count: _Count) -> Track:
+    """One target method on the target's four labelled points; writes its estimates."""
+    target = seen.target
+    assert target is not None
+    Yt = np.stack([seen.aligned.get(f"{target.name}_{j}", np.full((seen.n, 4), np.nan)) for j in range(1, 5)], axis=1)
+    dynamics = target.config if registry()[m].models_target_dynamics else {}
+    est = create(m, seen.rig, seen.dt, {"radius": target.radius, **dynamics, **config})
+    resolved[m] = est.config.model_dump(mode="json")
+    track = _run_method(est, Yt, target.name)
+    _write_target_estimates(out_dir / "estimates" / f"{m}.csv", target.name, track, seen.dt)
+    count.tick()
+    return track
+
+
+def _run_point(m: str, seen: Observed, config: dict | None, out_dir: Path, resolved: dict,
+               count: _Count) -> dict[str, Track]:
+    """One point method on every marker; writes its estimates. Methods that model the time offset
+    see the right camera at its own times, the others the right camera interpolated."""
+    modelled = seen.sync.applied and seen.sync.source != "timestamps" and registry()[m].models_time_offset
+    est = create(m, seen.rig, seen.dt, config, time_offset=seen.sync.offset_s if modelled else 0.0)
+    resolved[m] = est.config.model_dump(mode="json")
+    tracks = {}
+    for marker, Y in (seen.obs if modelled else seen.aligned).items():
+        tracks[marker] = _run_method(est, Y, marker)
+        count.tick()
+    _write_estimates(out_dir / "estimates" / f"{m}.csv", tracks, seen.dt, seen.truth)
+    return tracks
+
+
+def _metrics(result: EstimateResult, seen: Observed, clip: Clip, calib_units: str | None,
+             resolved: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """metrics.json: the metrics of every method, with the run's settings, checks and time."""
+    metrics = compute_metrics(result)
+    metrics.update({"pixel_sigma_estimate": seen.sigma, "calibration_units": calib_units,
+                    "checks": [c.as_dict() for c in seen.checks], "sync": seen.sync.as_dict(),
+                    "time": {"fps": clip.fps, "dt_s": seen.dt, "source": clip.fps_source}})
+    if seen.footage.cameras:
+        metrics["detection"] = seen.footage.cameras
+    metrics["stereotrack_version"] = stereotrack_version()
     for m, cfg in resolved.items():
-        result.metrics["methods"][m]["config"] = cfg
-    write_json(out_dir / "metrics.json", result.metrics)
-    return result
+        metrics["methods"][m]["config"] = cfg
+    return metrics
 
 
 def _timestamps(clip: Clip, setting: str | float | None) -> dict[str, np.ndarray] | None:

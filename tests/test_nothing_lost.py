@@ -121,15 +121,23 @@ def test_restart_redoes_what_changed_and_says_why(two_same_names):
     assert any("other settings (root_markers)" in w for w in said), said
 
 
+@pytest.fixture(scope="module")
+def batch_done(tmp_path_factory) -> tuple[Path, Path]:
+    """(input folder, a batch's complete output folder) to copy and break."""
+    inp = tmp_path_factory.mktemp("done") / "in"
+    real_copy(inp / "clip")
+    (inp / "markers.yaml").write_text(f"- {RED}\n")
+    _quiet_batch(inp, inp.parent / "out")
+    return inp, inp.parent / "out"
+
+
 @pytest.mark.parametrize("content", ["", "{}", '{"stereotrack": "0.1", "files": {}}', '{"stereotrack": "0.1", "files": []}',
                                      '{"stereotrack": "0.1", "files": {"metrics.json": 3}}', "[1, 2]", "\x00\xff garbage",
                                      '{"files": {"metrics.json": {"size": 1}}}'])
-def test_broken_manifest_means_redo_with_a_warning(tmp_path, content):
-    inp = tmp_path / "in"
-    real_copy(inp / "clip")
-    (inp / "markers.yaml").write_text(f"- {RED}\n")
+def test_broken_manifest_means_redo_with_a_warning(tmp_path, content, batch_done):
+    inp, done = batch_done
     out = tmp_path / "out"
-    _quiet_batch(inp, out)
+    shutil.copytree(done, out)
     (out / "clip" / MANIFEST).write_bytes(content.encode("utf-8", "surrogateescape"))
     status, said = _quiet_batch(inp, out)
     assert status == {"clip": "ok"}

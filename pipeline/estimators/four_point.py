@@ -196,6 +196,9 @@ class TargetEstimator(Estimator):
     """Four-point angle α and distance z measured frame by frame (Soifer et al.), no filter."""
 
     name = "four_point"
+    #: whether the method takes the target's known dynamics (the clip's target ``config``): the
+    #: raw measurement does not; the filters built on the target's model do
+    models_target_dynamics: ClassVar[bool] = False
     kind = "target"
     Config: ClassVar[type[EstimatorConfig]] = TargetConfig
 

@@ -168,6 +168,7 @@ class KalmanBucyEstimator(TargetEstimator):
     """Four-point measurement → Kalman–Bucy filter on [α, α̇, z, ż]."""
 
     name = "kalman_bucy"
+    models_target_dynamics = True
     Config = KalmanBucyConfig
 
     def reset(self) -> None:

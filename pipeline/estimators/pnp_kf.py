@@ -51,6 +51,7 @@ class PnPKFEstimator(TargetEstimator):
     """IPPE-square planar PnP per camera (averaged over cameras) → discrete KF on [α, α̇, z, ż]."""
 
     name = "pnp_kf"
+    models_target_dynamics = True
     Config = KalmanBucyConfig
 
     def reset(self) -> None:
