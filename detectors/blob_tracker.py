@@ -8,7 +8,6 @@ import statistics
 from collections import deque
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
 from detectors.base import Detector, register
 from detectors.blob import BlobDetector, Detection, MarkerColor
@@ -23,6 +22,8 @@ def label_order(points: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
     longer diagonal), 2 to the right; 1 above the axis. With the previous frame's labelled points,
     keep labels by optimal assignment instead, so labels never swap while the target moves."""
     if previous is not None and np.all(np.isfinite(previous)):
+        from scipy.optimize import linear_sum_assignment  # imported here: 0.25 s at start-up
+
         cost = np.linalg.norm(points[:, None, :] - previous[None, :, :], axis=2)
         rows, cols = linear_sum_assignment(cost)
         order = np.empty(4, dtype=int)

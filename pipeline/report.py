@@ -14,16 +14,21 @@ import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from pipeline import html as H
+from pipeline.core.camera import StereoRig
 from pipeline.core.clip import Clip, load_detections, positions_from_columns
 from pipeline.core.errors import StereotrackError
 from pipeline.core.io import read_csv, read_json_mapping, write_bytes, write_text
 from pipeline.metrics import RUNAWAY, errors_per_frame, runaways
 from pipeline.style import TRUTH_STYLE, marker_rgb, method_colour, method_hex, method_linestyle
 from pipeline.tables import Column, Table, inline, number, to_html, to_markdown
+
+if TYPE_CHECKING:
+    from pipeline.estimate import EstimateResult
 
 #: figure resolution: sharp on a laptop screen, cheap to encode
 DPI = 100
@@ -54,14 +59,9 @@ class ReportData:
         return [m for m in self.point if m not in self.runaways]
 
 
-def _hide_behind_camera(clip: Clip, est: dict[str, dict[str, np.ndarray]], units: str | None) -> None:
+def _hide_behind(rig: StereoRig, est: dict[str, dict[str, np.ndarray]]) -> None:
     """Points behind either camera set to NaN: counted in the metrics and the Checks section,
     never drawn as if they were metres in front of the rig."""
-    from pipeline.core.camera import has_calibration, load_calibration
-
-    if not est or not has_calibration(clip.folder):
-        return
-    rig = load_calibration(clip.folder, units)
     for per in est.values():
         for P in per.values():
             with np.errstate(invalid="ignore"):
@@ -99,7 +99,8 @@ def load_report_data(clip: Clip, src: Path, out_dir: Path) -> ReportData:
         data.point[m] = positions_from_columns(cols)[0]
         if (s := _filter_series(cols)) is not None:
             data.filters[m] = s
-    _hide_behind_camera(clip, data.point, metrics.get("calibration_units"))
+    if data.point and clip.has_calibration:
+        _hide_behind(clip.rig(metrics.get("calibration_units")), data.point)
     truth = clip.truth()
     data.truth = truth.positions if truth is not None else None
     if (clip.folder / "target_truth.csv").is_file() and data.target:
@@ -108,6 +109,56 @@ def load_report_data(clip: Clip, src: Path, out_dir: Path) -> ReportData:
         data.obs = load_detections(src / "detections.csv")
     if (src / "detect.json").is_file():
         data.marker_colours = read_json_mapping(src / "detect.json", "detect record").get("marker_colours", {})
+    return data
+
+
+def _mean_over_markers(series: list[np.ndarray], n: int) -> np.ndarray:
+    """Per frame, the mean of the markers' finite values (NaN where none is)."""
+    if not series:
+        return np.full(n, np.nan)
+    stack = np.full((len(series), n), np.nan)
+    for i, s in enumerate(series):
+        stack[i, : len(s)] = s[:n]
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmean(stack, axis=0)
+
+
+def _track_filter_series(per: dict, truth: dict[str, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """A filter's NEES/3 and NIS/dof per frame (mean over markers) from its tracks, as
+    :func:`_filter_series` reads them from its estimates CSV."""
+    from pipeline.consistency import nees
+
+    n = max(len(t.position) for t in per.values())
+    nis, nees3 = [], []
+    for mk, t in per.items():
+        if t.nis is not None and t.nis_dof is not None:
+            with np.errstate(all="ignore"):
+                nis.append(t.nis / np.where(t.nis_dof > 0, t.nis_dof, np.nan))
+        if t.covariance is not None and truth is not None and mk in truth:
+            nees3.append(nees(t, truth[mk]) / 3)
+    if not any(np.isfinite(s).any() for s in nis + nees3):
+        return None
+    return _mean_over_markers(nees3, n), _mean_over_markers(nis, n), float(len(per))
+
+
+def report_data(clip: Clip, est: EstimateResult, marker_colours: dict[str, list[int]], out_dir: Path) -> ReportData:
+    """The report's data from a run's results in memory: what :func:`load_report_data` would read
+    back from the stage files, read from nothing (the calibration included)."""
+    truth = est.truth.positions if est.truth is not None else None
+    data = ReportData(clip.folder.name, out_dir, est.metrics, truth=truth, obs=dict(est.observations),
+                      marker_colours=dict(marker_colours))
+    for m, per in est.tracks.items():
+        data.point[m] = {mk: t.position.copy() for mk, t in per.items()}
+        if (s := _track_filter_series(per, truth)) is not None:
+            data.filters[m] = s
+    for m, t in est.target_tracks.items():
+        data.target[m] = {"t": np.arange(len(t.position)) * est.dt, "alpha": t.extra["alpha"],
+                          "distance": t.extra["distance"]}
+    tg = est.target
+    if tg is not None and tg.alpha is not None and tg.distance is not None and est.target_tracks:
+        data.target_truth = {"t": np.arange(len(tg.alpha)) * est.dt, "alpha": tg.alpha, "distance": tg.distance}
+    _hide_behind(est.rig, data.point)
     return data
 
 
@@ -442,13 +493,15 @@ def html_report(data: ReportData, figures: list[tuple[str, str, bytes]], replay:
 
 def write_report(clip: str | Path | Clip, out_dir: str | Path | None = None,
                  progress: Callable[[int, int], None] | None = None, in_dir: str | Path | None = None,
-                 figures: bool = True) -> Path:
+                 figures: bool = True, data: ReportData | None = None) -> Path:
     """Write ``report.md``, ``report.html`` and (with ``figures``) ``figures/*.png`` into
-    ``out_dir`` (default ``CLIP/out``) from the stage files in ``in_dir`` (default ``out_dir``);
+    ``out_dir`` (default ``CLIP/out``) from ``data`` (a run's results in memory, see
+    :func:`report_data`), else from the stage files in ``in_dir`` (default ``out_dir``);
     ``progress`` gets (figures done, figures in all). Returns report.md's path."""
     clip_ = Clip.open(clip)
     out_dir = Path(out_dir) if out_dir else clip_.folder / "out"
-    data = load_report_data(clip_, Path(in_dir) if in_dir else out_dir, out_dir)
+    if data is None:
+        data = load_report_data(clip_, Path(in_dir) if in_dir else out_dir, out_dir)
     figs = render_figures(data, progress) if figures else []
     for name, _, png in figs:
         write_bytes(out_dir / "figures" / f"{name}.png", png)

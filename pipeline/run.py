@@ -13,7 +13,7 @@ from pipeline.core.clip import Clip
 from pipeline.core.lifeline import OutputLock
 from pipeline.estimate import EstimateResult, estimate_clip
 from pipeline.recording import Recorder
-from pipeline.report import write_report
+from pipeline.report import report_data, write_report
 
 DEFAULT_SCENARIO = "default"
 
@@ -102,7 +102,8 @@ def _process_clip(clip_: Clip, out_dir: Path, detector: str, methods: list[str] 
                             configs=configs, detections=(det.observations, det.footage), time_offset=time_offset,
                             describe=lambda what: say(f"estimate ({what})"))
         say("report (figures)" if figures else "report")
-        report = write_report(clip_, out_dir, progress=progress, figures=figures)
+        report = write_report(clip_, out_dir, progress=progress, figures=figures,
+                              data=report_data(clip_, est, det.marker_colours, out_dir))
         rrd = None
         if recorder is not None:
             say("recording (methods)")

@@ -135,3 +135,60 @@ def test_batch_summary_html(tmp_path):
     board, long = read_csv(out / "summary_methods.csv"), read_csv(out / "summary.csv")
     for m, clips, mean in zip(board["method"], board["clips"], board["mean_rmse_m"], strict=True):
         assert clips == 3 and mean == pytest.approx(np.mean(long["rmse_m"][long["method"] == m]), rel=1e-6)
+
+
+def test_report_from_memory_equals_report_from_files(e2e_run):  # noqa: F811
+    """`run` draws the report from its results in memory; `stereotrack report` reads the stage
+    files back: the same data either way (to the CSVs' 10 significant digits)."""
+    from pipeline.report import report_data
+
+    clip = Clip.open(e2e_run.clip)
+    mem = report_data(clip, e2e_run.estimate, e2e_run.detect.marker_colours, e2e_run.out_dir)
+    disk = load_report_data(clip, e2e_run.out_dir, e2e_run.out_dir)
+    assert mem.point.keys() == disk.point.keys() and mem.filters.keys() == disk.filters.keys()
+    for m in mem.point:
+        for mk in mem.point[m]:
+            np.testing.assert_allclose(mem.point[m][mk], disk.point[m][mk][: len(mem.point[m][mk])], rtol=1e-8)
+    for m in mem.filters:
+        for a, b in zip(mem.filters[m], disk.filters[m], strict=True):
+            np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-9)
+    for mk in mem.obs:
+        np.testing.assert_allclose(mem.obs[mk], disk.obs[mk][: len(mem.obs[mk])], rtol=1e-8)
+    assert mem.marker_colours == disk.marker_colours and mem.metrics == disk.metrics
+
+
+def test_run_reads_each_input_once(tmp_path, monkeypatch):
+    """One `run`: the calibration is loaded once, the markers resolved once, and no stage reads
+    back a file another stage wrote (the estimate and report stages take their inputs in memory)."""
+    import detectors.markers
+    import detectors.stage
+    import pipeline.core.clip
+    import pipeline.core.io
+    import pipeline.report
+    from pipeline.run import process_clip
+    from tests.conftest import REPO
+
+    clip = tmp_path / "clip"
+    shutil.copytree(REPO / "data" / "clips" / "sample_small", clip)
+    calls: dict[str, list] = {"calibration": [], "markers": [], "read_csv": [], "read_json": []}
+
+    def spy(module, name, key):
+        real = getattr(module, name)
+
+        def wrapped(*a, **kw):
+            calls[key].append(a[0] if a else None)
+            return real(*a, **kw)
+        monkeypatch.setattr(module, name, wrapped)
+
+    spy(pipeline.core.clip, "load_calibration", "calibration")
+    spy(detectors.stage, "resolve_marker_specs", "markers")
+    spy(pipeline.core.clip, "read_csv", "read_csv")
+    spy(pipeline.core.io, "read_csv", "read_csv")
+    spy(pipeline.core.clip, "read_json_mapping", "read_json")
+    spy(pipeline.report, "read_csv", "read_csv")
+    spy(pipeline.report, "read_json_mapping", "read_json")
+    res = process_clip(clip, methods=["triangulation", "ekf"], images_in_recording=False)
+    assert len(calls["calibration"]) == 1 and len(calls["markers"]) == 1, calls
+    outputs = [p for p in calls["read_csv"] + calls["read_json"] if p is not None and res.out_dir in Path(p).parents]
+    assert not outputs, outputs
+    assert (res.out_dir / "report.html").is_file()
