@@ -133,7 +133,7 @@ def render_camera(
     jitter, rolling shutter, exposure), skipping the frames it drops. Returns, for scenes with
     objects that can hide a marker (distractors, occluders), each frame's visible pixel count per
     marker (frames × markers, from a segmentation render); else None."""
-    from renderers.scene import StereoScene, create_offscreen_renderer
+    from renderers.scene import StereoScene, create_offscreen_renderer, set_multisample
 
     rig = scenario.rig.build()
     truth = truth if truth is not None else simulate_truth(scenario)
@@ -142,6 +142,7 @@ def render_camera(
     own = renderer is None
     if own:
         renderer = create_offscreen_renderer(*scene.views[cam_index].size)  # type: ignore[misc]
+    set_multisample(renderer, scenario.render.multisample)
     counts = np.zeros((scenario.frames, len(truth.names)), dtype=np.int64) if scenario.distractors else None
     try:
         writer = FrameWriter(clip_dir, CAMERA_NAMES[cam_index], fmt, scenario.fps, rig.image_size)
@@ -237,15 +238,13 @@ def _render_job(scenario_json: str, cam_index: int, staging: str, fmt: Format, j
 
 
 def _staging_dir(clip_dir: Path) -> Path:
-    """A fresh hidden folder beside ``clip_dir`` for one attempt at rendering it (stale ones of
-    killed attempts are removed)."""
+    """The name of a fresh hidden folder beside ``clip_dir`` for one attempt at rendering it
+    (stale ones of killed attempts are removed); the caller makes it."""
     import uuid
 
     for stale in clip_dir.parent.glob(f".{clip_dir.name}.partial-*"):
         shutil.rmtree(stale, ignore_errors=True)
-    staging = clip_dir.parent / f".{clip_dir.name}.partial-{uuid.uuid4().hex[:12]}"
-    staging.mkdir(parents=True)
-    return staging
+    return clip_dir.parent / f".{clip_dir.name}.partial-{uuid.uuid4().hex[:12]}"
 
 
 #: The files that say a folder is a clip stereotrack rendered (clips made before clip.json have
@@ -377,8 +376,11 @@ def render_clips(
     for d in dirs:  # before any work: a folder stereotrack did not render is never replaced
         check_replaceable(d, RENDERED_MARK, "clip")
         ensure_dir(d.parent)
-    stagings = [_staging_dir(d) for d in dirs]
-    try:
+    stagings: list[Path] = []
+    try:  # an interrupt while the staging folders are being made leaves none of them behind
+        for d in dirs:
+            stagings.append(_staging_dir(d))  # named first, made after: the cleanup below sees each
+            stagings[-1].mkdir(parents=True)
         if workers <= 1:
             return _render_here(jobs, stagings, dirs, fmt, progress)
         return _render_pool(jobs, stagings, dirs, fmt, workers, progress)

@@ -101,3 +101,30 @@ def test_no_gl_backend_is_one_clear_line(tmp_path):
     err = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
     assert len(err) == 1 and "OpenGL backend" in err[0] and "EGL" in err[0] and "OSMesa" in err[0]
     assert not (tmp_path / "c" / "left.mp4").exists()
+
+
+def test_colour_only_readback_is_pyrenders_image_and_multisample_is_a_setting():
+    """The renderer reads back only the colour image: the same pixels as pyrender's own read-back
+    (which also reads depth); ``multisample: 0`` renders without anti-aliasing (hard edges)."""
+    import numpy as np
+
+    from renderers.motion import simulate_truth
+    from renderers.scenario import load_scenario
+    from renderers.scene import StereoScene, create_offscreen_renderer, set_multisample
+
+    scen = load_scenario("default").with_overrides(frames=3)
+    rig = scen.rig.build()
+    scene = StereoScene(scen, rig, simulate_truth(scen))
+    r = create_offscreen_renderer(*rig.image_size)
+    try:
+        scene.set_frame(1)
+        ours = scene.render(r, 0).copy()
+        inner = r._renderer
+        inner._read_main_framebuffer = type(inner)._read_main_framebuffer.__get__(inner)  # pyrender's own
+        np.testing.assert_array_equal(scene.render(r, 0), ours)
+        set_multisample(r, 0)
+        hard = scene.render(r, 0)
+        assert 0 < int((np.abs(hard.astype(int) - ours.astype(int)).max(axis=2) > 8).sum()) < 0.02 * hard[..., 0].size
+    finally:
+        set_multisample(r, 4)
+        r.delete()
