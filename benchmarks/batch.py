@@ -4,7 +4,11 @@ report figures (``--figures``; the default draws none, the leaderboard is always
 127.0.0.1 (``--scheduler-file``, the path users take to a real cluster), over the same folder of
 clips, in one run. Each row is printed as it is measured.
 
-    python benchmarks/batch.py [--clips 12] [--frames 60]
+    python benchmarks/batch.py [--clips 12] [--frames 60] [--against REV]
+
+``--against REV`` also times the same batch with stereotrack as of git revision REV (a worktree
+of this repository, run in a subprocess with its own code), interleaved with today's default at
+the same worker counts: the "vs REV" column.
 """
 
 from __future__ import annotations
@@ -47,10 +51,33 @@ def dask_processes(folder: Path, workers: int):
             p.wait(timeout=30)
 
 
+def stack_tree(tmp: Path, rev: str) -> Path:
+    """A checkout of ``rev`` (git worktree, removed with the temporary folder's repository entry)."""
+    tree = tmp / "then"
+    subprocess.run(["git", "worktree", "add", "--detach", str(tree), rev], check=True, capture_output=True)
+    import atexit
+
+    atexit.register(lambda: subprocess.run(["git", "worktree", "remove", "--force", str(tree)], capture_output=True))
+    return tree
+
+
+def batch_at(tree: Path, inp: Path, out: Path, workers: int) -> float:
+    """Seconds the batch takes with the code in ``tree`` (its own interpreter, its own imports)."""
+    shutil.rmtree(out, ignore_errors=True)
+    code = ("import sys, time; sys.path.insert(0, sys.argv[1]); from pipeline.batch import run_batch; t = time.perf_counter(); "
+            f"r = run_batch(sys.argv[2], sys.argv[3], workers={workers}, methods={METHODS!r}); "
+            "assert all(o.status == 'ok' for o in r), [o.error for o in r]; print(time.perf_counter() - t)")
+    env = {**os.environ, "PYTHONPATH": str(tree)}
+    res = subprocess.run([sys.executable, "-c", code, str(tree), str(inp), str(out)], capture_output=True, text=True,
+                         env=env, cwd=tree, check=True)
+    return float(res.stdout.strip().splitlines()[-1])
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--clips", type=int, default=12)
     ap.add_argument("--frames", type=int, default=60)
+    ap.add_argument("--against", default=None, help="a git revision to time the same batch with")
     args = ap.parse_args()
     print(f"# batch throughput ({args.clips} clips of {args.frames} frames, 640×480 MP4, 3 markers, methods "
           f"{', '.join(METHODS)}; {os.cpu_count()} cores)\n")
@@ -65,8 +92,18 @@ def main() -> None:
                   ("local, 2 workers, --figures", 2, None, True), ("local, 2 workers", 2, None, False),
                   ("Dask LocalCluster, 2 workers (start-up included)", 2, "local", False),
                   ("Dask scheduler + 2 worker processes, --scheduler-file", 2, "file", False))
+        if args.against:
+            setups = (*setups[:4], (f"{args.against}, 1 worker", 1, "rev", False), ("local, 1 worker", 1, None, False),
+                      (f"{args.against}, 2 workers", 2, "rev", False), ("local, 2 workers", 2, None, False),
+                      *setups[4:])
+            tree = stack_tree(Path(tmp), args.against)
+        then: dict[int, float] = {}
         for label, workers, sched, figures in setups:
             out = Path(tmp) / "out"
+            if sched == "rev":
+                then[workers] = args.clips / batch_at(tree, inp, out, workers) * 60
+                print(f"| {label} | {then[workers]:.1f} |  |  |", flush=True)
+                continue
             shutil.rmtree(out, ignore_errors=True)
             with contextlib.ExitStack() as stack:
                 sched_file = stack.enter_context(dask_processes(Path(tmp), workers)) if sched == "file" else None
@@ -82,6 +119,8 @@ def main() -> None:
                 first = cpm
             vs_one = f"{cpm / first:.2f}×" if first else ""
             ratio = f"{cpm / with_figures[workers]:.2f}×" if not figures and sched is None else ""
+            if not figures and sched is None and workers in then:
+                ratio += f"; vs {args.against}: {cpm / then.pop(workers):.2f}×"
             print(f"| {label} | {cpm:.1f} | {vs_one} | {ratio} |", flush=True)
 
 

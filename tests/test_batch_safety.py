@@ -96,6 +96,7 @@ def reference(tmp_path_factory) -> tuple[Path, Path]:
     return inp, out
 
 
+@pytest.mark.slow
 def test_second_batch_is_refused_and_first_completes(reference):
     _inp, out = reference
     for i in range(3):
@@ -147,6 +148,7 @@ def test_killed_at_five_points_then_restarted(reference, tmp_path):
         assert clip_outputs(out / f"clip{i}") == clip_outputs(ref_out / f"clip{i}"), i
 
 
+@pytest.mark.slow
 def test_corrupted_output_is_redone(reference, tmp_path):
     """A clip folder whose files no longer match their manifest (or that has none) is redone."""
     _, ref_out = reference

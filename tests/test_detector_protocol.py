@@ -22,6 +22,7 @@ def test_registry_holds_the_built_in_detectors():
         create_detector("nope", [MarkerColor.from_rgb("red", (230, 30, 30))])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(registry()))
 def test_detector_finds_the_markers(name, png_clip):
     clip = Clip(png_clip)

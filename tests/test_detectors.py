@@ -43,6 +43,7 @@ def test_blob_subpixel_on_lossless_clip(png_clip, tmp_path):
     assert all(s.err_median is not None for s in res.summaries)
 
 
+@pytest.mark.slow
 def test_blob_on_mp4_clip(mp4_clip, tmp_path):
     res = detect_clip(mp4_clip, "blob", out_dir=tmp_path)
     for s in res.summaries:
@@ -101,6 +102,7 @@ def _leaving_clip(tmp_path, frames=60):
     return clip
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["meanshift", "camshift"])
 def test_tracker_reacquires_after_leaving_view(tmp_path, mode):
     clip = _leaving_clip(tmp_path)
@@ -135,6 +137,7 @@ def test_camshift_window_follows_apparent_size(tmp_path):
     assert sizes[2] > 2 * sizes[-1]
 
 
+@pytest.mark.slow
 def test_four_point_labels_never_swap(tmp_path):
     from renderers.scenario import load_scenario
 
@@ -166,6 +169,7 @@ def test_label_four_points_geometry():
     np.testing.assert_allclose(label_four_points(pts[perm], None), pts)
 
 
+@pytest.mark.slow
 @needs_ball
 def test_real_footage_blob_meanshift_camshift(tmp_path, ball_reference):
     ref = ball_reference

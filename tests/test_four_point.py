@@ -154,6 +154,7 @@ def test_bad_point_sets_are_flagged_never_nan_after_start():
         assert tr.predicted[10] == (method != "four_point") or not np.isfinite(tr.extra["alpha"][10])
 
 
+@pytest.mark.slow
 def test_end_to_end_on_rendered_target(target_clip, tmp_path):
     from detectors.stage import detect_clip
     from pipeline.estimate import estimate_clip

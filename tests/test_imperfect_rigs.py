@@ -102,6 +102,7 @@ def test_blob_detections_match_truth_on_lossless_frames(rig, tmp_path):
         assert s.err_median <= 0.25, (rig, s)
 
 
+@pytest.mark.slow
 def test_exposure_blur_integrates_the_motion(tmp_path):
     """A 25 ms exposure smears a fast marker along its path (the blob grows), and its centroid is
     still the truth at mid-exposure; n sub-frame renders, not a Gaussian."""

@@ -93,6 +93,7 @@ def test_real_clip_through_run_with_markers_file_and_window(tmp_path, monkeypatc
     assert np.median(np.abs(a[both] - b[both])) < 0.3
 
 
+@pytest.mark.slow
 def test_real_clips_through_batch_with_root_markers(tmp_path, monkeypatch, capsys):
     root = tmp_path / "clips"
     real_copy(root / "a")
@@ -182,6 +183,7 @@ def failed_checks(out: Path) -> dict[str, str]:
     return {c["name"]: c["message"] for c in json.loads((out / "metrics.json").read_text())["checks"] if not c["ok"]}
 
 
+@pytest.mark.slow
 def test_checks_fire_on_bad_clips_and_stay_silent_on_clean(tmp_path, png_clip):
     clean = real_copy(tmp_path / "clean", with_truth=True)
     detect_clip(clean, "blob", [RED])
@@ -348,6 +350,7 @@ def _edit_truth(clip: Path) -> None:
         fh.write("40,1.3,red,0,0,2,0,0,0,1,1,1,1,1,1\n")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", list(BAD_INPUTS))
 def test_bad_input_is_one_line(case, detected_clip, tmp_path, monkeypatch, capsys):
     setup, extra, command, expected = BAD_INPUTS[case]

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 
 from pipeline.core.camera import StereoRig, save_calibration
 from tests.conftest import REPO
@@ -48,6 +49,7 @@ def peak_rss_mb(*args: str) -> float:
     return int(proc.stdout.rsplit("PEAK", 1)[1]) / 1024
 
 
+@pytest.mark.slow
 def test_run_memory_does_not_hold_the_clip(tmp_path):
     clip = synthetic_clip(tmp_path / "clip", 600)
     peak = peak_rss_mb("run", str(clip), "--methods", "triangulation,ekf")

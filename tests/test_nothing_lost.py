@@ -45,6 +45,7 @@ def _quiet_batch(*args, **kw):
 # ---------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_render_refuses_a_folder_it_did_not_make(tmp_path, monkeypatch, capsys):
     mine = tmp_path / "mydir"
     (mine / "out").mkdir(parents=True)
@@ -104,6 +105,7 @@ def test_batch_outputs_mirror_the_input_tree(two_same_names):
     assert sorted(read_csv(out / "summary.csv")["clip"]) == ["a/clip", "b/clip"]
 
 
+@pytest.mark.slow
 def test_restart_redoes_what_changed_and_says_why(two_same_names):
     inp, out = two_same_names
     _quiet_batch(inp, out)
@@ -131,6 +133,7 @@ def batch_done(tmp_path_factory) -> tuple[Path, Path]:
     return inp, inp.parent / "out"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("content", ["", "{}", '{"stereotrack": "0.1", "files": {}}', '{"stereotrack": "0.1", "files": []}',
                                      '{"stereotrack": "0.1", "files": {"metrics.json": 3}}', "[1, 2]", "\x00\xff garbage",
                                      '{"files": {"metrics.json": {"size": 1}}}'])
@@ -150,6 +153,7 @@ def test_broken_manifest_means_redo_with_a_warning(tmp_path, content, batch_done
 # ---------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_markers_precedence_in_a_batch(tmp_path):
     inp = tmp_path / "in"
     for name in ("own", "rooted"):

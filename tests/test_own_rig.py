@@ -216,6 +216,7 @@ def chessboard_pairs(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.mark.slow
 def test_calibrate_recovers_the_rendered_rig(chessboard_pairs, tmp_path, monkeypatch, capsys):
     """Chessboard pairs rendered through a known, distorted, left-handed rig: focal lengths and the
     baseline within 0.5 %, the distortion within 0.1 px over the area the board covered (median;
@@ -243,6 +244,7 @@ def test_calibrate_recovers_the_rendered_rig(chessboard_pairs, tmp_path, monkeyp
     assert (out.parent / "calib_report.md").is_file() and (out.parent / "calib_coverage.png").is_file()
 
 
+@pytest.mark.slow
 def test_calibrate_agrees_with_opencv_on_the_same_corners(chessboard_pairs):
     """stereotrack's calibration against OpenCV's stereoCalibrate run directly, intrinsics and all,
     on the same corners: the same baseline to 0.1 %."""
@@ -263,6 +265,7 @@ def test_calibrate_agrees_with_opencv_on_the_same_corners(chessboard_pairs):
     assert abs(np.linalg.norm(res[6]) / cal.baseline - 1) < 0.001
 
 
+@pytest.mark.slow
 def test_calibrate_charuco(tmp_path):
     from pipeline.calibrate import calibrate_folder, parse_board
     from renderers.board import render_board_pairs
@@ -277,6 +280,7 @@ def test_calibrate_charuco(tmp_path):
     assert abs(cal.baseline / truth.baseline - 1) < 0.005 and cal.second_camera_side == "left"
 
 
+@pytest.mark.slow
 def test_calibrate_says_which_pairs_it_left_out(chessboard_pairs, tmp_path):
     """A pair whose right image shows no board, and one whose right image is another pair's: the
     first is left out as 'not found', the second as a reprojection outlier, each named."""
@@ -291,6 +295,7 @@ def test_calibrate_says_which_pairs_it_left_out(chessboard_pairs, tmp_path):
     assert "reprojection error" in cal.rejected["pair 99"] and "pair 99" not in cal.used
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("args, expected", [
     (["--board", "chessboard:9x6", "--square", "24 furlongs"], "--square '24 furlongs' is not a length"),
     (["--board", "chess:9x6", "--square", "24mm"], "expected chessboard:COLSxROWS or charuco:COLSxROWS:DICT"),
@@ -343,6 +348,7 @@ def skin_wall(tmp_path_factory) -> Path:
     return clip
 
 
+@pytest.mark.slow
 def test_loose_window_on_an_orange_ball_before_a_brown_wall(skin_wall, tmp_path):
     """The rendered clip built like the failing real one (orange ball, brown textured wall of nearby
     hue, a skin-toned hand, motion blur), window = the ball's bounding box in frame 0: found on
@@ -363,6 +369,7 @@ def test_loose_window_on_an_orange_ball_before_a_brown_wall(skin_wall, tmp_path)
     assert res.learned["ball"].startswith("ball:")
 
 
+@pytest.mark.slow
 def test_window_on_the_background_stops(skin_wall, monkeypatch, capsys):
     rc, out, err = cli(monkeypatch, capsys, "detect", skin_wall, "--markers", "wall@60,60,40,40")
     assert_one_line_error(rc, out, err, "its centre has no colour its surroundings lack")
@@ -470,6 +477,7 @@ def test_colour_check_on_rendered_clips(tmp_path):
         detect_clip(tmp_path / "clip", "blob", ["sky:0-179:0:0"], out_dir=tmp_path / "b")
 
 
+@pytest.mark.slow
 def test_calibrate_from_two_videos(chessboard_pairs, tmp_path):
     """The same pairs as two videos left.avi/right.avi (frames sampled): the same rig to 0.5 %."""
     from pipeline.calibrate import calibrate_folder

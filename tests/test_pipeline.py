@@ -41,6 +41,7 @@ def e2e_run(tmp_path_factory):
     return process_clip(clip, methods=METHODS)
 
 
+@pytest.mark.slow
 def test_end_to_end_accuracy(e2e_run):
     m = e2e_run.estimate.metrics["methods"]
     assert m["ekf"]["rmse"] < m["triangulation"]["rmse"]
@@ -55,6 +56,7 @@ def test_end_to_end_accuracy(e2e_run):
         assert len(cols["frame"]) == 40
 
 
+@pytest.mark.slow
 def test_report_written(e2e_run):
     text = e2e_run.report.read_text()
     assert "| ekf |" in text and "figures/trajectories.png" in text and "figures/error.png" in text
@@ -82,6 +84,7 @@ def read_recording(path) -> tuple[dict[str, dict[str, list]], set[str], object]:
     return cols, static, reader
 
 
+@pytest.mark.slow
 def test_recording_read_back(e2e_run):
     """Images (JPEG), cameras, every method's points, series and the blueprint, with values."""
     import cv2
@@ -142,6 +145,7 @@ def test_run_cli_on_sample_clip(tmp_path):
     np.testing.assert_allclose(centre[10][0], corners.mean(axis=0), atol=0.03)
 
 
+@pytest.mark.slow
 def test_cli_errors_are_one_line(tmp_path):
     env = {**os.environ, "COLUMNS": "200"}
     for args in (["detect", str(tmp_path / "nope")], ["estimate", str(tmp_path)], ["run", "no_such_scenario"]):
@@ -169,6 +173,7 @@ def _summary(out: Path) -> list[tuple[str, str, str]]:
     return sorted(zip(cols["clip"], status, cols["method"], strict=True))
 
 
+@pytest.mark.slow
 def test_batch_local_then_rerun_then_dask(tmp_path):
     inp = _batch_input(tmp_path)
     assert [p.name for p in find_clips(inp)] == ["a", "b", "c_corrupt"]
@@ -198,6 +203,7 @@ def test_batch_local_then_rerun_then_dask(tmp_path):
                                np.sort(theirs["rmse_m"][np.isfinite(theirs["rmse_m"])]), rtol=1e-9)
 
 
+@pytest.mark.slow
 def test_view_works_on_any_folder_with_a_recording(e2e_run, tmp_path, monkeypatch):
     """A batch's OUT/<clip> holds run.rrd directly: `view` finds it and, with no display, prints the
     viewer command."""
@@ -216,6 +222,7 @@ def test_view_works_on_any_folder_with_a_recording(e2e_run, tmp_path, monkeypatc
     assert res.exit_code != 0 and "no recording" in str(res.exception)
 
 
+@pytest.mark.slow
 def test_view_web_runs_the_viewer_beside_python_and_passes_its_exit_code(e2e_run, tmp_path, monkeypatch):
     """`view --web` serves rerun's web viewer on 127.0.0.1, prints the URL, and the viewer's exit
     code is the command's (a fake viewer that exits 3 stands in for rerun)."""
@@ -277,6 +284,7 @@ def packed(rgb) -> int:
     return (r << 24) | (g << 16) | (b << 8) | 255
 
 
+@pytest.mark.slow
 def test_recording_shows_what_the_run_was(e2e_run):
     """The blueprint opens on the `frame` timeline at the clip's frame rate, with no α/z plots
     for a run without the four-point target and a text panel saying what the run was; every method
@@ -309,6 +317,7 @@ def test_recording_shows_what_the_run_was(e2e_run):
     assert any("/overrides/world/uncertainty/ekf/" in p for p in hidden), hidden  # shown on one click
 
 
+@pytest.mark.slow
 def test_the_viewer_dies_with_view(e2e_run, tmp_path):
     """`stereotrack view --web` killed with SIGKILL: the viewer it started ends too."""
     import signal

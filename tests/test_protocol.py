@@ -286,6 +286,7 @@ def test_methods_command_lists_every_method():
     assert all(f"│ {name} " in res.output for name in detectors())
 
 
+@pytest.mark.slow
 def test_plugin_estimator_through_the_cli(tmp_path):
     """The example plugin, installed with pip, registers `smoothed_triangulation` through the
     `stereotrack.estimators` entry point and then runs in `stereotrack run` like a built-in method."""

@@ -63,6 +63,7 @@ def test_method_colours_are_distinct():
     assert min(delta_e(a, b) for i, a in enumerate(PALETTE) for b in PALETTE[i + 1:]) >= MIN_DELTA_E
 
 
+@pytest.mark.slow
 def test_report_html_is_self_contained_and_lists_every_method(e2e_run):  # noqa: F811
     html = e2e_run.out_dir / "report.html"
     page = parse(html)
@@ -76,6 +77,7 @@ def test_report_html_is_self_contained_and_lists_every_method(e2e_run):  # noqa:
     assert "stereotrack view" in text and "Checks" in text
 
 
+@pytest.mark.slow
 def test_figures_draw_the_runs_methods_only(e2e_run, tmp_path):  # noqa: F811
     """A stale estimate CSV from an earlier run (a method not in metrics.json) is not drawn; every
     figure's legend lists every method it plots and the truth."""
@@ -98,6 +100,7 @@ def test_figures_draw_the_runs_methods_only(e2e_run, tmp_path):  # noqa: F811
     plt.close("all")
 
 
+@pytest.mark.slow
 def test_runaways_are_clipped_and_named(e2e_run, tmp_path):  # noqa: F811
     """A method whose error is far above the others' sets no axis: the error figure's y range is
     that of the tracking methods, and the caption and tables name the runaway."""
@@ -115,6 +118,7 @@ def test_runaways_are_clipped_and_named(e2e_run, tmp_path):  # noqa: F811
     plt.close("all")
 
 
+@pytest.mark.slow
 def test_batch_summary_html(tmp_path):
     """Three clips: summary.html has one row per method with its confidence intervals, and every
     link resolves to a clip's report."""
@@ -137,6 +141,7 @@ def test_batch_summary_html(tmp_path):
         assert clips == 3 and mean == pytest.approx(np.mean(long["rmse_m"][long["method"] == m]), rel=1e-6)
 
 
+@pytest.mark.slow
 def test_report_from_memory_equals_report_from_files(e2e_run):  # noqa: F811
     """`run` draws the report from its results in memory; `stereotrack report` reads the stage
     files back: the same data either way (to the CSVs' 10 significant digits)."""
@@ -157,6 +162,7 @@ def test_report_from_memory_equals_report_from_files(e2e_run):  # noqa: F811
     assert mem.marker_colours == disk.marker_colours and mem.metrics == disk.metrics
 
 
+@pytest.mark.slow
 def test_run_reads_each_input_once(tmp_path, monkeypatch):
     """One `run`: the calibration is loaded once, the markers resolved once, and no stage reads
     back a file another stage wrote (the estimate and report stages take their inputs in memory)."""
