@@ -216,15 +216,23 @@ def chessboard_pairs(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.fixture(scope="module")
+def chessboard_calibration(chessboard_pairs):
+    """(the pairs found, the calibration of them), computed once for the tests that inspect it."""
+    from pipeline.calibrate import calibrate, find_pairs
+    from renderers.board import Board
+
+    pairs = find_pairs(chessboard_pairs)
+    return pairs, calibrate(pairs, Board("chessboard", 9, 6, 0.025))
+
+
 @pytest.mark.slow
-def test_calibrate_recovers_the_rendered_rig(chessboard_pairs, tmp_path, monkeypatch, capsys):
+def test_calibrate_recovers_the_rendered_rig(chessboard_pairs, chessboard_calibration, tmp_path, monkeypatch, capsys):
     """Chessboard pairs rendered through a known, distorted, left-handed rig: focal lengths and the
     baseline within 0.5 %, the distortion within 0.1 px over the area the board covered (median;
     under 0.2 px at the 95th percentile, near the coverage's edge), the second camera named as on
     the left; calib.yaml in metres with the image size."""
-    from pipeline.calibrate import calibrate, find_pairs
     from pipeline.core.camera import load_calibration
-    from renderers.board import Board
 
     truth = board_rig()
     out = tmp_path / "calib.yaml"
@@ -237,7 +245,7 @@ def test_calibrate_recovers_the_rendered_rig(chessboard_pairs, tmp_path, monkeyp
     for est, true in zip(rig.cameras, truth.cameras, strict=True):
         np.testing.assert_allclose(np.diag(est.K)[:2], np.diag(true.K)[:2], rtol=0.005)
     assert abs(rig.baseline / truth.baseline - 1) < 0.005
-    cal = calibrate(find_pairs(chessboard_pairs), Board("chessboard", 9, 6, 0.025))
+    cal = chessboard_calibration[1]
     for est, true, hulls in zip(cal.rig.cameras, truth.cameras, cal.hulls, strict=True):
         e = distortion_error(est, true, hulls)  # measured: median 0.03 / 0.01 px, 95th percentile 0.10 / 0.07 px
         assert np.median(e) < 0.1 and np.percentile(e, 95) < 0.2
@@ -245,15 +253,14 @@ def test_calibrate_recovers_the_rendered_rig(chessboard_pairs, tmp_path, monkeyp
 
 
 @pytest.mark.slow
-def test_calibrate_agrees_with_opencv_on_the_same_corners(chessboard_pairs):
+def test_calibrate_agrees_with_opencv_on_the_same_corners(chessboard_calibration):
     """stereotrack's calibration against OpenCV's stereoCalibrate run directly, intrinsics and all,
     on the same corners: the same baseline to 0.1 %."""
-    from pipeline.calibrate import calibrate, find_corners, find_pairs
+    from pipeline.calibrate import find_corners
     from renderers.board import Board
 
     board = Board("chessboard", 9, 6, 0.025)
-    pairs = find_pairs(chessboard_pairs)
-    cal = calibrate(pairs, board)
+    pairs, cal = chessboard_calibration
     obj, il, ir = [], [], []
     for _, gl, gr in pairs:
         a, b = find_corners(board, gl), find_corners(board, gr)
