@@ -1,7 +1,7 @@
 """The detector role: one object per camera that finds the markers in each frame and owns its
 search state (windows, recent sizes, labels, tracked histograms), and the registry the CLI's
 choices come from. Detectors register themselves like estimators do (Stone Soup's one base per
-role); ``tests/test_detector_protocol.py`` runs every registered one through the same checks."""
+role); ``tests/detectors/test_detector_protocol.py`` runs every registered one through the same checks."""
 
 from __future__ import annotations
 

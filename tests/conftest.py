@@ -77,7 +77,7 @@ def detected_clip(tmp_path_factory) -> Path:
     starting point of the bad-input tables (each case copies it)."""
     from detectors.stage import detect_clip
     from pipeline.estimate import estimate_clip
-    from tests.test_inputs import RED, real_copy
+    from tests.helpers import RED, real_copy
 
     clip = real_copy(tmp_path_factory.mktemp("bad") / "clip")
     detect_clip(clip, "blob", [RED])

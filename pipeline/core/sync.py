@@ -34,7 +34,7 @@ BOOTSTRAP = 200
 BLOCK = 10  # frames per bootstrap block
 #: the interval is ±1.96 bootstrap standard deviations widened by this: on a slow target moving
 #: mostly along the epipolar lines the plain bootstrap's interval held 0 in 80–85 % of clean
-#: simulated clips (tests/test_sync.py measures the widened one)
+#: simulated clips (tests/estimators/test_survive.py::test_clean_clips_keep_zero_in_the_interval measures the widened one)
 CI_WIDEN = float(np.sqrt(2.0))
 MIN_PAIRS = 12
 

@@ -60,6 +60,7 @@ class AlphaBetaEstimator(Estimator):
 
     name = "alphabeta"
     Config = AlphaBetaConfig
+    config: AlphaBetaConfig  # the validated settings, of this method's own type
 
     def _gamma(self) -> float | None:
         return None
@@ -67,7 +68,7 @@ class AlphaBetaEstimator(Estimator):
     def reset(self) -> None:
         super().reset()
         self.f: ABFilter | None = None
-        cfg: AlphaBetaConfig = self.config  # type: ignore[assignment]
+        cfg = self.config
         self.threshold = camera_gate(cfg.pixel_sigma, cfg.gate)
         gamma = self._gamma()
         order = 2 if gamma is None else 3
@@ -78,7 +79,7 @@ class AlphaBetaEstimator(Estimator):
     def _begin(self, s) -> None:
         """Start the filter and its error covariance (per channel: position, rate(, acceleration))
         from the initiator's start."""
-        cfg: AlphaBetaConfig = self.config  # type: ignore[assignment]
+        cfg = self.config
         p0, v0 = s.state[:3], s.state[3:]
         order = len(self.K1)
         if cfg.space == "image":  # the start in pixels: h(p0), and its rate J(p0) v0
@@ -103,7 +104,7 @@ class AlphaBetaEstimator(Estimator):
         with R the measurement's variance (σ², or the triangulation's): exact for white measurement
         noise, and its limit is Kalata's steady state (IEEE TAES 20(2), 1984)."""
         corrected = np.isfinite(z)
-        if self.config.space == "image":  # type: ignore[attr-defined]
+        if self.config.space == "image":
             R = np.full(len(z), self.model.pixel_sigma**2)
         else:
             R = np.diag(self.model.inverse_covariance(np.nan_to_num(z))) if corrected.all() else np.zeros(3)
@@ -119,7 +120,7 @@ class AlphaBetaEstimator(Estimator):
         assert self.f is not None
         if not np.isfinite(self.threshold):
             return y, 0
-        if self.config.space == "image":  # type: ignore[attr-defined]
+        if self.config.space == "image":
             r = (y - self.f.x).reshape(2, 2)
             S = (self.P[:, 0, 0] + self.model.pixel_sigma**2).reshape(2, 2)
             nis = np.where(np.all(np.isfinite(r), axis=1), np.nansum(r**2 / S, axis=1), np.nan)
@@ -138,7 +139,7 @@ class AlphaBetaEstimator(Estimator):
         return kept, int(g.sum())
 
     def _step(self, y: np.ndarray) -> Step:
-        cfg: AlphaBetaConfig = self.config  # type: ignore[assignment]
+        cfg = self.config
         image = cfg.space == "image"
         n_gated, restarted = 0, False
         if self.f is None:
@@ -173,6 +174,7 @@ class AlphaBetaGammaEstimator(AlphaBetaEstimator):
 
     name = "alphabetagamma"
     Config = AlphaBetaGammaConfig
+    config: AlphaBetaGammaConfig  # the validated settings, of this method's own type
 
     def _gamma(self) -> float | None:
-        return self.config.gamma  # type: ignore[attr-defined]
+        return self.config.gamma

@@ -37,11 +37,12 @@ class EKFEstimator(GatedFilter, Estimator):
 
     name = "ekf"
     Config = KalmanConfig
+    config: KalmanConfig  # the validated settings, of this method's own type
     models_time_offset = True
 
     def reset(self) -> None:
         super().reset()
-        cfg: KalmanConfig = self.config  # type: ignore[assignment]
+        cfg = self.config
         self.A = transition(self.dt)
         self.Q = white_noise_acceleration(self.dt, cfg.process_noise * cfg.q_scale)
         self.R = self.model.covar() * cfg.r_scale

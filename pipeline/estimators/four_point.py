@@ -201,9 +201,10 @@ class TargetEstimator(Estimator):
     models_target_dynamics: ClassVar[bool] = False
     kind = "target"
     Config: ClassVar[type[EstimatorConfig]] = TargetConfig
+    config: TargetConfig  # the validated settings, of this method's own type
 
     def measure(self, obs: np.ndarray) -> TargetMeasurement:
-        c: TargetConfig = self.config  # type: ignore[assignment]
+        c = self.config
         return measure_stereo(self.rig, np.asarray(obs, dtype=float), c.radius, c.formula, c.cameras)
 
     @staticmethod
@@ -218,7 +219,7 @@ class TargetEstimator(Estimator):
         """Whether a measurement ``u = [α, z]`` lies outside the χ² gate (2 dof, ``gate``) around the
         filter's predicted ``[α, z]`` with innovation covariance ``S``: a target whose points were
         mis-detected or mislabelled in one frame must not throw the filter off."""
-        threshold = camera_gate(self.config.pixel_sigma, self.config.gate)  # type: ignore[attr-defined]
+        threshold = camera_gate(self.config.pixel_sigma, self.config.gate)
         if not np.isfinite(threshold):
             return False
         r = np.asarray(u, dtype=float) - predicted

@@ -170,10 +170,11 @@ class KalmanBucyEstimator(TargetEstimator):
     name = "kalman_bucy"
     models_target_dynamics = True
     Config = KalmanBucyConfig
+    config: KalmanBucyConfig  # the validated settings, of this method's own type
 
     def reset(self) -> None:
         super().reset()
-        c: KalmanBucyConfig = self.config  # type: ignore[assignment]
+        c = self.config
         self.A = block_diag2(channel_matrix(c.a_alpha, c.alpha_feedback), channel_matrix(c.a_z, c.z_feedback))
         check_model(self.A, C4)
         self.GQG = G4 @ np.diag([c.q_alpha, c.q_z]) @ G4.T
@@ -182,7 +183,7 @@ class KalmanBucyEstimator(TargetEstimator):
             self._set_noise(c.sigma_alpha**2, c.sigma_z**2)
 
     def _set_noise(self, var_alpha: float, var_z: float) -> None:
-        c: KalmanBucyConfig = self.config  # type: ignore[assignment]
+        c = self.config
         self.meas_var = np.array([var_alpha, var_z])
         self.R = np.diag(self.meas_var) * self.dt  # density of sampled noise
         self.Rinv = np.linalg.inv(self.R)
@@ -191,13 +192,13 @@ class KalmanBucyEstimator(TargetEstimator):
 
     def _start(self, obs: np.ndarray, m) -> None:
         """Measurement noise for the first frame (propagated from pixels unless configured)."""
-        c: KalmanBucyConfig = self.config  # type: ignore[assignment]
+        c = self.config
         if c.sigma_alpha is None or c.sigma_z is None:
             va, vz = propagated_variance(self.measure, obs, m, c.pixel_sigma)
             self._set_noise(c.sigma_alpha**2 if c.sigma_alpha else va, c.sigma_z**2 if c.sigma_z else vz)
 
     def _step(self, obs: np.ndarray) -> Step:
-        c: KalmanBucyConfig = self.config  # type: ignore[assignment]
+        c = self.config
         m = self.measure(obs)
         if not self.initialized:
             if not m.ok:

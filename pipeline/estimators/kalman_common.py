@@ -75,8 +75,10 @@ class GatedFilter:
     camera's observation is dropped (set missing) before the ordinary update, so every path —
     :meth:`step`, :meth:`run`, :func:`kalman_batch` — gates identically."""
 
+    config: KalmanConfig  # the host estimator's settings
+
     def gate_threshold(self) -> float:
-        cfg = self.config  # type: ignore[attr-defined]
+        cfg = self.config
         key = (cfg.pixel_sigma, cfg.gate)
         if getattr(self, "_gate_key", None) != key:  # chdtri costs more than a filter step
             self._gate_key, self._gate_value = key, camera_gate(cfg.pixel_sigma, cfg.gate)
@@ -84,7 +86,7 @@ class GatedFilter:
 
     def gate_covariance(self) -> np.ndarray:
         """The pixel noise the gate assumes: the model's ``σ² I``, times ``r_scale``."""
-        return self.model.covar() * self.config.r_scale  # type: ignore[attr-defined]
+        return self.model.covar() * self.config.r_scale
 
     def gate(self, y: np.ndarray, x: np.ndarray, P: np.ndarray, h: np.ndarray | None = None,
              H: np.ndarray | None = None, S: np.ndarray | None = None) -> tuple[np.ndarray, int, Start | None]:
@@ -102,9 +104,9 @@ class GatedFilter:
         had = gated or bool(np.isfinite(y).any())  # one track: plain Python, as update_gated_run
         self.gated_run = self.gated_run + 1 if gated else (0 if had else self.gated_run)  # type: ignore[has-type]
         self.gated_run, self.unseen, self.returning = after_gap(  # type: ignore[has-type]
-            self.gated_run, self.unseen, self.returning, had, gated, self.config.restart_after)  # type: ignore[attr-defined]
+            self.gated_run, self.unseen, self.returning, had, gated, self.config.restart_after)
         restart = None
-        if self.gated_run >= self.config.restart_after:  # type: ignore[attr-defined]
+        if self.gated_run >= self.config.restart_after:
             restart = self.initiator.restart(self.frame, self.recent_observations())  # type: ignore[attr-defined]
             if restart is not None:
                 self.gated_run = 0

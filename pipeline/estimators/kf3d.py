@@ -33,10 +33,11 @@ class KF3DEstimator(GatedFilter, Estimator):
 
     name = "kf3d"
     Config = KF3DConfig
+    config: KF3DConfig  # the validated settings, of this method's own type
 
     def reset(self) -> None:
         super().reset()
-        cfg: KF3DConfig = self.config  # type: ignore[assignment]
+        cfg = self.config
         self.A = transition(self.dt)
         self.Q = white_noise_acceleration(self.dt, cfg.process_noise * cfg.q_scale)
         from filterpy.kalman import KalmanFilter  # imported when a filter is built (see base.py)
@@ -46,7 +47,7 @@ class KF3DEstimator(GatedFilter, Estimator):
 
     def measurement_covariance(self, X: np.ndarray) -> np.ndarray:
         """``R_k`` for triangulated points ``X`` (…×3 → …×3×3)."""
-        cfg: KF3DConfig = self.config  # type: ignore[assignment]
+        cfg = self.config
         if cfg.measurement_noise == "constant":
             return np.broadcast_to(np.eye(3) * cfg.sigma_3d**2 * cfg.r_scale, (*X.shape[:-1], 3, 3)).copy()
         return self.model.inverse_covariance(X) * cfg.r_scale

@@ -53,10 +53,11 @@ class PnPKFEstimator(TargetEstimator):
     name = "pnp_kf"
     models_target_dynamics = True
     Config = KalmanBucyConfig
+    config: KalmanBucyConfig  # the validated settings, of this method's own type
 
     def reset(self) -> None:
         super().reset()
-        c: KalmanBucyConfig = self.config  # type: ignore[assignment]
+        c = self.config
         A = block_diag2(channel_matrix(c.a_alpha, c.alpha_feedback), channel_matrix(c.a_z, c.z_feedback))
         F, Qd = van_loan(A, G4 @ np.diag([c.q_alpha, c.q_z]) @ G4.T, self.dt)
         from filterpy.kalman import KalmanFilter  # imported when a filter is built (see base.py)
@@ -67,7 +68,7 @@ class PnPKFEstimator(TargetEstimator):
 
     def pnp(self, obs: np.ndarray) -> TargetMeasurement:
         """α, z and centre from PnP on each available camera, averaged in the left frame."""
-        c: KalmanBucyConfig = self.config  # type: ignore[assignment]
+        c = self.config
         idx = {"left": [0], "right": [1], "both": [0, 1]}[c.cameras]
         alphas, dists, centers = [], [], []
         for ci in idx:
@@ -107,7 +108,7 @@ class PnPKFEstimator(TargetEstimator):
         return TargetMeasurement(float(np.mean(alphas)), float(np.mean(dists)), np.mean(centers, axis=0), math.nan)
 
     def _step(self, obs: np.ndarray) -> Step:
-        c: KalmanBucyConfig = self.config  # type: ignore[assignment]
+        c = self.config
         m = self.pnp(np.asarray(obs, dtype=float))
         if not self.initialized:
             if not m.ok:

@@ -22,6 +22,7 @@ class PredictOnlyEstimator(Estimator):
 
     name = "predict_only"
     Config = PredictOnlyConfig
+    config: PredictOnlyConfig  # the validated settings, of this method's own type
 
     def reset(self) -> None:
         super().reset()
@@ -34,7 +35,7 @@ class PredictOnlyEstimator(Estimator):
             if s is None:
                 return not_started()
             self.p = s.state[:3].copy()
-            self.v = np.zeros(3) if self.config.static else s.state[3:].copy()  # type: ignore[attr-defined]
+            self.v = np.zeros(3) if self.config.static else s.state[3:].copy()
             self.initialized = True
             return Step(self.p.copy(), self.v.copy())
         self.p = self.p + self.v * self.dt

@@ -112,12 +112,13 @@ class SPSAEstimator(Estimator):
     name = "spsa"
     min_frames = 2
     Config = SPSAConfig
+    config: SPSAConfig  # the validated settings, of this method's own type
     state_dim = 6
 
     def reset(self) -> None:
         super().reset()
         self._cams = camera_tuples(self.rig)
-        cfg: SPSAConfig = self.config  # type: ignore[assignment]
+        cfg = self.config
         self._alpha, self._beta = cfg.alpha, cfg.beta
         self._th = math.inf if cfg.th is None else cfg.th
         self.theta = [0.0] * 6  # frame units: [p, v·dt]
@@ -274,7 +275,7 @@ def batch_spsa(est: SPSAEstimator, Y: np.ndarray) -> np.ndarray:
     each track starts where the initiator says (as :meth:`SPSAEstimator.run`), iterates over the
     frame pairs that follow its own start, and draws the same Δ sequence a single track draws."""
     est.reset()
-    cfg: SPSAConfig = est.config  # type: ignore[assignment]
+    cfg = est.config
     M, n, _ = Y.shape
     starts = est.initiator.first_batch(Y)
     begin = np.array([s.frame if s is not None else n for s in starts])

@@ -176,10 +176,11 @@ class SPSAStereoEstimator(Estimator):
     name = "spsa_stereo"
     min_frames = 2
     Config = SPSAStereoConfig
+    config: SPSAStereoConfig  # the validated settings, of this method's own type
 
     def reset(self) -> None:
         super().reset()
-        cfg: SPSAStereoConfig = self.config  # type: ignore[assignment]
+        cfg = self.config
         self._unit_rig = self.rig.normalized()  # triangulates normalized observations (restarts)
         R0, t0 = rectifying_frame(self.rig)  # q lives in this frame: any layout is a "right" one
         self._Rl = R0.ravel().tolist()
@@ -379,7 +380,7 @@ class SPSAStereoEstimator(Estimator):
         if not all(math.isfinite(c) for c in pp):
             return use_l, use_r
         out = [use_l, use_r]
-        sigma2 = self.config.pixel_sigma**2  # type: ignore[attr-defined]
+        sigma2 = self.config.pixel_sigma**2
         for c in (0, 1):
             if out[c]:
                 R, t = self._poses[c]
@@ -394,7 +395,7 @@ class SPSAStereoEstimator(Estimator):
                     self._gated += 1
         # both far but one point (``pixels``: this frame's observation): lag, not an outlier
         if self._gated == 2 and stereo_consistent(self.model, pixels, self.config.pixel_sigma,
-                                                  self.config.gate):  # type: ignore[attr-defined]
+                                                  self.config.gate):
             self._gated = 0
             return use_l, use_r
         return out[0], out[1]

@@ -31,6 +31,7 @@ class SPSAVGGEstimator(SPSAEstimator):
 
     name = "spsa_vgg"
     Config = SPSAVGGConfig
+    config: SPSAVGGConfig  # the validated settings, of this method's own type
     state_dim = 3
 
     def _begin(self, s: Start) -> None:
@@ -42,7 +43,7 @@ class SPSAVGGEstimator(SPSAEstimator):
         return Step(np.array(th[:3]), NAN3.copy(), predicted=predicted)
 
     def _iterate(self, yn: tuple, ok_l: bool, ok_r: bool) -> tuple[list[float], bool]:
-        cfg: SPSAConfig = self.config  # type: ignore[assignment]
+        cfg = self.config
         t = self.theta
         b, th = cfg.beta, self._th
         if self._phase == 0:

@@ -22,7 +22,7 @@ from pipeline.estimators.base import InitConfig, transition, white_noise_acceler
 from pipeline.estimators.spsa import _cost, camera_tuples
 from renderers.motion import target_points
 from tests.conftest import REPO
-from tests.test_inputs import cli
+from tests.helpers import cli
 
 RIG = StereoRig.from_parameters(640, 480, (610.0, 590.0), (322.0, 241.0), 0.3, 4.0)
 DT = 1 / 30

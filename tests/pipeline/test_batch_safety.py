@@ -171,7 +171,7 @@ def test_corrupted_output_is_redone(reference, tmp_path):
 
 def test_run_is_locked_and_cleans_leftovers(tmp_path, monkeypatch, capsys):
     from pipeline.core.lifeline import OutputLock
-    from tests.test_inputs import cli
+    from tests.helpers import cli
 
     clip = tmp_path / "clip"
     shutil.copytree(SAMPLE, clip)

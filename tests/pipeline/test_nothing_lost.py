@@ -26,7 +26,7 @@ from pipeline.core.errors import StereotrackError
 from pipeline.core.io import read_csv
 from pipeline.manifest import MANIFEST, verify_manifest
 from tests.conftest import REPO
-from tests.test_inputs import RED, assert_one_line_error, cli, real_copy, snapshot
+from tests.helpers import RED, assert_one_line_error, cli, real_copy, snapshot
 
 SAMPLE = REPO / "data" / "clips" / "sample_small"
 FUZZ = settings(max_examples=200, deadline=None, derandomize=True,

@@ -16,7 +16,7 @@ from detectors.stage import detect_clip
 from pipeline.core.clip import Clip
 from pipeline.estimate import estimate_clip
 from tests.conftest import BALL
-from tests.test_inputs import RED, assert_one_line_error, cli, real_copy
+from tests.helpers import RED, assert_one_line_error, cli, real_copy
 
 
 def frame_folders(dest: Path, frames: int = 30) -> Path:
@@ -431,7 +431,7 @@ def test_unsized_calibration_made_at_another_size_is_named(tmp_path, factor, nam
     frames' size is named as such (it used to read as "left/right swapped" or an epipolar
     warning), and one made at the frames' size stays silent."""
     from pipeline.core.camera import load_calibration
-    from tests.test_inputs import SAMPLE, failed_checks
+    from tests.helpers import SAMPLE, failed_checks
 
     clip = real_copy(tmp_path / "clip")
     rig = load_calibration(SAMPLE)

@@ -14,7 +14,7 @@ from pipeline.core.clip import Clip
 from pipeline.core.io import read_csv
 from pipeline.report import FIGURES, load_report_data, write_report
 from pipeline.style import PALETTE, TRUTH_RGB, delta_e, method_rgb
-from tests.test_pipeline import e2e_run  # noqa: F401  (the module's end-to-end run)
+from tests.pipeline.test_pipeline import e2e_run  # noqa: F401  (the module's end-to-end run)
 
 #: the smallest CIE76 ΔE between any two methods' colours, and between a method and the truth
 MIN_DELTA_E = 30.0
