@@ -188,11 +188,18 @@ def _limits(arrays: list[np.ndarray], pad: float = 0.08) -> tuple[float, float] 
 
 
 def _plain_log_labels(ax) -> None:
-    """Log-axis ticks as plain numbers (2, 3, 5 …), not powers of ten."""
-    from matplotlib.ticker import FormatStrFormatter
+    """Log-axis ticks as plain numbers (1, 2, 5, 10 …), not powers of ten; minor ticks labelled
+    only at 2 and 5 of each decade, so labels never crowd."""
+    import math
+
+    from matplotlib.ticker import FormatStrFormatter, FuncFormatter
+
+    def minor(v: float, _pos: int) -> str:
+        lead = round(v / 10 ** math.floor(math.log10(v)), 6) if v > 0 else 0
+        return f"{v:g}" if lead in (2.0, 5.0) else ""
 
     ax.yaxis.set_major_formatter(FormatStrFormatter("%g"))
-    ax.yaxis.set_minor_formatter(FormatStrFormatter("%g"))
+    ax.yaxis.set_minor_formatter(FuncFormatter(minor))
 
 
 def _runaway_note(data: ReportData, drawn: list[str]) -> str:
