@@ -17,7 +17,6 @@ from pipeline.core.camera import StereoRig
 from pipeline.core.checks import Check, colour_checks, rig_for_frames, warn_failed
 from pipeline.core.clip import (
     CLIP_INFO,
-    DETECT_INFO,
     DETECTION_COLUMNS,
     MARKERS_FILE,
     Clip,
@@ -27,6 +26,7 @@ from pipeline.core.clip import (
 from pipeline.core.errors import StereotrackError
 from pipeline.core.frames import CameraReader, StereoFrameSource
 from pipeline.core.io import write_csv, write_json
+from pipeline.core.outputs import Outputs
 
 #: The detect stage's record beside detections.csv: frames, frame size, markers used, checks.
 #: A clip folder (or a batch's input root) may name its markers here, in ``--markers`` syntax.
@@ -131,7 +131,7 @@ def detect_clip(
     """
     clip_ = Clip.open(clip)
     source = StereoFrameSource(clip_.path, allow_unequal=allow_unequal, fps=clip_.fps)
-    out_dir = Path(out_dir) if out_dir else clip_.folder / "out"
+    out_dir = Outputs.of(clip_.folder, out_dir).folder
     rig: StereoRig | None = None
     checks: list[Check] = []
     if clip_.has_calibration:
@@ -187,11 +187,11 @@ def _scan(source: StereoFrameSource, finders: list, rig: StereoRig | None, marke
 def _write_detections(out_dir: Path, clip: Clip, source: StereoFrameSource, scan: _Scanned, checks: list[Check],
                       record: dict) -> DetectResult:
     """``detections.csv`` and ``detect.json``; the result the estimate stage takes in memory."""
-    path = out_dir / "detections.csv"
+    path = Outputs(out_dir).detections
     write_csv(path, DETECTION_COLUMNS, scan.rows)
     summaries = summarize(scan.rows, clip, scan.frames, scan.cameras)
     cameras = [asdict(s) for s in summaries]
-    write_json(out_dir / DETECT_INFO, {
+    write_json(Outputs(out_dir).detect_info, {
         "clip": str(clip.path), "frames": scan.frames, "frame_size": list(source.size), "stereo": source.stereo,
         **record, "checks": [c.as_dict() for c in checks], "cameras": cameras})
     cols = {name: [r[i] for r in scan.rows] for i, name in enumerate(DETECTION_COLUMNS)}

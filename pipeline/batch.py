@@ -25,7 +25,8 @@ from pipeline.core.camera import has_calibration
 from pipeline.core.errors import StereotrackError
 from pipeline.core.io import check_replaceable, ensure_dir, write_json
 from pipeline.core.lifeline import OutputLock, die_with_parent, ignore_sigint, still_parented
-from pipeline.manifest import MANIFEST, verify_manifest, write_manifest
+from pipeline.core.outputs import DETECT_INFO, ESTIMATES, FIGURES, MANIFEST, OUT, Outputs
+from pipeline.manifest import verify_manifest, write_manifest
 from pipeline.summary import ClipOutcome, write_summary
 
 
@@ -39,8 +40,7 @@ def find_clips(input_dir: str | Path, skip: Path | None = None) -> list[Path]:
     clips = []
     for top, dirs, files in os.walk(input_dir):
         d = Path(top)
-        dirs[:] = sorted(n for n in dirs if not n.startswith(".") and n not in ("out", "left", "right", "estimates",
-                                                                                    "figures")
+        dirs[:] = sorted(n for n in dirs if not n.startswith(".") and n not in (OUT, "left", "right", ESTIMATES, FIGURES)
                          and (skip is None or (d / n).resolve() != skip))
         has_left = any(n.startswith("left") for n in (*files, *dirs))
         if has_calibration(d) or (has_left and any(n.startswith("right") for n in (*files, *dirs))):
@@ -77,7 +77,7 @@ def _worker_init(parent_pid: int, single_thread: bool, stages: Any = None) -> No
 ATTEMPT = ".attempt.json"
 #: Files that only stereotrack writes into a clip's output folder: a folder holding none of them
 #: (and not empty) is someone else's and is never replaced, ``--force`` included.
-OURS = (MANIFEST, "detect.json")
+OURS = (MANIFEST, DETECT_INFO)
 
 
 def _attempt_info() -> dict[str, Any]:
@@ -128,7 +128,7 @@ def _process_one(clip: str, key: str, out_root: str, settings: dict[str, Any],
             os._exit(1)  # the batch is gone: never commit for a batch that no longer exists
         _swap_in(partial, final)
         notes = sorted({str(w.message) for w in caught})
-        return ClipOutcome(key, "ok", json.loads((final / "metrics.json").read_text()), warnings=notes)
+        return ClipOutcome(key, "ok", json.loads(Outputs(final).metrics.read_text()), warnings=notes)
     except StereotrackError as exc:
         shutil.rmtree(partial, ignore_errors=True)
         return ClipOutcome(key, "failed", error=str(exc))
@@ -292,7 +292,7 @@ def _complete(key: str, final: Path, settings: dict, clip: Path) -> ClipOutcome 
     why = verify_manifest(final, settings, input_files(clip))
     if why is None:
         try:
-            return ClipOutcome(key, "skipped", json.loads((final / "metrics.json").read_text()))
+            return ClipOutcome(key, "skipped", json.loads(Outputs(final).metrics.read_text()))
         except (OSError, ValueError):
             why = "unreadable metrics.json"
     if why != "no manifest":

@@ -15,6 +15,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from pipeline.core.errors import StereotrackError
+from pipeline.core.outputs import RECORDING, Outputs
 
 app = typer.Typer(
     help="Track objects in stereo video: render synthetic clips, detect markers, estimate 3-D tracks.",
@@ -256,12 +257,12 @@ def estimate_cmd(
     offset = parse_time_offset(time_offset)
     with progress_bar() as bar:
         task = bar.add_task("estimate", total=None)
-        res = estimate_clip(Clip(clip, fps), _methods(methods), output, configs=configs, in_dir=clip / "out",
+        res = estimate_clip(Clip(clip, fps), _methods(methods), output, configs=configs, in_dir=Outputs.of(clip).folder,
                             progress=lambda d, t: bar.update(task, completed=d, total=t), calib_units=calib_units,
                             time_offset=offset, describe=lambda w: bar.update(task, description=f"estimate ({w})"))
     _print_time(res.metrics["time"]["fps"], res.metrics["time"]["source"])
     _print_sync(res.metrics)
-    out.print(_metrics_table(res.metrics, str(res.out_dir / "metrics.json")))
+    out.print(_metrics_table(res.metrics, str(Outputs(res.out_dir).metrics)))
 
 
 @app.command("calibrate")
@@ -318,7 +319,7 @@ def report_cmd(
     with progress_bar() as bar:
         task = bar.add_task("report", total=None)
         path = write_report(clip, output, progress=lambda d, t: bar.update(task, completed=d, total=t),
-                            in_dir=clip / "out")
+                            in_dir=Outputs.of(clip).folder)
     out.print(f"wrote {path}")
 
 
@@ -427,10 +428,10 @@ def _recordings(folder: Path) -> list[Path]:
     clip's run.rrd under a batch output folder."""
     if folder.suffix == ".rrd" and folder.is_file():
         return [folder]
-    for p in (folder / "run.rrd", folder / "out" / "run.rrd"):
+    for p in (Outputs(folder).recording, Outputs.of(folder).recording):
         if p.is_file():
             return [p]
-    batch = sorted(p for p in folder.rglob("run.rrd") if not any(part.startswith(".") for part in p.relative_to(folder).parts)) \
+    batch = sorted(p for p in folder.rglob(RECORDING) if not any(part.startswith(".") for part in p.relative_to(folder).parts)) \
         if folder.is_dir() else []
     if batch:
         return batch

@@ -27,6 +27,7 @@ from pipeline.core.clip import (
 )
 from pipeline.core.errors import StereotrackError
 from pipeline.core.io import write_csv, write_json
+from pipeline.core.outputs import Outputs
 from pipeline.core.sync import SyncEstimate, grid_length, resolve_sync
 from pipeline.estimators import Estimator, Track, create, registry
 from pipeline.estimators import methods as registered_methods
@@ -115,7 +116,7 @@ def estimate_clip(
     ``metrics.json`` under ``checks``. ``describe`` is told once what ``progress`` counts.
     """
     clip_ = Clip.open(clip)
-    out_dir = Path(out_dir) if out_dir else clip_.folder / "out"
+    out_dir = Outputs.of(clip_.folder, out_dir).folder
     reg = registry()
     for m in methods or []:
         if m not in reg:
@@ -136,7 +137,7 @@ def estimate_clip(
     tracks = {m: _run_point(m, seen, configs.get(m), out_dir, resolved, count) for m in point}
     result = EstimateResult(out_dir, seen.rig, seen.dt, seen.n, seen.obs, tracks, seen.truth, seen.target, target_tracks)
     result.metrics = _metrics(result, seen, clip_, calib_units, resolved)
-    write_json(out_dir / "metrics.json", result.metrics)
+    write_json(Outputs(out_dir).metrics, result.metrics)
     return result
 
 
@@ -156,7 +157,7 @@ def observe(clip: Clip, in_dir: Path, detections: tuple[dict[str, np.ndarray], F
             calib_units: str | None, time_offset: str | float | None, target_radius: float | None) -> Observed:
     """The detections (in memory, else ``in_dir/detections.csv``) padded to the clip's frame grid,
     the rig as the frames need it, the time offset resolved and applied, and the input checks."""
-    det_path = in_dir / "detections.csv"
+    det_path = Outputs(in_dir).detections
     if detections is None and not det_path.is_file():
         raise StereotrackError("no detections.csv: run `stereotrack detect` first", det_path)
     footage = detections[1] if detections is not None else footage_info(clip.path, in_dir)
@@ -217,7 +218,7 @@ def _run_target(m: str, seen: Observed, config: dict, out_dir: Path, resolved: d
     est = create(m, seen.rig, seen.dt, {"radius": target.radius, **dynamics, **config})
     resolved[m] = est.config.model_dump(mode="json")
     track = _run_method(est, Yt, target.name)
-    _write_target_estimates(out_dir / "estimates" / f"{m}.csv", target.name, track, seen.dt)
+    _write_target_estimates(Outputs(out_dir).estimates(m), target.name, track, seen.dt)
     count.tick()
     return track
 
@@ -233,7 +234,7 @@ def _run_point(m: str, seen: Observed, config: dict | None, out_dir: Path, resol
     for marker, Y in (seen.obs if modelled else seen.aligned).items():
         tracks[marker] = _run_method(est, Y, marker)
         count.tick()
-    _write_estimates(out_dir / "estimates" / f"{m}.csv", tracks, seen.dt, seen.truth)
+    _write_estimates(Outputs(out_dir).estimates(m), tracks, seen.dt, seen.truth)
     return tracks
 
 

@@ -14,6 +14,7 @@ import numpy as np
 
 from pipeline.core.errors import StereotrackError
 from pipeline.core.io import atomic_path, write_csv
+from pipeline.core.outputs import Outputs
 
 FORMATS = ("trc", "c3d", "csv")
 
@@ -33,7 +34,7 @@ def read_tracks(out_dir: Path, method: str, fps: float) -> Tracks:
     frames × markers × 3."""
     from pipeline.core.clip import read_positions
 
-    pos, n = read_positions(out_dir / "estimates" / f"{method}.csv")
+    pos, n = read_positions(Outputs(out_dir).estimates(method))
     markers = list(pos)
     stacked = np.stack([pos[m] for m in markers], axis=1) if markers else np.empty((n, 0, 3))
     return Tracks(method, markers, stacked, fps)
@@ -41,7 +42,7 @@ def read_tracks(out_dir: Path, method: str, fps: float) -> Tracks:
 
 def clip_fps(out_dir: Path) -> float:
     """The frame rate the estimates were made at (metrics.json's ``time``), else 30."""
-    path = out_dir / "metrics.json"
+    path = Outputs(out_dir).metrics
     try:
         return float(json.loads(path.read_text())["time"]["fps"])
     except (OSError, ValueError, KeyError, TypeError):
@@ -100,15 +101,15 @@ def export_clip(clip: str | Path, fmt: str, methods: list[str] | None = None, ou
     (default ``CLIP/out/export``); the paths written."""
     if fmt not in FORMATS:
         raise StereotrackError(f"unknown export format {fmt!r} (known: {', '.join(FORMATS)})")
-    in_dir = Path(in_dir) if in_dir else Path(clip) / "out"
-    est = in_dir / "estimates"
+    in_dir = Outputs.of(clip, in_dir).folder
+    est = Outputs(in_dir).estimates_dir
     have = sorted(p.stem for p in est.glob("*.csv")) if est.is_dir() else []
     if not have:
         raise StereotrackError("no estimates here: run `stereotrack estimate` (or `run`) first", est)
     for m in methods or []:
         if m not in have:
             raise StereotrackError(f"no estimates of method {m!r} (have: {', '.join(have)})", est)
-    out_dir = Path(out) if out else in_dir / "export"
+    out_dir = Path(out) if out else Outputs(in_dir).export_dir
     fps = clip_fps(in_dir)
     written = []
     for m in methods or have:

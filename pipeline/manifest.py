@@ -16,10 +16,10 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.core.io import write_json
+from pipeline.core.outputs import MANIFEST, METRICS
 
-MANIFEST = "manifest.json"
 #: The output every complete clip has: a manifest that does not list it is not a complete record.
-REQUIRED_OUTPUT = "metrics.json"
+REQUIRED_OUTPUT = METRICS
 
 
 def stereotrack_version() -> str:

@@ -23,6 +23,7 @@ from pipeline.core.camera import StereoRig
 from pipeline.core.clip import Clip, load_detections, positions_from_columns
 from pipeline.core.errors import StereotrackError
 from pipeline.core.io import read_csv, read_json_mapping, write_bytes, write_text
+from pipeline.core.outputs import Outputs
 from pipeline.metrics import RUNAWAY, errors_per_frame, runaways
 from pipeline.style import TRUTH_STYLE, marker_rgb, method_colour, method_hex, method_linestyle
 from pipeline.tables import Column, Table, inline, number, to_html, to_markdown
@@ -83,13 +84,14 @@ def _filter_series(cols: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray,
 def load_report_data(clip: Clip, src: Path, out_dir: Path) -> ReportData:
     """The run's metrics and, for its methods only, their estimate CSVs (each read once), with
     truth, detections and the marker colours the detect stage recorded."""
-    mpath = src / "metrics.json"
+    src_out = Outputs(src)
+    mpath = src_out.metrics
     if not mpath.is_file():
         raise StereotrackError("no metrics.json: run `stereotrack estimate` first", mpath)
     metrics = read_json_mapping(mpath, "metrics")
     data = ReportData(clip.folder.name, out_dir, metrics)
     for m, entry in metrics.get("methods", {}).items():
-        path = src / "estimates" / f"{m}.csv"
+        path = src_out.estimates(m)
         if not path.is_file():
             continue
         cols = read_csv(path)
@@ -105,10 +107,10 @@ def load_report_data(clip: Clip, src: Path, out_dir: Path) -> ReportData:
     data.truth = truth.positions if truth is not None else None
     if (clip.folder / "target_truth.csv").is_file() and data.target:
         data.target_truth = read_csv(clip.folder / "target_truth.csv")
-    if (src / "detections.csv").is_file():
-        data.obs = load_detections(src / "detections.csv")
-    if (src / "detect.json").is_file():
-        data.marker_colours = read_json_mapping(src / "detect.json", "detect record").get("marker_colours", {})
+    if src_out.detections.is_file():
+        data.obs = load_detections(src_out.detections)
+    if src_out.detect_info.is_file():
+        data.marker_colours = read_json_mapping(src_out.detect_info, "detect record").get("marker_colours", {})
     return data
 
 
@@ -506,14 +508,16 @@ def write_report(clip: str | Path | Clip, out_dir: str | Path | None = None,
     :func:`report_data`), else from the stage files in ``in_dir`` (default ``out_dir``);
     ``progress`` gets (figures done, figures in all). Returns report.md's path."""
     clip_ = Clip.open(clip)
-    out_dir = Path(out_dir) if out_dir else clip_.folder / "out"
+    out = Outputs.of(clip_.folder, out_dir)
+    out_dir = out.folder
     if data is None:
         data = load_report_data(clip_, Path(in_dir) if in_dir else out_dir, out_dir)
     figs = render_figures(data, progress) if figures else []
     for name, _, png in figs:
-        write_bytes(out_dir / "figures" / f"{name}.png", png)
+        write_bytes(out.figure(name), png)
     replay = f"stereotrack view {out_dir}"
-    write_text(out_dir / "report.html", html_report(data, figs, replay))
-    path = out_dir / "report.md"
-    write_text(path, markdown_report(data, [(n, c, f"figures/{n}.png") for n, c, _ in figs], replay))
+    write_text(out.report_html, html_report(data, figs, replay))
+    path = out.report_md
+    write_text(path, markdown_report(data, [(n, c, out.figure(n).relative_to(out_dir).as_posix()) for n, c, _ in figs],
+                                     replay))
     return path

@@ -11,6 +11,7 @@ from pathlib import Path
 from detectors.stage import DetectResult, detect_clip
 from pipeline.core.clip import Clip
 from pipeline.core.lifeline import OutputLock
+from pipeline.core.outputs import Outputs
 from pipeline.estimate import EstimateResult, estimate_clip
 from pipeline.recording import Recorder
 from pipeline.report import report_data, write_report
@@ -56,7 +57,7 @@ def process_clip(
 
     With ``lock`` the output folder is locked for the run (a second run on it fails at once,
     naming the holder) and temporary files left there by a killed run are removed first."""
-    out_dir = Path(out_dir) if out_dir else Clip.open(clip).folder / "out"
+    out_dir = Outputs.of(Clip.open(clip).folder, out_dir).folder
     if not lock:
         return _process_clip(Clip.open(clip, fps), out_dir, detector, methods, marker_specs, recording,
                              images_in_recording, stage, progress, calib_units, configs, time_offset, force, figures)
@@ -91,7 +92,7 @@ def _process_clip(clip_: Clip, out_dir: Path, detector: str, methods: list[str] 
     t0 = time.perf_counter()
     say = stage or (lambda s: None)
     clip = clip_.path  # the clip is read once, handed to every stage
-    recorder = Recorder(out_dir / "run.rrd", 1.0 / clip_.fps, name=f"stereotrack run {clip.name}") if recording else None
+    recorder = Recorder(Outputs(out_dir).recording, 1.0 / clip_.fps, name=f"stereotrack run {clip.name}") if recording else None
     try:
         say("detect (frame pairs)")
         sink = recorder.log_frame if recorder is not None and images_in_recording else None

@@ -25,6 +25,7 @@ from pipeline.core.camera import StereoRig, save_calibration
 from pipeline.core.clip import CLIP_INFO, TIMESTAMPS
 from pipeline.core.errors import ClipError, StereotrackError
 from pipeline.core.io import write_json, write_text
+from pipeline.core.outputs import OUT
 from renderers.motion import Truth, simulate_truth
 from renderers.scenario import CalibrationErrorSpec, Scenario, clip_description
 from renderers.truth import frame_times, project_truth, write_target_truth, write_timestamps, write_truth
@@ -252,7 +253,7 @@ def _staging_dir(clip_dir: Path) -> Path:
 RENDERED_MARK = (CLIP_INFO, "scenario.yaml")
 #: What a render puts in a clip folder; a re-render replaces exactly these (and the stale ``out/``).
 RENDERED = ("calib.yaml", "calib_true.yaml", CLIP_INFO, "scenario.yaml", "truth.csv", "target_truth.csv", TIMESTAMPS,
-            "left", "right", "left.mp4", "right.mp4", "out")
+            "left", "right", "left.mp4", "right.mp4", OUT)
 #: A marker counts as visible when at least this share of its unoccluded image area shows.
 VISIBLE_SHARE = 0.4
 

@@ -27,9 +27,9 @@ from pipeline.core.checks import Check
 from pipeline.core.errors import ClipError, StereotrackError
 from pipeline.core.frames import CameraReader, StereoFrameSource, find_camera_source
 from pipeline.core.io import check_frame_column, read_csv, read_json_mapping
+from pipeline.core.outputs import Outputs
 
 CLIP_INFO = "clip.json"
-DETECT_INFO = "detect.json"
 MARKERS_FILE = "markers.yaml"
 CLIP_SETTINGS = "clip.yaml"
 
@@ -264,7 +264,7 @@ class FootageInfo:
 def footage_info(clip: Path, out_dir: Path) -> FootageInfo:
     """Frame count and size of the clip, from ``detect.json`` when the detect stage wrote one,
     else from the footage itself (opened, not decoded), else unknown."""
-    info = out_dir / DETECT_INFO
+    info = Outputs(out_dir).detect_info
     if info.is_file():
         try:
             d = json.loads(info.read_text())
