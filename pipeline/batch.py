@@ -188,12 +188,8 @@ def run_batch(
     ``workers`` processes; a ``tcp://host:port`` address (or ``scheduler_file``) for an existing
     Dask scheduler, whose workers must see ``input_dir`` and ``output_dir`` at the same paths.
 
-    ``configs`` (``--config``) are the methods' settings, part of what a complete clip must match.
-    ``images``: whether each clip's recording holds its frames (``--no-images`` leaves them out).
-    ``figures``: whether each clip's report draws its figures (``--figures``; the summary's
-    leaderboard is always written). ``on_stage`` gets (clip, stage) as local workers go.
-    Markers: ``marker_specs`` (``--markers``) apply to every clip; else a clip's own
-    ``markers.yaml``; else ``INPUT/markers.yaml``; else a rendered clip's description (clip.json).
+    The settings are those of :func:`batch_settings`. ``on_stage`` gets (clip, stage) as local
+    workers go.
 
     The output folder is locked for the whole batch (a second batch on it fails at once, naming
     the holder). A clip counts as done only if its manifest verifies, was made with the same
@@ -213,14 +209,7 @@ def run_batch(
         _remove_leftovers(out_root)
         outcomes = {keys[c]: o for c in clips if not force and (o := _complete(keys[c], out_root / keys[c], settings, c))}
         todo = [c for c in clips if keys[c] not in outcomes]
-        counter = _Counter(len(outcomes), len(clips), progress)
-
-        def record(o: ClipOutcome) -> None:
-            outcomes[o.clip] = o
-            if on_stage is not None:
-                on_stage(o.clip, "done")
-            counter.tick()
-
+        record = _Counter(outcomes, len(clips), progress, on_stage).record
         try:
             if todo and scheduler is None and scheduler_file is None:
                 _run_local(todo, keys, out_root, settings, workers, record, on_stage)
@@ -238,7 +227,13 @@ def batch_settings(input_dir: Path, detector: str, methods: list[str] | None, ma
                    calib_units: str | None, configs: dict | None, images: bool, time_offset: str | float | None,
                    fps: float | None, figures: bool) -> dict[str, Any]:
     """The settings every clip runs with, checked before any work starts; the manifest records
-    them, and a clip made with other settings is redone."""
+    them, and a clip made with other settings is redone.
+
+    ``configs`` (``--config``) are the methods' settings. ``images``: whether each clip's
+    recording holds its frames (``--no-images`` leaves them out). ``figures``: whether each clip's
+    report draws its figures (``--figures``; the summary's leaderboard is always written).
+    Markers: ``marker_specs`` (``--markers``) apply to every clip; else a clip's own
+    ``markers.yaml``; else ``INPUT/markers.yaml``; else a rendered clip's description (clip.json)."""
     from detectors import registry as detectors
     from detectors.markers import read_markers_file
     from pipeline.core.clip import MARKERS_FILE
@@ -267,17 +262,20 @@ def _count_dead_attempts(outcomes: dict[str, ClipOutcome], dead: list[tuple[str,
 
 
 class _Counter:
-    """Clips done, for a progress callback."""
+    """Clips done: each outcome recorded, told to the progress callback and to ``on_stage``."""
 
-    def __init__(self, done: int, total: int, progress: Callable[[int, int], None] | None) -> None:
-        self.done, self.total, self.progress = done, total, progress
+    def __init__(self, outcomes: dict[str, ClipOutcome], total: int, progress: Callable[[int, int], None] | None,
+                 on_stage: Callable[[str, str], None] | None) -> None:
+        self.outcomes, self.total, self.progress, self.on_stage = outcomes, total, progress, on_stage
         if progress is not None:
-            progress(done, total)
+            progress(len(outcomes), total)
 
-    def tick(self) -> None:
-        self.done += 1
+    def record(self, o: ClipOutcome) -> None:
+        self.outcomes[o.clip] = o
+        if self.on_stage is not None:
+            self.on_stage(o.clip, "done")
         if self.progress is not None:
-            self.progress(self.done, self.total)
+            self.progress(len(self.outcomes), self.total)
 
 
 def _complete(key: str, final: Path, settings: dict, clip: Path) -> ClipOutcome | None:

@@ -351,24 +351,7 @@ def run_cmd(
     t0 = __import__("time").perf_counter()
     configs = _configs(config)
     offset = parse_time_offset(time_offset)
-    target = target or DEFAULT_SCENARIO
-    clip = Path(target)
-    if clip.is_file() and clip.suffix.lower() not in (".yaml", ".yml"):
-        from pipeline.core.frames import VIDEO_EXTS
-
-        why = ("is a single video: a one-camera clip, which `stereotrack detect` reads; `run` needs a stereo clip folder "
-               "(left/right videos and a calibration)") if clip.suffix.lower() in VIDEO_EXTS else \
-            "is neither a clip folder nor a scenario (.yaml)"
-        raise StereotrackError(why, clip)
-    if not (clip.is_dir() and any(clip.iterdir())):
-        from renderers.render import render_clip
-        from renderers.scenario import load_scenario
-
-        scen = load_scenario(target).with_overrides(frames=frames, seed=seed)
-        clip = output or Path("runs") / scen.name
-        with progress_bar() as bar:
-            task = bar.add_task(f"render {scen.name}", total=scen.frames)
-            render_clip(scen, clip, fmt=fmt, progress=lambda d, t: bar.update(task, completed=d))  # type: ignore[arg-type]
+    clip = _clip_or_render(target or DEFAULT_SCENARIO, output, frames, seed, fmt)
     with progress_bar() as bar:
         task = bar.add_task("detect", total=None)
 
@@ -385,6 +368,29 @@ def run_cmd(
     out.print(_metrics_table(res.estimate.metrics, f"{clip} — {res.estimate.n_frames} frames"))
     out.print(f"outputs in {res.out_dir}: detections.csv, estimates/, metrics.json, report.html, report.md, run.rrd")
     out.print(f"replay: stereotrack view {clip}    ({__import__('time').perf_counter() - t0:.1f} s)")
+
+
+def _clip_or_render(target: str, output: Path | None, frames: int | None, seed: int | None, fmt: str) -> Path:
+    """The clip folder ``run`` works on: ``target`` itself, or the scenario ``target`` rendered."""
+    clip = Path(target)
+    if clip.is_file() and clip.suffix.lower() not in (".yaml", ".yml"):
+        from pipeline.core.frames import VIDEO_EXTS
+
+        why = ("is a single video: a one-camera clip, which `stereotrack detect` reads; `run` needs a stereo clip folder "
+               "(left/right videos and a calibration)") if clip.suffix.lower() in VIDEO_EXTS else \
+            "is neither a clip folder nor a scenario (.yaml)"
+        raise StereotrackError(why, clip)
+    if clip.is_dir() and any(clip.iterdir()):
+        return clip
+    from renderers.render import render_clip
+    from renderers.scenario import load_scenario
+
+    scen = load_scenario(target).with_overrides(frames=frames, seed=seed)
+    clip = output or Path("runs") / scen.name
+    with progress_bar() as bar:
+        task = bar.add_task(f"render {scen.name}", total=scen.frames)
+        render_clip(scen, clip, fmt=fmt, progress=lambda d, t: bar.update(task, completed=d))  # type: ignore[arg-type]
+    return clip
 
 
 @app.command("view")

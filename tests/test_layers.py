@@ -91,3 +91,14 @@ def test_no_import_circles():
         if m not in state:
             visit(m, [m])
     assert not cycles, "import circles:\n" + "\n".join(cycles)
+
+
+def test_functions_are_short():
+    """No function or method in the packages is over 60 lines (docstring and signature included)."""
+    long = []
+    for pkg in PACKAGES:
+        for path in sorted((REPO / pkg).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.end_lineno - node.lineno >= 60:
+                    long.append(f"{path.relative_to(REPO)}:{node.lineno} {node.name} ({node.end_lineno - node.lineno + 1})")
+    assert not long, "\n".join(long)

@@ -84,6 +84,11 @@ class TargetMeasurement:
 INVALID = TargetMeasurement(math.nan, math.nan, np.full(3, math.nan), math.nan, "no measurement")
 
 
+def _failed(why: str, axis_angle: float = math.nan) -> TargetMeasurement:
+    """No measurement, and why."""
+    return TargetMeasurement(math.nan, math.nan, np.full(3, math.nan), axis_angle, why)
+
+
 def measure_camera(points: np.ndarray, cam: Camera, R: float, formula: Formula = "exact",
                    to_reference: np.ndarray | None = None) -> TargetMeasurement:
     """α and z from one camera's four labelled pixel points (4×2, undistorted).
@@ -92,60 +97,60 @@ def measure_camera(points: np.ndarray, cam: Camera, R: float, formula: Formula =
     left camera).
     """
     if points.shape != (4, 2) or not np.all(np.isfinite(points)):
-        return TargetMeasurement(math.nan, math.nan, np.full(3, math.nan), math.nan, "fewer than four points")
-    n = cam.normalize(points)
-    h = np.column_stack([n, np.ones(4)])
+        return _failed("fewer than four points")
+    h = np.column_stack([cam.normalize(points), np.ones(4)])
     c = np.cross(np.cross(h[0], h[2]), np.cross(h[1], h[3]))  # centre = line13 ∩ line24
     if not np.all(np.isfinite(c)) or abs(c[2]) <= 1e-12 * np.linalg.norm(c) or not np.any(c):
-        return TargetMeasurement(math.nan, math.nan, np.full(3, math.nan), math.nan, "degenerate: collinear points")
-    c = c / c[2]
-    Rv = _rotation_to_axis(c)  # virtual camera looking at the centre
+        return _failed("degenerate: collinear points")
+    Rv = _rotation_to_axis(c / c[2])  # virtual camera looking at the centre
     q = h @ Rv.T
     q = q[:, :2] / q[:, 2:3]
     # each opposite pair (p, m) = images of C ± R v lies on a line through the (virtual) centre;
     # its distances r_p, r_m from the centre invert exactly like y1, y3: tilt β of v out of the
     # image plane and the distance D (the same equations as the exact α, z above).
-    vecs, dists, rs = [], [], []
+    vecs, dists = [], []
     for p_, m_ in ((0, 2), (1, 3)):
         e = q[p_] - q[m_]
         if np.linalg.norm(e) < 1e-12:
-            return TargetMeasurement(math.nan, math.nan, np.full(3, math.nan), math.nan, "degenerate: coincident points")
+            return _failed("degenerate: coincident points")
         e /= np.linalg.norm(e)
-        r_p, r_m = float(q[p_] @ e), float(-(q[m_] @ e))
-        rs.append((r_p, r_m))
-        beta, dist, flag = alpha_z_from_y(r_p, r_m, R, 1.0, "exact")
+        beta, dist, flag = alpha_z_from_y(float(q[p_] @ e), float(-(q[m_] @ e)), R, 1.0, "exact")
         if flag:
-            return TargetMeasurement(math.nan, math.nan, np.full(3, math.nan), math.nan, flag)
+            return _failed(flag)
         vecs.append(np.array([math.cos(beta) * e[0], math.cos(beta) * e[1], math.sin(beta)]))
         dists.append(dist)
-    a_v, b_v = vecs
-    phi_v = math.atan2(b_v[1], b_v[0])
+    phi_v = math.atan2(vecs[1][1], vecs[1][0])
     if formula == "paper":
-        # eqs. (3)–(4) on the distances of points 1 and 3 from the 2–4 line
-        e = b_v[:2] / np.linalg.norm(b_v[:2])
-        up = np.array([e[1], -e[0]])
-        alpha_p, dist_v, flag = alpha_z_from_y(float(q[0] @ up), float(-(q[2] @ up)), R, 1.0, "paper")
-        if not math.isfinite(alpha_p):
-            return TargetMeasurement(math.nan, math.nan, np.full(3, math.nan), phi_v, flag)
-        c_, s_ = math.cos(phi_v), math.sin(phi_v)
-        Rz = np.array([[c_, -s_, 0.0], [s_, c_, 0.0], [0.0, 0.0, 1.0]])
-        normal_v = Rz @ np.array([0.0, -math.sin(alpha_p), -math.cos(alpha_p)])
-        axis_v = np.array([math.cos(phi_v), math.sin(phi_v), 0.0])
+        got = _paper_orientation(q, vecs[1], phi_v, R)
+        if isinstance(got, TargetMeasurement):
+            return got
+        normal_v, axis_v, dist_v, flag = got
     else:
-        flag = ""
-        dist_v = float(np.mean(dists))
-        normal_v = np.cross(a_v, b_v)  # (0,−cos α, sin α) × (1,0,0) = (0, sin α, cos α): flip to face the camera
-        normal_v = -normal_v / np.linalg.norm(normal_v)
-        axis_v = b_v
+        normal_v = np.cross(vecs[0], vecs[1])  # (0,−cos α, sin α) × (1,0,0) = (0, sin α, cos α): flip to face the camera
+        normal_v, axis_v, dist_v, flag = -normal_v / np.linalg.norm(normal_v), vecs[1], float(np.mean(dists)), ""
     if normal_v[2] >= 0:
-        return TargetMeasurement(math.nan, math.nan, np.full(3, math.nan), phi_v,
-                                 "inconsistent labels: the plate would face away from the camera")
+        return _failed("inconsistent labels: the plate would face away from the camera", phi_v)
     normal, axis, center = Rv.T @ normal_v, Rv.T @ axis_v, Rv.T @ np.array([0.0, 0.0, dist_v])
     if to_reference is not None:
         normal, axis = to_reference[:3, :3] @ normal, to_reference[:3, :3] @ axis
         center = to_reference[:3, :3] @ center + to_reference[:3, 3]
     alpha, axis_angle = alpha_from_normal(normal, axis)
     return TargetMeasurement(alpha, float(center[2]), center, axis_angle, flag)
+
+
+def _paper_orientation(q: np.ndarray, b_v: np.ndarray, phi_v: float, R: float
+                       ) -> tuple[np.ndarray, np.ndarray, float, str] | TargetMeasurement:
+    """The plate's normal, axis and distance in the virtual camera from the paper's eqs. (3)–(4)
+    on the distances of points 1 and 3 from the 2–4 line (or why there are none)."""
+    e = b_v[:2] / np.linalg.norm(b_v[:2])
+    up = np.array([e[1], -e[0]])
+    alpha_p, dist_v, flag = alpha_z_from_y(float(q[0] @ up), float(-(q[2] @ up)), R, 1.0, "paper")
+    if not math.isfinite(alpha_p):
+        return _failed(flag, phi_v)
+    c_, s_ = math.cos(phi_v), math.sin(phi_v)
+    Rz = np.array([[c_, -s_, 0.0], [s_, c_, 0.0], [0.0, 0.0, 1.0]])
+    normal_v = Rz @ np.array([0.0, -math.sin(alpha_p), -math.cos(alpha_p)])
+    return normal_v, np.array([math.cos(phi_v), math.sin(phi_v), 0.0]), dist_v, flag
 
 
 def alpha_from_normal(normal: np.ndarray, axis: np.ndarray) -> tuple[float, float]:
