@@ -21,7 +21,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from pipeline.core.camera import has_calibration
+from pipeline.core.calibration import has_calibration
 from pipeline.core.errors import StereotrackError
 from pipeline.core.io import check_replaceable, ensure_dir, write_json
 from pipeline.core.lifeline import OutputLock, die_with_parent, ignore_sigint, still_parented

@@ -20,7 +20,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline.core.camera import LENGTH_UNITS, UNDISTORT_CRITERIA, Camera, StereoRig, save_calibration
+from pipeline.core.calibration import LENGTH_UNITS, save_calibration
+from pipeline.core.camera import UNDISTORT_CRITERIA, Camera, StereoRig
 from pipeline.core.errors import StereotrackError
 from pipeline.core.frames import IMAGE_EXTS, VIDEO_EXTS
 from pipeline.core.io import atomic_path, write_text

@@ -21,7 +21,8 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from pipeline.core.camera import StereoRig, save_calibration
+from pipeline.core.calibration import save_calibration
+from pipeline.core.camera import StereoRig
 from pipeline.core.clip import CLIP_INFO, TIMESTAMPS
 from pipeline.core.errors import ClipError, StereotrackError
 from pipeline.core.io import write_json, write_text

@@ -408,7 +408,7 @@ def _resolve_calibration(data: dict, source: str | Path) -> dict:
     rig = data.get("rig") if isinstance(data, dict) else None
     if not isinstance(rig, dict) or not isinstance(rig.get("calibration"), str) or rig.get("matrices") is not None:
         return data
-    from pipeline.core.camera import load_calibration
+    from pipeline.core.calibration import load_calibration
     from pipeline.core.errors import StereotrackError
 
     base = Path(source).parent if Path(str(source)).is_file() else Path(".")

@@ -22,7 +22,8 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from pipeline.core.camera import CALIB_NAMES, EXTRINSICS_NAMES, INTRINSICS_NAMES, StereoRig, has_calibration, load_calibration
+from pipeline.core.calibration import CALIB_NAMES, EXTRINSICS_NAMES, INTRINSICS_NAMES, has_calibration, load_calibration
+from pipeline.core.camera import StereoRig
 from pipeline.core.checks import Check
 from pipeline.core.errors import ClipError, StereotrackError
 from pipeline.core.frames import CameraReader, StereoFrameSource, find_camera_source

@@ -6,15 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.core.camera import (
-    Camera,
-    StereoRig,
-    cv_to_gl_pose,
-    load_calibration,
-    project,
-    project_jacobian,
-    save_calibration,
-)
+from pipeline.core.calibration import load_calibration, save_calibration
+from pipeline.core.camera import Camera, StereoRig, cv_to_gl_pose, project, project_jacobian
 from pipeline.core.errors import CalibrationError
 
 

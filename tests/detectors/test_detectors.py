@@ -56,7 +56,7 @@ def test_distractors_never_reported(png_clip, tmp_path):
     assert set(cols["marker"]) <= {"red", "green", "blue"}
     # the magenta cube's projection never hosts a detection
     rig_cube = np.array([0.5, -0.3, 3.0])
-    from pipeline.core.camera import load_calibration
+    from pipeline.core.calibration import load_calibration
 
     rig = load_calibration(png_clip)
     cube_uv = rig.left.project(rig_cube[None])[0]

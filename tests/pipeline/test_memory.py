@@ -10,7 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.core.camera import StereoRig, save_calibration
+from pipeline.core.calibration import save_calibration
+from pipeline.core.camera import StereoRig
 from tests.conftest import REPO
 
 #: peak RSS allowed for `run` on 600 frames of 320×240 (the whole process: Python, OpenCV, rerun,

@@ -173,7 +173,7 @@ def test_markers_precedence_in_a_batch(tmp_path):
 
 
 def test_calib_units_flag_over_a_declared_unit_warns_naming_both(tmp_path):
-    from pipeline.core.camera import load_calibration, save_calibration
+    from pipeline.core.calibration import load_calibration, save_calibration
 
     rig = load_calibration(SAMPLE)
     save_calibration(rig, tmp_path / "calib.yaml", units="mm")
@@ -361,7 +361,7 @@ CALIB_TEXT = (SAMPLE / "calib.yaml").read_text()
                                                                                    max_size=20),
        raw=st.none() | st.binary(max_size=200))
 def test_fuzz_calibration(tmp_path, cut, length, insert, raw):
-    from pipeline.core.camera import load_calibration
+    from pipeline.core.calibration import load_calibration
 
     path = tmp_path / "calib.yaml"
     if raw is not None:

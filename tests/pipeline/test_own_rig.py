@@ -232,7 +232,7 @@ def test_calibrate_recovers_the_rendered_rig(chessboard_pairs, chessboard_calibr
     baseline within 0.5 %, the distortion within 0.1 px over the area the board covered (median;
     under 0.2 px at the 95th percentile, near the coverage's edge), the second camera named as on
     the left; calib.yaml in metres with the image size."""
-    from pipeline.core.camera import load_calibration
+    from pipeline.core.calibration import load_calibration
 
     truth = board_rig()
     out = tmp_path / "calib.yaml"
@@ -430,7 +430,7 @@ def test_unsized_calibration_made_at_another_size_is_named(tmp_path, factor, nam
     """The stereo_calib layout records no image size: a calibration made at twice or half the
     frames' size is named as such (it used to read as "left/right swapped" or an epipolar
     warning), and one made at the frames' size stays silent."""
-    from pipeline.core.camera import load_calibration
+    from pipeline.core.calibration import load_calibration
     from tests.helpers import SAMPLE, failed_checks
 
     clip = real_copy(tmp_path / "clip")

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from detectors.stage import detect_clip
-from pipeline.core.camera import load_calibration
+from pipeline.core.calibration import load_calibration
 from pipeline.core.errors import ScenarioError
 from pipeline.core.io import read_csv
 from renderers.render import render_clip

@@ -9,7 +9,7 @@ import sys
 import cv2
 import numpy as np
 
-from pipeline.core.camera import load_calibration
+from pipeline.core.calibration import load_calibration
 from pipeline.core.clip import TARGET_TRUTH_COLUMNS, TRUTH_COLUMNS, TRUTH_EXTRA_COLUMNS
 from pipeline.core.io import read_csv
 
