@@ -10,7 +10,7 @@ import yaml
 
 from detectors.blob import MarkerColor
 from pipeline.core.clip import MARKERS_FILE
-from pipeline.core.errors import StereotrackError
+from pipeline.core.errors import StereotrackError, first_line
 
 
 def read_markers_file(path: str | Path) -> list[str]:
@@ -19,7 +19,7 @@ def read_markers_file(path: str | Path) -> list[str]:
     try:
         data = yaml.safe_load(path.read_text(encoding="utf-8"))
     except (OSError, yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise StereotrackError(f"cannot read marker list ({str(exc).splitlines()[0]})", path) from None
+        raise StereotrackError(f"cannot read marker list ({first_line(exc)})", path) from None
     if isinstance(data, dict):
         if set(data) != {"markers"}:
             raise StereotrackError(f"expected one key 'markers', found {', '.join(map(str, data))}", path)

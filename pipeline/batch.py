@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.core.calibration import has_calibration
-from pipeline.core.errors import StereotrackError
+from pipeline.core.errors import StereotrackError, first_line
 from pipeline.core.io import check_replaceable, ensure_dir, write_json
 from pipeline.core.lifeline import OutputLock, die_with_parent, ignore_sigint, still_parented
 from pipeline.core.outputs import DETECT_INFO, ESTIMATES, FIGURES, MANIFEST, OUT, Outputs
@@ -374,7 +374,7 @@ def _run_dask(todo: list[Path], keys: dict[Path, str], out_root: Path, settings:
                     try:
                         o = f.result()
                     except Exception as exc:  # a worker died too often, or the cluster lost the task
-                        o = ClipOutcome(futs[f], "failed", error=f"Dask: {type(exc).__name__}: {_first_line(exc)}",
+                        o = ClipOutcome(futs[f], "failed", error=f"Dask: {type(exc).__name__}: {first_line(exc)}",
                                         attempts=0)
                     record(o)
             except BaseException:
@@ -408,7 +408,7 @@ def _dask_client(workers: int, scheduler: str | None, scheduler_file: str | Path
     except (OSError, TimeoutError, ValueError) as exc:
         if cluster is not None:
             cluster.close()
-        raise StereotrackError(f"cannot reach the Dask scheduler at {where} ({_first_line(exc)})") from None
+        raise StereotrackError(f"cannot reach the Dask scheduler at {where} ({first_line(exc)})") from None
 
 
 def _checked_scheduler_file(path: Path) -> Path:
@@ -423,8 +423,3 @@ def _checked_scheduler_file(path: Path) -> Path:
     if not isinstance(data, dict) or not isinstance(data.get("address"), str) or "://" not in data["address"]:
         raise StereotrackError("not a Dask scheduler file (no scheduler 'address')", path)
     return path
-
-
-def _first_line(exc: BaseException) -> str:
-    lines = str(exc).strip().splitlines()
-    return lines[0] if lines else type(exc).__name__

@@ -14,7 +14,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
-from pipeline.core.errors import StereotrackError
+from pipeline.core.errors import StereotrackError, first_line
 from pipeline.core.outputs import RECORDING, Outputs
 
 app = typer.Typer(
@@ -637,7 +637,7 @@ def main() -> None:
         import traceback
 
         last = traceback.extract_tb(exc.__traceback__)[-1]
-        _error(f"internal error: {type(exc).__name__}: {str(exc).strip().splitlines()[0] if str(exc).strip() else ''} "
+        _error(f"internal error: {type(exc).__name__}: {first_line(exc) if str(exc).strip() else ''} "
                f"({Path(last.filename).name}:{last.lineno}); rerun with STEREOTRACK_DEBUG=1 for the traceback")
         sys.exit(1)
 

@@ -25,7 +25,7 @@ from pipeline.core.clip import (
     footage_info,
     load_detections,
 )
-from pipeline.core.errors import StereotrackError
+from pipeline.core.errors import StereotrackError, first_line
 from pipeline.core.io import write_csv, write_json
 from pipeline.core.outputs import Outputs
 from pipeline.core.sync import SyncEstimate, grid_length, resolve_sync
@@ -281,7 +281,7 @@ def _run_method(est: Estimator, Y: np.ndarray, marker: str) -> Track:
     except Exception as exc:
         cls = type(est)
         who = "built-in method" if is_builtin(cls) else f"plugin method ({origin(cls)})"
-        text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+        text = first_line(exc) if str(exc).strip() else ""
         raise StereotrackError(f"{who} {est.name!r} raised {type(exc).__name__}: {text} "
                                f"(marker {marker!r}, frame {est.frame})") from None
 

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.core.camera import Camera, StereoRig
-from pipeline.core.errors import RenderBackendError
+from pipeline.core.errors import RenderBackendError, first_line
 from renderers.motion import Truth, distractor_positions
 from renderers.scenario import Scenario
 
@@ -35,7 +35,7 @@ def create_offscreen_renderer(width: int, height: int, multisample: int = 4):  #
 
         r = pyrender.OffscreenRenderer(width, height)
     except Exception as exc:
-        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        reason = first_line(exc)
         raise RenderBackendError(
             f"no OpenGL backend for off-screen rendering (PYOPENGL_PLATFORM={platform}: {reason}); {GL_HELP}"
         ) from None

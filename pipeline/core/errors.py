@@ -5,6 +5,13 @@ from __future__ import annotations
 from pathlib import Path
 
 
+def first_line(exc: BaseException | str) -> str:
+    """The first non-empty line of an exception's message (its type's name when it has none), for
+    one-line errors built around what a library said."""
+    lines = str(exc).strip().splitlines()
+    return lines[0].strip() if lines else (type(exc).__name__ if isinstance(exc, BaseException) else "")
+
+
 class StereotrackError(Exception):
     """An error the command line prints as one line (no traceback) and exits non-zero with."""
 

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.core.errors import StereotrackError
+from pipeline.core.errors import StereotrackError, first_line
 
 
 @contextlib.contextmanager
@@ -215,7 +215,7 @@ def read_json_mapping(path: str | Path, what: str = "JSON file") -> dict:
     except OSError as exc:
         raise StereotrackError(f"cannot read the {what} ({exc.strerror})", path) from None
     except ValueError as exc:
-        raise StereotrackError(f"unreadable {what} (not JSON: {str(exc).splitlines()[0]})", path) from None
+        raise StereotrackError(f"unreadable {what} (not JSON: {first_line(exc)})", path) from None
     if not isinstance(data, dict):
         raise StereotrackError(f"unreadable {what} (expected a JSON object, found {type(data).__name__})", path)
     return data
@@ -230,7 +230,7 @@ def read_yaml_mapping(path: str | Path, error: type[StereotrackError] = Stereotr
     try:
         data = yaml.safe_load(path.read_text(encoding="utf-8"))
     except yaml.YAMLError as exc:
-        raise error(f"not valid YAML ({str(exc).splitlines()[0]})", path) from None
+        raise error(f"not valid YAML ({first_line(exc)})", path) from None
     except UnicodeDecodeError:
         raise error("not a text file (not UTF-8): expected YAML", path) from None
     except OSError as exc:

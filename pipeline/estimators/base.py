@@ -153,7 +153,6 @@ class Track:
     position: np.ndarray
     velocity: np.ndarray
     reprojection_error: np.ndarray
-    covariance_trace: np.ndarray
     predicted: np.ndarray
     seconds_per_step: float
     extra: dict[str, np.ndarray] = field(default_factory=dict)
@@ -385,14 +384,13 @@ class Estimator(ABC):
         vel = np.array([s.velocity for s in steps], dtype=float).reshape(n, 3)
         pred = np.array([s.predicted for s in steps], dtype=bool)
         covs = [s.covariance for s in steps]
-        cov = ctr = None
+        cov = None
         d = next((c.shape[0] for c in covs if c is not None), None)
         if d is not None:
             cov = np.full((n, d, d), np.nan)
             for k, c in enumerate(covs):
                 if c is not None:
                     cov[k] = c
-            ctr = np.trace(cov, axis1=1, axis2=2)
         nis = np.array([s.nis for s in steps], dtype=float)
         dof = np.array([0 if s.innovation is None else np.size(s.innovation) for s in steps], dtype=int)
         extra: dict[str, np.ndarray] = {}
@@ -400,7 +398,7 @@ class Estimator(ABC):
             for key, val in s.extra.items():
                 extra.setdefault(key, np.full(n, np.nan))[k] = val
         rep = reprojection_errors(self.rig, pos, Y, vel, self.model.time_offset) if self.kind == "point" else np.full(n, np.nan)
-        return Track(self.name, pos, vel, rep, ctr if ctr is not None else np.full(n, np.nan), pred,
+        return Track(self.name, pos, vel, rep, pred,
                      seconds_per_step, extra, cov, nis if dof.any() else None, dof if dof.any() else None)
 
     def _timed_steps(self, Y: np.ndarray) -> tuple[list[Step], float]:

@@ -81,7 +81,6 @@ class TargetMeasurement:
         return math.isfinite(self.alpha) and math.isfinite(self.distance)
 
 
-INVALID = TargetMeasurement(math.nan, math.nan, np.full(3, math.nan), math.nan, "no measurement")
 
 
 def _failed(why: str, axis_angle: float = math.nan) -> TargetMeasurement:

@@ -23,6 +23,7 @@ from typing import Literal
 
 import numpy as np
 from pydantic import Field
+from scipy.linalg import block_diag
 
 from pipeline.core.errors import StereotrackError
 from pipeline.estimators.base import Step, expm, register
@@ -35,12 +36,6 @@ G4 = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 0.0], [0.0, 1.0]])
 def channel_matrix(a: float, feedback: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
     """``[[0, 1], [−L₀, a − L₁]]``: ``ẍ = a ẋ − L x`` in state form."""
     return np.array([[0.0, 1.0], [-feedback[0], a - feedback[1]]])
-
-
-def block_diag2(A1: np.ndarray, A2: np.ndarray) -> np.ndarray:
-    A = np.zeros((4, 4))
-    A[:2, :2], A[2:, 2:] = A1, A2
-    return A
 
 
 def observability_rank(A: np.ndarray, C: np.ndarray) -> int:
@@ -175,7 +170,7 @@ class KalmanBucyEstimator(TargetEstimator):
     def reset(self) -> None:
         super().reset()
         c = self.config
-        self.A = block_diag2(channel_matrix(c.a_alpha, c.alpha_feedback), channel_matrix(c.a_z, c.z_feedback))
+        self.A = block_diag(channel_matrix(c.a_alpha, c.alpha_feedback), channel_matrix(c.a_z, c.z_feedback))
         check_model(self.A, C4)
         self.GQG = G4 @ np.diag([c.q_alpha, c.q_z]) @ G4.T
         self.x = np.zeros(4)

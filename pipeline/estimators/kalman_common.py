@@ -232,7 +232,6 @@ def rts_smooth(est: Estimator, track: Track) -> Track:
         Xs = np.hstack([track.position[a:b], track.velocity[a:b]])
         xs, Ps, _, _ = kf.rts_smoother(Xs, track.covariance[a:b].copy())
         track.position[a:b], track.velocity[a:b], track.covariance[a:b] = xs[:, :3], xs[:, 3:], Ps
-    track.covariance_trace = np.trace(track.covariance, axis1=1, axis2=2)
     return track
 
 

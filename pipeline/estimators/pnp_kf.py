@@ -13,6 +13,7 @@ import math
 
 import cv2
 import numpy as np
+from scipy.linalg import block_diag
 
 from pipeline.estimators.base import Step, expm, register
 from pipeline.estimators.four_point import (
@@ -21,7 +22,7 @@ from pipeline.estimators.four_point import (
     alpha_from_normal,
     camera_to_left,
 )
-from pipeline.estimators.kalman_bucy import C4, G4, KalmanBucyConfig, block_diag2, channel_matrix, propagated_variance
+from pipeline.estimators.kalman_bucy import C4, G4, KalmanBucyConfig, channel_matrix, propagated_variance
 
 #: IPPE_SQUARE wants the corners of a square of side s = R√2 in its own order; our points
 #: 1 (up), 2 (right), 3 (down), 4 (left) are that square turned by 45°: pass them as 4, 1, 2, 3.
@@ -37,7 +38,10 @@ def object_points(R: float) -> np.ndarray:
 
 
 def van_loan(A: np.ndarray, GQG: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """Exact discretisation (F, Q_d) of ``ẋ = A x + w`` with white-noise density GQGᵀ."""
+    """Exact discretisation (F, Q_d) of ``ẋ = A x + w`` with white-noise density GQGᵀ (Van Loan,
+    "Computing integrals involving the matrix exponential", IEEE TAC 23(3), 1978). filterpy's
+    ``van_loan_discretization`` takes G with the density G Gᵀ, which would need a square root of
+    this singular GQGᵀ; this takes the density itself, through the cached exponential."""
     n = A.shape[0]
     M = np.zeros((2 * n, 2 * n))
     M[:n, :n], M[:n, n:], M[n:, n:] = -A, GQG, A.T
@@ -58,7 +62,7 @@ class PnPKFEstimator(TargetEstimator):
     def reset(self) -> None:
         super().reset()
         c = self.config
-        A = block_diag2(channel_matrix(c.a_alpha, c.alpha_feedback), channel_matrix(c.a_z, c.z_feedback))
+        A = block_diag(channel_matrix(c.a_alpha, c.alpha_feedback), channel_matrix(c.a_z, c.z_feedback))
         F, Qd = van_loan(A, G4 @ np.diag([c.q_alpha, c.q_z]) @ G4.T, self.dt)
         from filterpy.kalman import KalmanFilter  # imported when a filter is built (see base.py)
 

@@ -251,7 +251,7 @@ class SPSAEstimator(Estimator):
             pos, vel = S[:, :3], np.full((n, 3), np.nan)
         else:
             pos, vel = S[:, :3], S[:, 3:] / self.dt
-        return Track(self.name, pos, vel, reprojection_errors(self.rig, pos, Y), np.full(n, np.nan),
+        return Track(self.name, pos, vel, reprojection_errors(self.rig, pos, Y),
                      np.array(pred, dtype=bool), elapsed / max(n, 1))
 
     def run_batch(self, Y: np.ndarray) -> np.ndarray:

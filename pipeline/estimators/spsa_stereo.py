@@ -468,5 +468,5 @@ class SPSAStereoEstimator(Estimator):
         S = np.array(states, dtype=float).reshape(n, 6)
         extra = {"cost": np.array(costs, dtype=float), "gain": np.array(gains, dtype=float),
                  "gated": np.array(gated, dtype=float), "restart": np.array(restarts, dtype=float)}
-        return Track(self.name, S[:, :3], S[:, 3:], reprojection_errors(self.rig, S[:, :3], Y), np.full(n, np.nan),
+        return Track(self.name, S[:, :3], S[:, 3:], reprojection_errors(self.rig, S[:, :3], Y),
                      np.array(pred, dtype=bool), elapsed / max(n, 1), extra)
