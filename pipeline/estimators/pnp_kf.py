@@ -13,7 +13,6 @@ import math
 
 import cv2
 import numpy as np
-from scipy.linalg import block_diag
 
 from pipeline.estimators.base import Step, expm, register
 from pipeline.estimators.four_point import (
@@ -62,6 +61,8 @@ class PnPKFEstimator(TargetEstimator):
     def reset(self) -> None:
         super().reset()
         c = self.config
+        from scipy.linalg import block_diag  # imported here: scipy.linalg costs 0.1 s at start-up
+
         A = block_diag(channel_matrix(c.a_alpha, c.alpha_feedback), channel_matrix(c.a_z, c.z_feedback))
         F, Qd = van_loan(A, G4 @ np.diag([c.q_alpha, c.q_z]) @ G4.T, self.dt)
         from filterpy.kalman import KalmanFilter  # imported when a filter is built (see base.py)
