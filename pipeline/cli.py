@@ -67,11 +67,16 @@ def scenarios_cmd() -> None:
 
 
 @app.command("methods")
-def methods_cmd() -> None:
-    """List every estimator and detector (built-in and plugins): name and what it does."""
+def methods_cmd(
+    names: Annotated[list[str] | None, typer.Argument(
+        help="Methods whose settings to list (the keys of a --config file), with defaults and what each does.")] = None,
+) -> None:
+    """List every estimator and detector (built-in and plugins), or the settings of the methods named."""
     from detectors import registry as detectors
     from pipeline.estimators import registry
 
+    if names:
+        return _print_settings(names, registry())
     table = Table("method", "kind", "description", title="estimators (--methods, --config)")
     for name, cls in registry().items():
         table.add_row(name, cls.kind, cls.description())
@@ -80,6 +85,21 @@ def methods_cmd() -> None:
     for name, det in detectors().items():
         found.add_row(name, (det.__doc__ or "").strip().splitlines()[0])
     out.print(found)
+    out.print("settings of a method: stereotrack methods NAME", highlight=False)
+
+
+def _print_settings(names: list[str], reg: dict) -> None:
+    """Each named method's settings: the key, its default and what it does."""
+    unknown = [n for n in names if n not in reg]
+    if unknown:
+        raise StereotrackError(f"unknown method(s) {', '.join(unknown)} (known: {', '.join(reg)})")
+    for name in names:
+        table = Table("setting", "default", "what it does", title=f"{name} (a --config file's '{name}:' section)")
+        for key, field in reg[name].Config.model_fields.items():
+            default = field.get_default(call_default_factory=True)
+            shown = default.model_dump() if hasattr(default, "model_dump") else default
+            table.add_row(key, escape(str(shown)), escape(" ".join((field.description or "").replace("``", "").split())))
+        out.print(table)
 
 
 @app.command("render")

@@ -39,19 +39,21 @@ from pipeline.estimators.kalman_common import update_gated_run
 
 
 class AlphaBetaConfig(EstimatorConfig):
-    #: the per-camera χ² gate (0 turns it off), scaled by the robust NIS scale so that the lag of
-    #: fixed gains through a manoeuvre widens it; a track gated ``restart_after`` frames in a row
-    #: restarts. Ungated, 5 % random-pixel outliers make alphabeta's RMSE 8× its clean one
-    #: (benchmarks/trackers.py)
     gate: float = Field(0.9995, ge=0.0, lt=1.0)
+    """the per-camera χ² gate (0 turns it off), scaled by the robust NIS scale so that the lag of fixed gains through a
+    manoeuvre widens it; a track gated ``restart_after`` frames in a row restarts. Ungated, 5 % random-pixel outliers
+    make alphabeta's RMSE 8× its clean one (benchmarks/trackers.py)"""
     alpha: float = Field(0.5, gt=0, le=1)
+    """position gain α: the share of each residual taken into the position"""
     beta: float = Field(0.1, ge=0, le=2)
-    #: filter the triangulated 3-D points ("3d") or each camera's pixels, then triangulate ("image")
+    """velocity gain β: the share of each residual, over dt, taken into the velocity"""
     space: Literal["3d", "image"] = "3d"
+    """filter the triangulated 3-D points ("3d") or each camera's pixels, then triangulate ("image")"""
 
 
 class AlphaBetaGammaConfig(AlphaBetaConfig):
     gamma: float = Field(0.01, ge=0, le=2)
+    """acceleration gain γ: 2γ/dt² of each residual goes into the acceleration"""
 
 
 @register

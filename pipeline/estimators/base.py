@@ -78,17 +78,19 @@ def white_noise_acceleration(dt: float, q: float, dim: int = 3) -> np.ndarray:
 class InitConfig(BaseModel):
     """How a track starts (:class:`Initiator`): from triangulations or from a given state."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, use_attribute_docstrings=True)
     mode: Literal["triangulation", "given"] = "triangulation"
-    #: the given state [x, y, z, vx, vy, vz] at frame 0 (mode "given")
+    """'triangulation': start from the first frames both cameras see; 'given': from ``state``"""
     state: tuple[float, float, float, float, float, float] | None = None
-    #: frames with both cameras used to start: 1 = position only (velocity 0); n ≥ 2 fits a straight
-    #: line through the first n such frames (they need not be consecutive)
+    """the given state [x, y, z, vx, vy, vz] at frame 0 (mode "given")"""
     frames: int = Field(1, ge=1, le=100)
-    #: prior std of position (m) and velocity (m/s); the position prior of methods that know their
-    #: pixel noise is the triangulation's own covariance instead
+    """frames with both cameras used to start: 1 = position only (velocity 0); n ≥ 2 fits a straight line through the first
+    n such frames (they need not be consecutive)"""
     sigma_position: float = Field(0.5, gt=0)
+    """prior std of position (m) and velocity (m/s); the position prior of methods that know their pixel noise is the
+    triangulation's own covariance instead"""
     sigma_velocity: float = Field(1.0, gt=0)
+    """prior std of the start's velocity (m/s)"""
 
     @model_validator(mode="after")
     def _given_needs_state(self) -> InitConfig:
@@ -100,17 +102,19 @@ class InitConfig(BaseModel):
 class EstimatorConfig(BaseModel):
     """Settings every estimator accepts (numbers must be finite: ``.inf`` is no setting)."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, use_attribute_docstrings=True)
     init: InitConfig = InitConfig()
+    """how a track starts: ``mode``, ``state``, ``frames``, ``sigma_position``, ``sigma_velocity``"""
     seed: int = 0
-    #: std (px) of detection noise: the scale of the outlier gate, and the measurement noise of the
-    #: methods that model it (the pipeline sets it from the data unless configured)
+    """seed of the method's random numbers (SPSA's perturbations): one seed, one result"""
     pixel_sigma: float = Field(1.0, gt=0)
-    #: probability of the χ² outlier gate (per camera, 2 degrees of freedom, on the innovation); 0
-    #: turns gating off. 0.9995 rejects a correct observation once in 2,000.
+    """std (px) of detection noise: the scale of the outlier gate, and the measurement noise of the methods that model it
+    (the pipeline sets it from the data unless configured)"""
     gate: float = Field(0.9995, ge=0.0, lt=1.0)
-    #: frames in a row with a camera's observation gated after which a track restarts from the detections
+    """probability of the χ² outlier gate (per camera, 2 degrees of freedom, on the innovation); 0 turns gating off. 0.9995
+    rejects a correct observation once in 2,000."""
     restart_after: int = Field(8, ge=1)
+    """frames in a row with a camera's observation gated after which a track restarts from the detections"""
 
 
 @dataclass

@@ -191,8 +191,11 @@ class TargetConfig(EstimatorConfig):
     """Settings of the four-point target methods."""
 
     radius: float = Field(0.2, gt=0)  # R, metres
+    """the target's radius R (m): the distance of each point from the plate's centre"""
     formula: Formula = "exact"
+    """'exact' inversion of the four points, or the paper's approximate eqs. (3)–(4) ('paper')"""
     cameras: Literal["left", "right", "both"] = "both"
+    """which cameras measure the target: 'left', 'right', or 'both' (their measurements averaged)"""
 
 
 @register

@@ -134,27 +134,35 @@ def propagated_variance(measure, obs: np.ndarray, m0, pixel_sigma: float, eps: f
 class KalmanBucyConfig(TargetConfig):
     """Channel models, noise, gain and integration of the Kalman–Bucy filter."""
 
-    #: the χ² gate on the fused [α, z] measurement (2 dof): off by default — with the pixel noise
-    #: measured on a rendered clip (hundredths of a pixel) it rejected good measurements and made
-    #: kalman_bucy's α RMSE 0.0030 rad instead of 0.0021; ``gate: 0.9995`` turns it on
     gate: float = Field(0.0, ge=0.0, lt=1.0)
+    """the χ² gate on the fused [α, z] measurement (2 dof): off by default — with the pixel noise measured on a rendered
+    clip (hundredths of a pixel) it rejected good measurements and made kalman_bucy's α RMSE 0.0030 rad instead of
+    0.0021; ``gate: 0.9995`` turns it on"""
     a_alpha: float = -1.0
+    """the α channel's own dynamics a, in α̈ = a α̇ − L₀ α − L₁ α̇ (Soifer et al.)"""
     alpha_feedback: tuple[float, float] = (1.0, 0.73)
+    """the α channel's feedback (L₀, L₁)"""
     a_z: float = -0.2
+    """the z channel's own dynamics a"""
     z_feedback: tuple[float, float] = (0.0, 0.0)
-    #: process-noise densities of the α̈ and z̈ inputs
+    """the z channel's feedback (L₀, L₁)"""
     q_alpha: float = Field(0.01, ge=0)
+    """process-noise densities of the α̈ and z̈ inputs"""
     q_z: float = Field(0.01, ge=0)
-    #: measurement noise std of α (rad) and z (m) per sample; None: propagated from ``pixel_sigma``
-    #: through the measurement's Jacobian at the first frame
+    """process-noise density of the z̈ input"""
     sigma_alpha: float | None = Field(None, gt=0)
+    """measurement noise std of α (rad) and z (m) per sample; None: propagated from ``pixel_sigma`` through the
+    measurement's Jacobian at the first frame"""
     sigma_z: float | None = Field(None, gt=0)
-    #: std of the detections (px), for the propagated measurement noise
+    """measurement noise std of z (m) per sample; None: propagated from ``pixel_sigma``"""
     pixel_sigma: float = Field(0.3, gt=0)
+    """std of the detections (px), for the propagated measurement noise"""
     gain: Literal["steady", "riccati"] = "riccati"
+    """'riccati': the gain of the Riccati differential equation, step by step; 'steady': its steady state"""
     integration: Literal["euler", "exact"] = "exact"
-    #: initial std of the rates (α̇ rad/s, ż m/s); the levels start from the first measurement
+    """'exact': matrix exponentials; 'euler': the paper's first-order differences"""
     sigma_rate0: float = Field(0.5, gt=0)
+    """initial std of the rates (α̇ rad/s, ż m/s); the levels start from the first measurement"""
 
 
 @register

@@ -32,9 +32,13 @@ class KalmanConfig(EstimatorConfig):
     """
 
     process_noise: float = Field(0.5, gt=0)
+    """spectral density q (m²/s³) of the white-noise acceleration model"""
     pixel_sigma: float = Field(1.0, gt=0)
+    """std (px) of detection noise, R = σ² I (the pipeline sets it from the data unless configured)"""
     q_scale: float = Field(1.0, gt=0)
+    """multiplies the assumed Q (the thesis's wrong-covariance experiment sets it far off)"""
     r_scale: float = Field(1.0, gt=0)
+    """multiplies the assumed R"""
 
 
 _ALL_ROWS = np.arange(4)

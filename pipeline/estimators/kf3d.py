@@ -21,7 +21,9 @@ from pipeline.estimators.kalman_common import GatedFilter, KalmanConfig, RTSMixi
 
 class KF3DConfig(KalmanConfig):
     measurement_noise: Literal["propagated", "constant"] = "propagated"
+    """'propagated': each triangulated point's covariance from the pixel noise; 'constant': sigma_3d² I"""
     sigma_3d: float = Field(0.02, gt=0)
+    """std (m) of a triangulated point when ``measurement_noise`` is 'constant'"""
 
 
 H3 = np.hstack([np.eye(3), np.zeros((3, 3))])

@@ -14,6 +14,7 @@ class PredictOnlyConfig(EstimatorConfig):
     """``static``: hold the start position (the baseline of position-only methods, velocity 0)."""
 
     static: bool = False
+    """hold the start position (velocity 0) instead of carrying the start's velocity"""
 
 
 @register

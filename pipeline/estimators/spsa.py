@@ -54,10 +54,13 @@ class SPSAConfig(EstimatorConfig):
     """
 
     init: InitConfig = InitConfig(frames=5)
+    """starts from a line fitted through the first five triangulations (SPSA learns velocity slowly)"""
     alpha: float = Field(0.1, gt=0)
+    """step size α of the update θ ← θ − α d Δ"""
     beta: float = Field(0.01, gt=0)
-    #: projection threshold on |d|; None switches the rule off
+    """perturbation size β of the trial points θ ± β Δ"""
     th: float | None = Field(0.03, gt=0)
+    """projection threshold on |d|; None switches the rule off"""
 
 
 def _cost(p0: float, p1: float, p2: float, yn: tuple, use_l: bool, use_r: bool, cams: tuple) -> float:

@@ -112,28 +112,29 @@ DIAGONALS = ((1.0, 1.0, 1.0), (1.0, 1.0, -1.0), (1.0, -1.0, 1.0), (-1.0, 1.0, 1.
 class SPSAStereoConfig(EstimatorConfig):
     """Gain floors, Newton steps per frame, perturbation size and outlier gates of ``spsa_stereo``."""
 
-    #: the per-camera χ² gate on the prediction's reprojection (see :meth:`SPSAStereoEstimator._gate_cameras`;
-    #: 0 turns it off); a track gated ``restart_after`` frames in a row restarts from the detections
     gate: float = Field(0.9995, ge=0.0, lt=1.0)
+    """the per-camera χ² gate on the prediction's reprojection (see :meth:`SPSAStereoEstimator._gate_cameras`; 0 turns it
+    off); a track gated ``restart_after`` frames in a row restarts from the detections"""
 
     init: InitConfig = InitConfig(frames=2)
-    #: the floor of the gain α_n of the image coordinates x/z, y/z (the memory stops growing there)
+    """starts from a line through the first two triangulations"""
     alpha_min: float = Field(0.5, gt=0, le=1)
-    #: the floor of the disparity's gain is this times the predicted normalized disparity b/z
-    #: (0.1 at 4.5 m on a 0.3 m rig): the disparity's tracking index falls like 1/z²
+    """the floor of the gain α_n of the image coordinates x/z, y/z (the memory stops growing there)"""
     alpha_depth_per_disparity: float = Field(1.5, gt=0)
-    #: the disparity's floor never falls below this (very far points)
+    """the floor of the disparity's gain is this times the predicted normalized disparity b/z (0.1 at 4.5 m on a 0.3 m
+    rig): the disparity's tracking index falls like 1/z²"""
     alpha_min_depth: float = Field(0.02, gt=0, le=1)
-    #: Newton steps at most per frame: another runs only while the last one moved q by more than
-    #: 5 perturbations (far from the minimum: at a start, after a manoeuvre); near it, one
+    """the disparity's floor never falls below this (very far points)"""
     max_sweeps: int = Field(4, ge=1, le=20)
-    #: corrections in a row with the same innovation sign that halve the memory (Kesten's rule)
+    """Newton steps at most per frame: another runs only while the last one moved q by more than 5 perturbations (far from
+    the minimum: at a start, after a manoeuvre); near it, one"""
     run: int = Field(4, ge=2)
-    #: perturbation size c in normalized image coordinates (1e-3 ≈ 0.6 px at f = 600 px)
+    """corrections in a row with the same innovation sign that halve the memory (Kesten's rule)"""
     perturbation: float = Field(1e-3, gt=0)
-    #: a frame whose minimised cost (normalized units², per camera) exceeds this is skipped as an
-    #: outlier (it catches detections off the epipolar line); inf disables this cost gate
+    """perturbation size c in normalized image coordinates (1e-3 ≈ 0.6 px at f = 600 px)"""
     cost_gate: float = Field(math.inf, gt=0)
+    """a frame whose minimised cost (normalized units², per camera) exceeds this is skipped as an outlier (it catches
+    detections off the epipolar line); inf disables this cost gate"""
 
 
 def rectifying_frame(rig) -> tuple[np.ndarray, np.ndarray]:

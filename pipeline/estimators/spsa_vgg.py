@@ -23,6 +23,7 @@ class SPSAVGGConfig(SPSAConfig):
     """Algorithm 1's settings, without the projection rule by default (the 2009 algorithm)."""
 
     th: float | None = None
+    """projection threshold on |d|; None (the 2009 algorithm) switches the rule off"""
 
 
 @register

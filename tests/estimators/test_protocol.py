@@ -330,3 +330,18 @@ def test_chi2_band_matches_scipy_stats():
     lo, hi = band(dof, 0.95)
     np.testing.assert_allclose(lo, chi2.ppf(0.025, dof), rtol=1e-10)
     np.testing.assert_allclose(hi, chi2.ppf(0.975, dof), rtol=1e-10)
+
+
+def test_every_setting_says_what_it_does():
+    """Every setting of every registered method has a description (its attribute docstring), and
+    `stereotrack methods NAME` lists each with its default; an unknown name is one error."""
+    undocumented = [(m, k) for m, cls in registry().items() for k, f in cls.Config.model_fields.items()
+                    if not (f.description or "").strip()]
+    assert not undocumented, undocumented
+    res = CliRunner().invoke(app, ["methods", "spsa_stereo", "ekf"], env={"COLUMNS": "200"})
+    assert res.exit_code == 0, res.output
+    for m in ("spsa_stereo", "ekf"):
+        assert all(f"│ {k} " in res.output for k in registry()[m].Config.model_fields), m
+    from pipeline.core.errors import StereotrackError
+
+    assert isinstance(CliRunner().invoke(app, ["methods", "nope"]).exception, StereotrackError)  # main() exits 2
