@@ -1,4 +1,4 @@
-"""Reproduce Soifer, Fursov & Kharitonov's Table 1 and Fig. 3 (SPEC §5 R3), then the same methods
+"""Reproduce Soifer, Fursov & Kharitonov's Table 1 and Fig. 3, then the same methods
 end to end on rendered footage of the `four_point` scenario. Writes soifer.md and figures to --out (a
 temporary folder by default; docs/ with --write-docs), printing each row as it is measured.
 
