@@ -94,8 +94,12 @@ def _print_settings(names: list[str], reg: dict) -> None:
     if unknown:
         raise StereotrackError(f"unknown method(s) {', '.join(unknown)} (known: {', '.join(reg)})")
     for name in names:
-        table = Table("setting", "default", "what it does", title=f"{name} (a --config file's '{name}:' section)")
-        for key, field in reg[name].Config.model_fields.items():
+        fields = reg[name].Config.model_fields
+        table = Table(title=f"{name} (a --config file's '{name}:' section)")
+        table.add_column("setting", no_wrap=True, min_width=max(len(k) for k in fields))  # a key is never cut
+        table.add_column("default", overflow="fold")
+        table.add_column("what it does", overflow="fold")
+        for key, field in fields.items():
             default = field.get_default(call_default_factory=True)
             shown = default.model_dump() if hasattr(default, "model_dump") else default
             table.add_row(key, escape(str(shown)), escape(" ".join((field.description or "").replace("``", "").split())))
