@@ -21,57 +21,41 @@ MANIFEST = "manifest.json"
 EXPORT = "export"
 
 
+class _File:
+    """A file of the output folder, by name: ``Outputs(folder).metrics`` is ``folder/metrics.json``."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+    def __get__(self, outputs: Outputs | None, owner: type | None = None):
+        return self if outputs is None else outputs.folder / self.name
+
+
 @dataclass(frozen=True)
 class Outputs:
     """Paths of one output folder's files (nothing is read or made here)."""
 
     folder: Path
 
+    detections = _File(DETECTIONS)
+    detect_info = _File(DETECT_INFO)
+    estimates_dir = _File(ESTIMATES)
+    metrics = _File(METRICS)
+    report_md = _File(REPORT_MD)
+    report_html = _File(REPORT_HTML)
+    recording = _File(RECORDING)
+    manifest = _File(MANIFEST)
+    export_dir = _File(EXPORT)
+
     @classmethod
     def of(cls, clip_folder: str | Path, out_dir: str | Path | None = None) -> Outputs:
         """``out_dir`` when given, else the clip folder's ``out/``."""
         return cls(Path(out_dir) if out_dir else Path(clip_folder) / OUT)
 
-    @property
-    def detections(self) -> Path:
-        return self.folder / DETECTIONS
-
-    @property
-    def detect_info(self) -> Path:
-        return self.folder / DETECT_INFO
-
-    @property
-    def estimates_dir(self) -> Path:
-        return self.folder / ESTIMATES
-
     def estimates(self, method: str) -> Path:
         """One method's estimates table."""
         return self.folder / ESTIMATES / f"{method}.csv"
 
-    @property
-    def metrics(self) -> Path:
-        return self.folder / METRICS
-
-    @property
-    def report_md(self) -> Path:
-        return self.folder / REPORT_MD
-
-    @property
-    def report_html(self) -> Path:
-        return self.folder / REPORT_HTML
-
     def figure(self, name: str) -> Path:
         """A report figure (PNG)."""
         return self.folder / FIGURES / f"{name}.png"
-
-    @property
-    def recording(self) -> Path:
-        return self.folder / RECORDING
-
-    @property
-    def manifest(self) -> Path:
-        return self.folder / MANIFEST
-
-    @property
-    def export_dir(self) -> Path:
-        return self.folder / EXPORT
