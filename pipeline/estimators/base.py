@@ -401,9 +401,20 @@ class Estimator(ABC):
         for k, s in enumerate(steps):
             for key, val in s.extra.items():
                 extra.setdefault(key, np.full(n, np.nan))[k] = val
-        rep = reprojection_errors(self.rig, pos, Y, vel, self.model.time_offset) if self.kind == "point" else np.full(n, np.nan)
-        return Track(self.name, pos, vel, rep, pred,
-                     seconds_per_step, extra, cov, nis if dof.any() else None, dof if dof.any() else None)
+        return self.make_track(pos, vel, pred, seconds_per_step, Y, extra, cov,
+                               nis if dof.any() else None, dof if dof.any() else None)
+
+    def make_track(self, position: np.ndarray, velocity: np.ndarray, predicted: np.ndarray, seconds_per_step: float,
+                   Y: np.ndarray, extra: dict[str, np.ndarray] | None = None, covariance: np.ndarray | None = None,
+                   nis: np.ndarray | None = None, nis_dof: np.ndarray | None = None) -> Track:
+        """A :class:`Track` from per-frame arrays, its reprojection errors against ``Y`` computed
+        here: the one place a track is made, for :meth:`finish` and for fast paths that never
+        build :class:`Step` objects (SPSA, ``spsa_stereo``)."""
+        n = len(position)
+        rep = (reprojection_errors(self.rig, position, Y, velocity, self.model.time_offset) if self.kind == "point"
+               else np.full(n, np.nan))
+        return Track(self.name, position, velocity, rep, np.asarray(predicted, dtype=bool), seconds_per_step,
+                     extra or {}, covariance, nis, nis_dof)
 
     def _timed_steps(self, Y: np.ndarray) -> tuple[list[Step], float]:
         """Warm up on the first frames, then reset and step every frame; (steps, seconds/step)."""

@@ -37,7 +37,6 @@ from pipeline.estimators.base import (
     Track,
     not_started,
     register,
-    reprojection_errors,
 )
 
 BIG_COST = 1.0e6  # cost of a trial point behind a camera (keeps the iteration finite)
@@ -254,8 +253,7 @@ class SPSAEstimator(Estimator):
             pos, vel = S[:, :3], np.full((n, 3), np.nan)
         else:
             pos, vel = S[:, :3], S[:, 3:] / self.dt
-        return Track(self.name, pos, vel, reprojection_errors(self.rig, pos, Y),
-                     np.array(pred, dtype=bool), elapsed / max(n, 1))
+        return self.make_track(pos, vel, np.array(pred, dtype=bool), elapsed / max(n, 1), Y)
 
     def run_batch(self, Y: np.ndarray) -> np.ndarray:
         return batch_spsa(self, np.asarray(Y, dtype=float))

@@ -98,7 +98,6 @@ from pipeline.estimators.base import (
     camera_gate,
     not_started,
     register,
-    reprojection_errors,
     stereo_consistent,
 )
 from pipeline.estimators.spsa import normalized_rows
@@ -469,5 +468,4 @@ class SPSAStereoEstimator(Estimator):
         S = np.array(states, dtype=float).reshape(n, 6)
         extra = {"cost": np.array(costs, dtype=float), "gain": np.array(gains, dtype=float),
                  "gated": np.array(gated, dtype=float), "restart": np.array(restarts, dtype=float)}
-        return Track(self.name, S[:, :3], S[:, 3:], reprojection_errors(self.rig, S[:, :3], Y),
-                     np.array(pred, dtype=bool), elapsed / max(n, 1), extra)
+        return self.make_track(S[:, :3], S[:, 3:], np.array(pred, dtype=bool), elapsed / max(n, 1), Y, extra)
