@@ -286,7 +286,7 @@ def _run_method(est: Estimator, Y: np.ndarray, marker: str) -> Track:
                                f"(marker {marker!r}, frame {est.frame})") from None
 
 
-def _consistency_columns(tr: Track, truth_position: np.ndarray | None) -> np.ndarray:
+def consistency_columns(tr: Track, truth_position: np.ndarray | None) -> np.ndarray:
     """frames × 3: NIS, its degrees of freedom, position NEES (NaN where not defined)."""
     n = len(tr.position)
     out = np.full((n, 3), np.nan)
@@ -302,7 +302,7 @@ def _write_estimates(path: Path, tracks: dict[str, Track], dt: float, truth: Cli
     def rows():
         for marker, tr in tracks.items():
             T = truth.positions.get(marker) if truth is not None else None
-            cons = _consistency_columns(tr, T)
+            cons = consistency_columns(tr, T)
             for k in range(len(tr.position)):
                 yield (k, k * dt, marker, *tr.position[k], *tr.velocity[k], *cons[k], int(tr.predicted[k]))
 
@@ -310,7 +310,7 @@ def _write_estimates(path: Path, tracks: dict[str, Track], dt: float, truth: Cli
 
 
 def _write_target_estimates(path: Path, name: str, tr: Track, dt: float) -> None:
-    cons = _consistency_columns(tr, None)
+    cons = consistency_columns(tr, None)
 
     def rows():
         for k in range(len(tr.position)):

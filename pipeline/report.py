@@ -22,7 +22,7 @@ from pipeline import html as H
 from pipeline.core.camera import StereoRig
 from pipeline.core.clip import Clip, load_detections, positions_from_columns
 from pipeline.core.errors import StereotrackError
-from pipeline.core.io import read_csv, read_json_mapping, write_bytes, write_text
+from pipeline.core.io import check_frame_column, read_csv, read_json_mapping, write_bytes, write_text
 from pipeline.core.outputs import Outputs
 from pipeline.metrics import RUNAWAY, errors_per_frame, runaways
 from pipeline.style import TRUTH_STYLE, marker_rgb, method_colour, method_hex, method_linestyle
@@ -71,7 +71,8 @@ def _hide_behind(rig: StereoRig, est: dict[str, dict[str, np.ndarray]]) -> None:
 
 def _filter_series(cols: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, float] | None:
     """A filter's NEES/3 and NIS/dof per frame (mean over markers) and markers per frame."""
-    if "nis" not in cols or not (np.isfinite(cols["nis"]).any() or np.isfinite(cols["nees"]).any()):
+    if not {"nis", "nis_dof", "nees"} <= set(cols) or not (np.isfinite(cols["nis"]).any()
+                                                           or np.isfinite(cols["nees"]).any()):
         return None
     frames = cols["frame"].astype(int)
     n = int(frames.max()) + 1
@@ -94,10 +95,11 @@ def load_report_data(clip: Clip, src: Path, out_dir: Path) -> ReportData:
         path = src_out.estimates(m)
         if not path.is_file():
             continue
-        cols = read_csv(path)
         if entry.get("target"):
-            data.target[m] = cols
+            data.target[m] = read_csv(path, ["t", "alpha", "distance"], numeric=["t", "alpha", "distance"])
             continue
+        cols = read_csv(path, ["frame", "marker", "x", "y", "z"], numeric=["x", "y", "z"], finite=["frame"])
+        check_frame_column(cols["frame"], None, path)
         data.point[m] = positions_from_columns(cols)[0]
         if (s := _filter_series(cols)) is not None:
             data.filters[m] = s
@@ -106,7 +108,8 @@ def load_report_data(clip: Clip, src: Path, out_dir: Path) -> ReportData:
     truth = clip.truth()
     data.truth = truth.positions if truth is not None else None
     if (clip.folder / "target_truth.csv").is_file() and data.target:
-        data.target_truth = read_csv(clip.folder / "target_truth.csv")
+        data.target_truth = read_csv(clip.folder / "target_truth.csv", ["t", "alpha", "distance"],
+                                     numeric=["t", "alpha", "distance"])
     if src_out.detections.is_file():
         data.obs = load_detections(src_out.detections)
     if src_out.detect_info.is_file():
@@ -114,34 +117,15 @@ def load_report_data(clip: Clip, src: Path, out_dir: Path) -> ReportData:
     return data
 
 
-def _mean_over_markers(series: list[np.ndarray], n: int) -> np.ndarray:
-    """Per frame, the mean of the markers' finite values (NaN where none is)."""
-    if not series:
-        return np.full(n, np.nan)
-    stack = np.full((len(series), n), np.nan)
-    for i, s in enumerate(series):
-        stack[i, : len(s)] = s[:n]
-    with np.errstate(all="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        return np.nanmean(stack, axis=0)
-
-
 def _track_filter_series(per: dict, truth: dict[str, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray, float] | None:
-    """A filter's NEES/3 and NIS/dof per frame (mean over markers) from its tracks, as
-    :func:`_filter_series` reads them from its estimates CSV."""
-    from pipeline.consistency import nees
+    """A filter's NEES/3 and NIS/dof per frame from its tracks in memory: the columns its estimates
+    CSV holds (:func:`pipeline.estimate.consistency_columns`), through :func:`_filter_series`."""
+    from pipeline.estimate import consistency_columns
 
-    n = max(len(t.position) for t in per.values())
-    nis, nees3 = [], []
-    for mk, t in per.items():
-        if t.nis is not None and t.nis_dof is not None:
-            with np.errstate(all="ignore"):
-                nis.append(t.nis / np.where(t.nis_dof > 0, t.nis_dof, np.nan))
-        if t.covariance is not None and truth is not None and mk in truth:
-            nees3.append(nees(t, truth[mk]) / 3)
-    if not any(np.isfinite(s).any() for s in nis + nees3):
-        return None
-    return _mean_over_markers(nees3, n), _mean_over_markers(nis, n), float(len(per))
+    cols = [consistency_columns(t, truth.get(mk) if truth else None) for mk, t in per.items()]
+    c = np.vstack(cols)
+    return _filter_series({"frame": np.concatenate([np.arange(len(x)) for x in cols]), "nis": c[:, 0],
+                           "nis_dof": c[:, 1], "nees": c[:, 2]})
 
 
 def report_data(clip: Clip, est: EstimateResult, marker_colours: dict[str, list[int]], out_dir: Path) -> ReportData:

@@ -14,6 +14,7 @@ import numpy as np
 
 from pipeline import html as H
 from pipeline.core.io import write_csv, write_text
+from pipeline.core.outputs import REPORT_HTML, Outputs
 from pipeline.metrics import runaways
 from pipeline.style import method_hex
 from pipeline.tables import Column, Table, inline, number, to_html, to_markdown
@@ -141,7 +142,7 @@ def leaderboard(rows: list[dict[str, Any]]) -> Table:
                   "a failure scored nothing. steps/s is wall-clock and varies with load."])
 
 
-def clip_table(outcomes: list[ClipOutcome], methods: list[str], link: bool) -> Table:
+def clip_table(outcomes: list[ClipOutcome], methods: list[str], out_root: Path | None = None) -> Table:
     """One row per clip: status, attempts, warnings, and each method's 3-D RMSE (mm)."""
     def rmse(o, m):
         return ((o.metrics or {}).get("methods", {}).get(m) or {}).get("rmse")
@@ -150,7 +151,10 @@ def clip_table(outcomes: list[ClipOutcome], methods: list[str], link: bool) -> T
             Column("warnings", [len(clip_warnings(o)) for o in outcomes], str),
             *[Column(m, [rmse(o, m) for o in outcomes], number(".2f", 1000)) for m in methods],
             Column("error", [o.error or "" for o in outcomes])]
-    links = [f"{o.clip}/report.html" if link and o.status != "failed" else None for o in outcomes]
+    # a link only to a report of this batch's outcome that is there (a failed clip's folder may hold an
+    # older run's; a clip completed by an older stereotrack may have none)
+    links = [f"{o.clip}/{REPORT_HTML}" if out_root is not None and o.status != "failed"
+             and Outputs(out_root / o.clip).report_html.is_file() else None for o in outcomes]
     return Table("clip", [o.clip for o in outcomes], cols, links=links)
 
 
@@ -174,14 +178,14 @@ def write_summary(out_root: Path, outcomes: list[ClipOutcome]) -> list[dict[str,
     head = f"{len(outcomes)} clips, {n_fail} failed."
     notes = [(o.clip, w) for o in outcomes for w in clip_warnings(o)]
     md = ["# stereotrack batch summary", "", head, "", "## Methods across clips", "", to_markdown(board), "",
-          "## Clips (3-D RMSE, mm)", "", to_markdown(clip_table(outcomes, point, False)), ""]
+          "## Clips (3-D RMSE, mm)", "", to_markdown(clip_table(outcomes, point)), ""]
     if notes:
         md += ["## Warnings", "", *[f"- **{c}**: {w}" for c, w in notes], ""]
     write_text(out_root / "summary.md", "\n".join(md))
     body = ["<h1>stereotrack batch summary</h1>", f"<p>{head}</p>",
             "<p>" + " &nbsp; ".join(H.swatch(method_hex(m), m) for m in point) + "</p>",
             "<h2>Methods across clips</h2>", to_html(board),
-            "<h2>Clips (3-D RMSE, mm; each links to its report)</h2>", to_html(clip_table(outcomes, point, True))]
+            "<h2>Clips (3-D RMSE, mm; each links to its report)</h2>", to_html(clip_table(outcomes, point, out_root))]
     if notes:
         body += ["<h2>Warnings</h2><ul>", *[f"<li><b>{inline(c)}</b>: {inline(w)}</li>" for c, w in notes], "</ul>"]
     write_text(out_root / "summary.html", H.page("stereotrack batch summary", body))

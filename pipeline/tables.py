@@ -14,8 +14,10 @@ from typing import Any
 def number(spec: str, scale: float = 1.0, suffix: str = "") -> Callable[[Any], str]:
     """A formatter: ``value × scale`` with ``spec`` (``"—"`` for missing or non-finite values)."""
     def fmt(v: Any) -> str:
-        if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v):
-            return "—" if v is None or isinstance(v, (int, float)) else str(v)
+        if v is None or (isinstance(v, float) and not math.isfinite(v)):
+            return "—"
+        if not isinstance(v, (int, float)) or isinstance(v, bool):
+            return str(v)
         v = v * scale
         return f"{round(v) if spec.endswith('d') else v:{spec}}{suffix}"
     return fmt

@@ -223,6 +223,13 @@ def _raising_plugin(monkeypatch) -> None:
     monkeypatch.setitem(base.REGISTRY, "boom", Boom)
 
 
+def _estimates_without_x(tmp: Path, clip: Path, monkeypatch) -> None:
+    """An estimate stage's outputs whose ekf.csv lost its x column (edited by hand, say)."""
+    (clip / "out" / "estimates").mkdir(parents=True, exist_ok=True)
+    (clip / "out" / "metrics.json").write_text('{"frames": 1, "methods": {"ekf": {}}}')
+    (clip / "out" / "estimates" / "ekf.csv").write_text("frame,t,marker,y,z\n0,0,red,0.1,2.0\n")
+
+
 TRACEBACKS = {
     # name: (setup(tmp, clip, monkeypatch) or None, argv (formatted with {clip}, {tmp}), exit code, text on stderr)
     "run --frames -5": (None, ["run", "default", "--frames", "-5", "-o", "{tmp}/r"], 2,
@@ -249,6 +256,8 @@ TRACEBACKS = {
                                "marker name 'red' is given twice"),
     "corrupt metrics.json for report": (lambda t, c, m: (c / "out" / "metrics.json").write_text("{nope"),
                                         ["report", "{clip}"], 2, "metrics.json: unreadable metrics (not JSON"),
+    "estimates CSV without x, for report": (_estimates_without_x, ["report", "{clip}"], 2,
+                                            "ekf.csv: missing column(s) x"),
     "clip.json that is a list": (lambda t, c, m: (c / "clip.json").write_text("[]"), ["estimate", "{clip}"], 2,
                                  "clip.json: unreadable clip description"),
 }
