@@ -12,6 +12,7 @@ import multiprocessing as mp
 import os
 import queue
 import shutil
+import threading
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -126,6 +127,51 @@ class FrameWriter:
             shutil.rmtree(self.tmp, ignore_errors=True)
 
 
+class BackgroundWriter:
+    """Blur, noise and encoding of one camera's frames on a thread of their own, in frame order:
+    OpenCV releases the GIL in all three, so the next frame renders while this one is encoded
+    (on a GPU the render loop then waits on neither). The first error is raised by the next
+    :meth:`put` or by :meth:`close`; :meth:`abort` drops what is queued."""
+
+    def __init__(self, writer: FrameWriter, blur_sigma: float, noise: SensorNoise, depth: int = 4) -> None:
+        self.writer, self.blur_sigma, self.noise = writer, blur_sigma, noise
+        self.queue: queue.Queue = queue.Queue(maxsize=depth)
+        self.error: BaseException | None = None
+        self.cancelled = False
+        self.thread = threading.Thread(target=self._loop, name="frame-writer", daemon=True)
+        self.thread.start()
+
+    def _loop(self) -> None:
+        while (item := self.queue.get()) is not None:
+            if self.error is None and not self.cancelled:
+                try:
+                    img, k = item
+                    self.writer.write(postprocess(img, self.blur_sigma, self.noise, k), index=k)
+                except BaseException as exc:  # handed to the rendering thread
+                    self.error = exc
+
+    def _raise(self) -> None:
+        if self.error is not None:
+            raise self.error
+
+    def put(self, img: np.ndarray, frame: int) -> None:
+        self._raise()
+        self.queue.put((img, frame))
+
+    def close(self) -> None:
+        """Wait for every queued frame, then move the file into place."""
+        self.queue.put(None)
+        self.thread.join()
+        self._raise()
+        self.writer.close()
+
+    def abort(self) -> None:
+        self.cancelled = True
+        self.queue.put(None)
+        self.thread.join()
+        self.writer.abort()
+
+
 def render_camera(
     scenario: Scenario, cam_index: int, clip_dir: Path, fmt: Format, tick: Callable[[int], None] | None = None,
     renderer=None,  # a pyrender.OffscreenRenderer to reuse (a persistent worker's; any size)
@@ -147,17 +193,18 @@ def render_camera(
     set_multisample(renderer, scenario.render.multisample)
     counts = np.zeros((scenario.frames, len(truth.names)), dtype=np.int64) if scenario.distractors else None
     try:
-        writer = FrameWriter(clip_dir, CAMERA_NAMES[cam_index], fmt, scenario.fps, rig.image_size)
+        w, h = rig.image_size
+        rs = scenario.render
+        noise = SensorNoise((h, w, 3), rs.noise_std, scenario.seed, cam_index)
+        writer = BackgroundWriter(FrameWriter(clip_dir, CAMERA_NAMES[cam_index], fmt, scenario.fps, rig.image_size),
+                                  rs.blur_sigma, noise)
         try:
-            rs = scenario.render
-            w, h = rig.image_size
-            noise = SensorNoise((h, w, 3), rs.noise_std, scenario.seed, cam_index)
             for k in range(scenario.frames):
                 if times.present[cam_index, k]:
                     img = _render_frame(scene, renderer, cam_index, k, float(times.t[cam_index, k]))
                     if counts is not None:  # the pose at the frame's mid-exposure time
                         counts[k] = scene.marker_pixels(renderer, cam_index)
-                    writer.write(postprocess(img, rs.blur_sigma, noise, k), index=k)
+                    writer.put(img, k)
                 if tick is not None:
                     tick(k)
             writer.close()

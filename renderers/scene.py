@@ -20,8 +20,13 @@ GL_HELP = (
 
 
 def ensure_gl_platform() -> str:
-    """Default PyOpenGL to headless EGL (must happen before pyrender/OpenGL is imported)."""
-    return os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    """Default PyOpenGL to headless EGL (must happen before pyrender/OpenGL is imported). Under EGL,
+    pyglet (which pyrender imports for its viewer) is told it is headless too: otherwise it looks
+    for X11 libraries (libXrender), which a GPU server without a desktop lacks."""
+    platform = os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    if platform == "egl":
+        os.environ.setdefault("PYGLET_HEADLESS", "true")
+    return platform
 
 
 def create_offscreen_renderer(width: int, height: int, multisample: int = 4):  # -> pyrender.OffscreenRenderer
