@@ -216,22 +216,31 @@ class Initiator:
         return Start(frame, np.array(c.state, dtype=float), P0)
 
     def _fit(self, frames: np.ndarray, points: np.ndarray) -> Start:
+        """The start from one track's frames and triangulated points (:meth:`_fit_many` of one)."""
+        states, covs = self._fit_many(np.asarray(frames)[None], np.asarray(points)[None])
+        return Start(int(frames[-1]), states[0], covs[0])
+
+    def _fit_many(self, frames: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The starts of M tracks at once (``frames`` M × n, ``points`` M × n × 3): states M × 6
+        and covariances M × 6 × 6, at each track's last frame."""
         c = self.config
-        n = len(frames)
-        C = self.model.inverse_covariance(points[-1]) if self.propagate else np.eye(3) * c.sigma_position**2
-        P0 = np.zeros((6, 6))
+        M, n = frames.shape
+        C = (self.model.inverse_covariance(points[:, -1]) if self.propagate
+             else np.broadcast_to(np.eye(3) * c.sigma_position**2, (M, 3, 3)))
+        P0, x0 = np.zeros((M, 6, 6)), np.zeros((M, 6))
         if n == 1:
-            P0[:3, :3], P0[3:, 3:] = C, np.eye(3) * c.sigma_velocity**2
-            return Start(int(frames[-1]), np.r_[points[-1], np.zeros(3)], P0)
-        t = (frames - frames[-1]) * self.dt
-        tm = t.mean()
-        stt = float(np.sum((t - tm) ** 2))
-        v = (t - tm) @ (points - points.mean(axis=0)) / stt
-        p = points.mean(axis=0) - v * tm
-        P0[:3, :3] = C * (1.0 / n + tm**2 / stt)
-        P0[3:, 3:] = C / stt
-        P0[:3, 3:] = P0[3:, :3] = -C * tm / stt
-        return Start(int(frames[-1]), np.r_[p, v], P0)
+            P0[:, :3, :3], P0[:, 3:, 3:] = C, np.eye(3) * c.sigma_velocity**2
+            x0[:, :3] = points[:, -1]
+            return x0, P0
+        t = (frames - frames[:, -1:]) * self.dt
+        tm = t.mean(axis=1)
+        stt = np.sum((t - tm[:, None]) ** 2, axis=1)
+        v = np.einsum("mn,mnj->mj", t - tm[:, None], points - points.mean(axis=1, keepdims=True)) / stt[:, None]
+        x0[:, :3], x0[:, 3:] = points.mean(axis=1) - v * tm[:, None], v
+        P0[:, :3, :3] = C * (1.0 / n + tm**2 / stt)[:, None, None]
+        P0[:, 3:, 3:] = C / stt[:, None, None]
+        P0[:, :3, 3:] = P0[:, 3:, :3] = -C * (tm / stt)[:, None, None]
+        return x0, P0
 
     def offer(self, frame: int, y: np.ndarray) -> Start | None:
         """Consume frame ``frame``'s observation; the start once enough frames were seen."""
@@ -272,24 +281,24 @@ class Initiator:
         if self.config.mode == "given":
             return [self._given(0) if n else None for _ in range(M)]
         need = self.config.frames
-        frames: list[list[int]] = [[] for _ in range(M)]
-        points: list[list[np.ndarray]] = [[] for _ in range(M)]
+        got, F, pts = np.zeros(M, dtype=int), np.zeros((M, need), dtype=int), np.zeros((M, need, 3))
         todo = np.arange(M)
-        lo, chunk = 0, max(16, 2 * need)
+        lo, chunk = 0, need + 2
         while len(todo) and lo < n:
             hi = min(n, lo + chunk)
             X = self.model.inverse_function(Y[todo, lo:hi])
             valid = self._valid(X, Y[todo, lo:hi])
-            left = []
-            for i, m in enumerate(todo):
-                for k in np.flatnonzero(valid[i])[: need - len(frames[m])]:
-                    frames[m].append(lo + int(k))
-                    points[m].append(X[i, k])
-                if len(frames[m]) < need:
-                    left.append(m)
-            todo, lo, chunk = np.array(left, dtype=int), hi, 2 * chunk
-        return [self._fit(np.array(frames[m]), np.array(points[m])) if len(frames[m]) == need else None
-                for m in range(M)]
+            slot = got[todo][:, None] + np.cumsum(valid, axis=1) - 1  # where each valid frame goes
+            i, k = np.nonzero(valid & (slot < need))
+            F[todo[i], slot[i, k]], pts[todo[i], slot[i, k]] = lo + k, X[i, k]
+            got[todo] = np.minimum(got[todo] + valid.sum(axis=1), need)
+            todo, lo, chunk = todo[got[todo] < need], hi, 2 * chunk
+        done = np.flatnonzero(got == need)
+        states, covs = self._fit_many(F[done], pts[done])
+        out: list[Start | None] = [None] * M
+        for j, m in enumerate(done):
+            out[m] = Start(int(F[m, -1]), states[j], covs[j])
+        return out
 
 
 # -- the protocol -------------------------------------------------------------------------------
@@ -413,8 +422,13 @@ class Estimator(ABC):
         n = len(position)
         rep = (reprojection_errors(self.rig, position, Y, velocity, self.model.time_offset) if self.kind == "point"
                else np.full(n, np.nan))
-        return Track(self.name, position, velocity, rep, np.asarray(predicted, dtype=bool), seconds_per_step,
-                     extra or {}, covariance, nis, nis_dof)
+        return self.complete(Track(self.name, position, velocity, rep, np.asarray(predicted, dtype=bool), seconds_per_step,
+                                   extra or {}, covariance, nis, nis_dof), Y)
+
+    def complete(self, track: Track, Y: np.ndarray) -> Track:
+        """The last word on a finished track, whichever path made it (step by step or a compiled
+        core): a smoother's backward pass goes here. The filter's track as it is by default."""
+        return track
 
     def _timed_steps(self, Y: np.ndarray) -> tuple[list[Step], float]:
         """Warm up on the first frames, then reset and step every frame; (steps, seconds/step)."""

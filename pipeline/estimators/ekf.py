@@ -17,9 +17,20 @@ smoother applies as it is).
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
-from pipeline.estimators.base import Estimator, Step, not_started, register, transition, white_noise_acceleration
+from pipeline.estimators.base import (
+    Estimator,
+    Start,
+    Step,
+    Track,
+    not_started,
+    register,
+    transition,
+    white_noise_acceleration,
+)
 from pipeline.estimators.kalman_common import (
     GatedFilter,
     KalmanConfig,
@@ -27,7 +38,6 @@ from pipeline.estimators.kalman_common import (
     available_rows,
     filtered_step,
     gated_step,
-    kalman_batch,
 )
 
 
@@ -108,20 +118,60 @@ class EKFEstimator(GatedFilter, Estimator):
         IKH = self._I - K @ H
         return x + K @ r, IKH @ P @ IKH.T + K @ R @ K.T, r, S, float(r @ Si @ r)
 
-    def _linearize(self, p: np.ndarray, y: np.ndarray):
-        """Missing rows get ``H = 0``, residual 0 and unit variance: their gain column is exactly
-        zero, so the update equals the reduced one."""
-        ok = np.isfinite(y)
-        ok[:, :2] &= ok[:, :2].all(axis=1, keepdims=True)
-        ok[:, 2:] &= ok[:, 2:].all(axis=1, keepdims=True)
-        H = self.model.jacobian(p) * ok[:, :, None]
-        r = np.where(ok, np.nan_to_num(y) - self.model.function(p), 0.0)
-        R = np.where(ok[:, :, None] & ok[:, None, :], self.R, 0.0) + np.eye(4) * ~ok[:, :, None]
-        return H, r, R, ok.any(axis=1)
+    def run(self, Y: np.ndarray) -> Track:
+        """The clip through the compiled core (:func:`kernels.ekf_frames`, the arithmetic of
+        repeated :meth:`step`; a warm-up on the first frames outside the timing)."""
+        Y = self.check(Y)
+        self._compiled(Y[: self.warmup_frames])
+        t0 = time.perf_counter()
+        a = self._compiled(Y)
+        elapsed = (time.perf_counter() - t0) / max(len(Y), 1)
+        if not np.isfinite(a["pos"]).any():  # never started: as finish makes it from the steps
+            return self.make_track(a["pos"], a["vel"], a["pred"], elapsed, Y)
+        extra = {"gated": a["gated"], "restart": a["restart"]} if np.isfinite(a["gated"]).any() else {}
+        updated = a["dof"].any()
+        return self.make_track(a["pos"], a["vel"], a["pred"], elapsed, Y, extra, a["cov"], a["nis"] if updated else None,
+                               a["dof"] if updated else None)
+
+    def _compiled(self, Y: np.ndarray, start: Start | bool | None = False) -> dict[str, np.ndarray]:
+        """Per-frame arrays of the filter over one clip from a fresh state (``start``: the
+        initiator's start when the caller has it)."""
+        from pipeline.estimators import kernels
+
+        self.reset()
+        n = len(Y)
+        a = {k: np.full(shape, np.nan) for k, shape in
+             (("pos", (n, 3)), ("vel", (n, 3)), ("cov", (n, 6, 6)), ("nis", n), ("gated", n), ("restart", n))}
+        a["pred"], a["dof"] = np.ones(n, dtype=bool), np.zeros(n, dtype=np.int64)
+        s = self.initiator.first(Y) if start is False else start
+        if s is None:
+            return a
+        x, P = s.state.copy(), s.covariance.copy()
+        a["pos"][s.frame], a["vel"][s.frame], a["cov"][s.frame], a["pred"][s.frame] = x[:3], x[3:], P, False
+        cfg, Pm = self.config, np.stack([self.rig.left.P, self.rig.right.P])
+        threshold = self.gate_threshold() if cfg.gate > 0 else np.inf
+        counters, sx, sP = np.zeros(6, dtype=np.int64), np.zeros(6), np.zeros((6, 6))
+        k, resume = s.frame + 1, 0
+        while k < n:
+            k = kernels.ekf_frames(Y, k, resume, Pm, self.model.time_offset, self.dt, self.Q, self.R, threshold,
+                                   cfg.restart_after, x, P, counters, sx, sP, a["pos"], a["vel"], a["cov"], a["pred"],
+                                   a["nis"], a["dof"], a["gated"], a["restart"])
+            if k < n:  # gated too long: a restart from the recent detections, if they triangulate
+                r = self.initiator.restart(k, Y[max(0, k + 1 - cfg.restart_after) : k + 1])
+                resume = 2 if r is None else 1
+                if r is not None:
+                    x[:], P[:] = r.state, r.covariance
+        self.frame = n
+        return a
 
     def run_batch(self, Y: np.ndarray) -> np.ndarray:
-        """The same filter vectorised over tracks (M × frames × 4 → M × frames × 3)."""
-        return kalman_batch(self, np.asarray(Y, dtype=float), self._linearize)
+        """The filter over M tracks (M × frames × 4 → M × frames × 3): the starts found for all
+        tracks at once, then each track through the compiled core."""
+        Y = np.asarray(Y, dtype=float)
+        self.reset()
+        starts = self.initiator.first_batch(Y)
+        return np.stack([self._compiled(y, s)["pos"] for y, s in zip(Y, starts, strict=True)]) if len(Y) else \
+            np.zeros((0, Y.shape[1], 3))
 
 
 @register

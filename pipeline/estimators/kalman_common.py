@@ -253,12 +253,12 @@ def filtered_step(x: np.ndarray, P: np.ndarray, predicted: bool, f=None, innovat
 
 
 class RTSMixin:
-    """Makes a Kalman-family estimator a smoother: :meth:`finish` runs :func:`rts_smooth` over the
-    filtered track (the streaming ``step`` output stays the filter's); ``run_batch`` loops over
-    :meth:`run` so that every track is smoothed."""
+    """Makes a Kalman-family estimator a smoother: every finished track (from :meth:`finish` or a
+    compiled ``run``) gets :func:`rts_smooth` (the streaming ``step`` output stays the filter's);
+    ``run_batch`` loops over :meth:`run` so that every track is smoothed."""
 
-    def finish(self, steps: list[Step], Y: np.ndarray, seconds_per_step: float = float("nan")) -> Track:
-        tr = rts_smooth(self, super().finish(steps, Y, seconds_per_step))  # type: ignore[misc,arg-type]
+    def complete(self, track: Track, Y: np.ndarray) -> Track:
+        tr = rts_smooth(self, track)  # type: ignore[arg-type]
         tr.reprojection_error = reprojection_errors(self.rig, tr.position, Y)  # type: ignore[attr-defined]
         return tr
 

@@ -219,24 +219,26 @@ class SPSAEstimator(Estimator):
         self.theta = new
         return new, not (use_l or use_r)
 
-    def _fast(self, Y: np.ndarray) -> tuple[list, list]:
-        """Every frame from a fresh state in one tight loop (observations normalized at once, no
-        per-frame objects); the same arithmetic as repeated :meth:`step`."""
+    def _fast(self, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Every frame from a fresh state through the compiled core (:func:`kernels.spsa_frames`,
+        the arithmetic of repeated :meth:`step`): θ per frame (frames × 6, frame units; NaN before
+        the start) and which frames only predicted."""
+        from pipeline.estimators import kernels
+
         self.reset()
         n = len(Y)
-        rows, okl, okr = normalized_rows(self.rig, Y)
-        states: list = [None] * n
-        pred = [True] * n
+        states, pred = np.full((n, 6), np.nan), np.ones(n, dtype=bool)
         start = self.initiator.first(Y)  # the start `step` finds frame by frame, found at once
-        k = n
         if start is not None:
             self._begin(start)
             k = start.frame
-            states[k], pred[k] = list(self.theta), False
-            k += 1
-        iterate = self._iterate
-        for j in range(k, n):
-            states[j], pred[j] = iterate(tuple(rows[j]), okl[j], okr[j])
+            states[k], pred[k] = self.theta, False
+            s = np.zeros(kernels.S_SIZE)
+            s[:6] = self.theta
+            deltas = delta_sequence(self.config.seed, n // 2 + 2, 6)
+            kernels.spsa_frames(self.rig.normalize(Y[k + 1 :]), *_present(Y[k + 1 :]), deltas, spsa_cameras(self.rig),
+                                self._alpha, self._beta, self._th, s, states[k + 1 :], pred[k + 1 :])
+            self.theta = s[:6].tolist()
         self.frame = n
         return states, pred
 
@@ -247,74 +249,35 @@ class SPSAEstimator(Estimator):
         t0 = time.perf_counter()
         states, pred = self._fast(Y)
         elapsed = time.perf_counter() - t0
-        n, d = len(Y), self.state_dim
-        S = np.array([s if s is not None else [np.nan] * d for s in states], dtype=float).reshape(n, d)
-        if self.state_dim == 3:
-            pos, vel = S[:, :3], np.full((n, 3), np.nan)
-        else:
-            pos, vel = S[:, :3], S[:, 3:] / self.dt
-        return self.make_track(pos, vel, np.array(pred, dtype=bool), elapsed / max(n, 1), Y)
+        return self.make_track(states[:, :3], states[:, 3:] / self.dt, pred, elapsed / max(len(Y), 1), Y)
 
     def run_batch(self, Y: np.ndarray) -> np.ndarray:
-        return batch_spsa(self, np.asarray(Y, dtype=float))
+        """Algorithm 1 over M tracks (M × frames × 4 → M × frames × 3) through the compiled
+        :func:`kernels.spsa_batch`: each track starts where the initiator says (as :meth:`run`) and
+        draws the same Δ sequence a single track draws."""
+        from pipeline.estimators import kernels
+
+        Y = np.asarray(Y, dtype=float)
+        self.reset()
+        M, n, _ = Y.shape
+        starts = self.initiator.first_batch(Y)
+        begin = np.array([s.frame if s is not None else n for s in starts], dtype=np.int64)
+        theta0 = np.zeros((M, 6))
+        for m, s in enumerate(starts):
+            if s is not None:
+                theta0[m] = np.r_[s.state[:3], s.state[3:] * self.dt]
+        out = np.full((M, n, 3), np.nan)
+        kernels.spsa_batch(self.rig.normalize(Y), *_present(Y), begin, theta0, delta_sequence(self.config.seed, n // 2 + 2, 6),
+                           spsa_cameras(self.rig), self._alpha, self._beta, self._th, out)
+        return out
 
 
-def _cost_batch(nrig, P: np.ndarray, yn: np.ndarray, use: np.ndarray) -> np.ndarray:
-    """Vectorised ``‖h(p) − y‖²`` for M positions through the normalized rig (``K = I``), cameras
-    masked by ``use`` (M×2); a trial point behind a camera costs ``BIG_COST`` there."""
-    out = np.zeros(len(P))
-    for c, cam in enumerate(nrig.cameras):
-        with np.errstate(divide="ignore", invalid="ignore"):
-            cost = np.sum((cam.project(P) - yn[:, 2 * c : 2 * c + 2]) ** 2, axis=1)
-        cost = np.where(cam.depth(P) > 1e-9, cost, BIG_COST)
-        out += np.where(use[:, c], cost, 0.0)
-    return out
+def _present(Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Whether each frame has the left and the right camera's observation (…×4 → two …)."""
+    ok = np.isfinite(Y)
+    return ok[..., 0] & ok[..., 1], ok[..., 2] & ok[..., 3]
 
 
-def batch_spsa(est: SPSAEstimator, Y: np.ndarray) -> np.ndarray:
-    """Algorithm 1 over M tracks at once (M × frames × 4 → M × frames × 3), frame units inside:
-    each track starts where the initiator says (as :meth:`SPSAEstimator.run`), iterates over the
-    frame pairs that follow its own start, and draws the same Δ sequence a single track draws."""
-    est.reset()
-    cfg = est.config
-    M, n, _ = Y.shape
-    starts = est.initiator.first_batch(Y)
-    begin = np.array([s.frame if s is not None else n for s in starts])
-    th = np.zeros((M, 6))
-    for m, s in enumerate(starts):
-        if s is not None:
-            th[m] = np.r_[s.state[:3], s.state[3:] * est.dt]
-    Yn = est.rig.normalize(Y)
-    ok = np.stack([np.isfinite(Yn[..., :2]).all(-1), np.isfinite(Yn[..., 2:]).all(-1)], axis=-1)
-    D_all = delta_sequence(cfg.seed, n // 2 + 2, 6)
-    it, phase = np.zeros(M, dtype=int), np.zeros(M, dtype=int)
-    x_odd, y_odd, ok_odd = np.zeros((M, 3)), np.zeros((M, 4)), np.zeros((M, 2), dtype=bool)
-    out = np.full((M, n, 3), np.nan)
-    b = cfg.beta
-    nrig = est.rig.normalized()
-    for k in range(n):
-        out[begin == k, k] = th[begin == k, :3]
-        act = begin < k
-        odd, even = np.flatnonzero(act & (phase == 0)), np.flatnonzero(act & (phase == 1))
-        if len(odd):  # x_{2k−1} = A(θ − βΔ); θ_{2k−1} = Aθ
-            D = D_all[it[odd]]
-            t = th[odd]
-            x_odd[odd] = t[:, :3] - b * D[:, :3] + t[:, 3:] - b * D[:, 3:]
-            y_odd[odd], ok_odd[odd] = Yn[odd, k], ok[odd, k]
-            out[odd, k] = t[:, :3] + t[:, 3:]
-            phase[odd] = 1
-        if len(even):  # x_{2k} = A²(θ + βΔ); θ_{2k} = A²θ − αΔd
-            D = D_all[it[even]]
-            t = th[even]
-            use = ok[even, k] & ok_odd[even]
-            xe = t[:, :3] + b * D[:, :3] + 2 * (t[:, 3:] + b * D[:, 3:])
-            d = (_cost_batch(nrig, xe, Yn[even, k], use) - _cost_batch(nrig, x_odd[even], y_odd[even], use)) / (2 * b)
-            d = np.clip(d, -est._th, est._th)
-            d = np.where(np.isfinite(d) & use.any(axis=1), d, 0.0)
-            new = t.copy()
-            new[:, :3] += 2 * t[:, 3:]
-            new -= cfg.alpha * d[:, None] * D
-            th[even] = new
-            out[even, k] = new[:, :3]
-            phase[even], it[even] = 0, it[even] + 1
-    return out
+def spsa_cameras(rig) -> np.ndarray:
+    """Both cameras' ``(R, t)`` as a 2 × 12 array (R row-major, then t) for the compiled cost."""
+    return np.array(camera_tuples(rig), dtype=float)

@@ -1,0 +1,433 @@
+"""Compiled cores of the estimators whose per-frame loop is the cost: Algorithm 1 (SPSA) and the
+EKF, single track and batch. Each core is plain Python over float arrays, compiled by numba
+(``njit``, cached on disk, so a fresh process loads it instead of compiling) and run as it is
+when ``STEREOTRACK_JIT=0`` is set before this module is imported (:func:`uncompiled` loads such a
+copy: the tests run both and compare). The estimators import this module on the first ``run``,
+so neither ``import pipeline`` nor the streaming ``step`` pays for numba.
+
+The arithmetic is the estimators' own, operation for operation (see
+:mod:`pipeline.estimators.spsa` and :mod:`pipeline.estimators.ekf` for the equations, after
+Krivokon 2011, Algorithm 1 and App. I), and the measurement model is
+:meth:`pipeline.core.camera.StereoMeasurementModel.linearize` written out for one state.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import os
+import sys
+from types import ModuleType
+
+import numpy as np
+
+JIT = os.environ.get("STEREOTRACK_JIT", "1") != "0"
+
+if JIT:
+    from numba import njit
+
+    def kernel(fn=None, *, signature: str | None = None):
+        """Compile ``fn`` with numba on its first call (cached on disk across processes); with a
+        ``signature``, for those argument types only (one compilation for every caller)."""
+        if fn is None:
+            return lambda f: njit(signature, cache=True, nogil=True)(f)
+        return njit(cache=True, nogil=True)(fn)
+else:
+    def kernel(fn=None, *, signature: str | None = None):
+        return (lambda f: f) if fn is None else fn
+
+#: the signature of the small matrix helpers: three C-contiguous matrices and three sizes
+_MM = "void(f8[:, ::1], f8[:, ::1], f8[:, ::1], i8, i8, i8)"
+
+
+def uncompiled() -> ModuleType:
+    """This module loaded once more with every kernel left as plain Python (for the tests)."""
+    name = __name__ + "_python"
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, __file__)
+    module = importlib.util.module_from_spec(spec)  # type: ignore[arg-type]
+    before = os.environ.get("STEREOTRACK_JIT")
+    os.environ["STEREOTRACK_JIT"] = "0"
+    try:
+        spec.loader.exec_module(module)  # type: ignore[union-attr]
+    finally:
+        if before is None:
+            del os.environ["STEREOTRACK_JIT"]
+        else:
+            os.environ["STEREOTRACK_JIT"] = before
+    sys.modules[name] = module
+    return module
+
+
+BIG_COST = 1.0e6  # as pipeline.estimators.spsa.BIG_COST
+
+# -- SPSA (Algorithm 1) -------------------------------------------------------------------------
+#: layout of an SPSA track's state vector ``s``: θ (frame units), phase, Δ index, the odd frame's
+#: trial point (3), its normalized observation (4) and which of its cameras were present (2)
+S_THETA, S_PHASE, S_IT, S_XO, S_YO, S_OK = 0, 6, 7, 8, 11, 15
+S_SIZE = 17
+
+
+@kernel
+def spsa_cost(p0, p1, p2, y, use_l, use_r, cams):
+    """``‖h(p) − y‖²`` in normalized coordinates over the cameras in use (``cams``: 2 × 12, each
+    camera's R row-major then t); a trial point behind a camera costs ``BIG_COST``."""
+    c = 0.0
+    for i in range(2):
+        if (use_l if i == 0 else use_r):
+            r = cams[i]
+            z = r[6] * p0 + r[7] * p1 + r[8] * p2 + r[11]
+            if z <= 1e-9:
+                return BIG_COST
+            du = (r[0] * p0 + r[1] * p1 + r[2] * p2 + r[9]) / z - y[2 * i]
+            dv = (r[3] * p0 + r[4] * p1 + r[5] * p2 + r[10]) / z - y[2 * i + 1]
+            c += du * du + dv * dv
+    return c
+
+
+@kernel
+def spsa_frames(Yn, okl, okr, deltas, cams, alpha, beta, th, s, states, pred):
+    """Algorithm 1 over the frames of ``Yn`` (normalized, frames × 4; ``okl``/``okr``: cameras
+    present) from the track state ``s`` (layout ``S_*``), writing θ (frames × 6) and whether each
+    frame only predicted; ``s`` is left at the state after the last frame (so :meth:`step` can
+    call it one frame at a time)."""
+    b = beta
+    for j in range(Yn.shape[0]):
+        i = int(s[S_IT])
+        if s[S_PHASE] == 0.0:  # x_{2k−1} = A(θ − βΔ); θ_{2k−1} = Aθ
+            for a in range(3):
+                s[S_XO + a] = s[a] - b * deltas[i, a] + s[3 + a] - b * deltas[i, 3 + a]
+                states[j, a] = s[a] + s[3 + a]
+                states[j, 3 + a] = s[3 + a]
+            for a in range(4):
+                s[S_YO + a] = Yn[j, a]
+            s[S_OK] = 1.0 if okl[j] else 0.0
+            s[S_OK + 1] = 1.0 if okr[j] else 0.0
+            pred[j] = not (okl[j] or okr[j])
+            s[S_PHASE] = 1.0
+            continue
+        s[S_PHASE] = 0.0  # x_{2k} = A²(θ + βΔ); θ_{2k} = A²θ − αΔd
+        use_l, use_r = okl[j] and s[S_OK] > 0.0, okr[j] and s[S_OK + 1] > 0.0
+        for a in range(3):
+            states[j, a] = s[a] + 2 * s[3 + a]
+            states[j, 3 + a] = s[3 + a]
+        if use_l or use_r:
+            xe0 = s[0] + b * deltas[i, 0] + 2 * (s[3] + b * deltas[i, 3])
+            xe1 = s[1] + b * deltas[i, 1] + 2 * (s[4] + b * deltas[i, 4])
+            xe2 = s[2] + b * deltas[i, 2] + 2 * (s[5] + b * deltas[i, 5])
+            z_odd = spsa_cost(s[S_XO], s[S_XO + 1], s[S_XO + 2], s[S_YO : S_YO + 4], use_l, use_r, cams)
+            z_even = spsa_cost(xe0, xe1, xe2, Yn[j], use_l, use_r, cams)
+            d = (z_even - z_odd) / (2 * b)
+            if d > th:
+                d = th
+            elif d < -th:
+                d = -th
+            if d == d:  # not NaN
+                ad = alpha * d
+                for a in range(6):
+                    states[j, a] = states[j, a] - ad * deltas[i, a]
+        for a in range(6):
+            s[a] = states[j, a]
+        s[S_IT] = i + 1
+        pred[j] = not (use_l or use_r)
+
+
+@kernel
+def spsa_batch(Yn, okl, okr, begin, theta0, deltas, cams, alpha, beta, th, out):
+    """Algorithm 1 over M tracks (``Yn`` M × frames × 4), each from ``theta0[m]`` at its frame
+    ``begin[m]`` (none when ``begin[m]`` is the clip's length); positions into ``out`` (M × frames × 3)."""
+    M, n = Yn.shape[0], Yn.shape[1]
+    states = np.empty((n, 6))
+    pred = np.empty(n, dtype=np.bool_)
+    s = np.zeros(S_SIZE)
+    for m in range(M):
+        k0 = begin[m]
+        if k0 >= n:
+            continue
+        for a in range(S_SIZE):
+            s[a] = theta0[m, a] if a < 6 else 0.0
+        spsa_frames(Yn[m, k0 + 1 :], okl[m, k0 + 1 :], okr[m, k0 + 1 :], deltas, cams, alpha, beta, th, s,
+                    states[k0 + 1 :], pred[k0 + 1 :])
+        for a in range(3):
+            out[m, k0, a] = theta0[m, a]
+            for j in range(k0 + 1, n):
+                out[m, j, a] = states[j, a]
+
+
+# -- EKF ----------------------------------------------------------------------------------------
+#: counters of a gated track: frames in a row with a camera gated, frames unseen, returning frames
+#: left (see pipeline.estimators.kalman_common.after_gap)
+C_GATED, C_UNSEEN, C_RETURNING = 0, 1, 2
+
+
+@kernel
+def stereo_linearize(Pm, delta, x, h, H):
+    """``h(x)`` (4) and ``∂h/∂x`` (4 × 6) of one state through both cameras' 3 × 4 matrices
+    ``Pm`` (2 × 3 × 4), the right camera seeing ``p + v·δ``: the arithmetic of
+    :meth:`StereoMeasurementModel.linearize`."""
+    for c in range(2):
+        dc = delta if c == 1 else 0.0
+        p0, p1, p2 = x[0] + x[3] * dc, x[1] + x[4] * dc, x[2] + x[5] * dc
+        q2 = Pm[c, 2, 0] * p0 + Pm[c, 2, 1] * p1 + Pm[c, 2, 2] * p2 + Pm[c, 2, 3]
+        for r in range(2):
+            uv = (Pm[c, r, 0] * p0 + Pm[c, r, 1] * p1 + Pm[c, r, 2] * p2 + Pm[c, r, 3]) / q2
+            h[2 * c + r] = uv
+            for a in range(3):
+                J = (Pm[c, r, a] - uv * Pm[c, 2, a]) / q2
+                H[2 * c + r, a] = J
+                H[2 * c + r, 3 + a] = dc * J
+
+
+@kernel(signature=_MM)
+def mm(A, B, out, n, k, m):
+    """``out[:n, :m] = A[:n, :k] @ B[:k, :m]`` in plain loops (no BLAS call for tiny matrices)."""
+    for i in range(n):
+        for j in range(m):
+            acc = 0.0
+            for t in range(k):
+                acc += A[i, t] * B[t, j]
+            out[i, j] = acc
+
+
+@kernel(signature=_MM)
+def mmt(A, B, out, n, k, m):
+    """``out[:n, :m] = A[:n, :k] @ B[:m, :k]ᵀ``."""
+    for i in range(n):
+        for j in range(m):
+            acc = 0.0
+            for t in range(k):
+                acc += A[i, t] * B[j, t]
+            out[i, j] = acc
+
+
+@kernel(signature="void(f8[:, ::1], i8, f8[:, ::1], f8[:, ::1])")
+def inv_small(S, m, out, work):
+    """``out[:m, :m] = S[:m, :m]⁻¹`` by Gauss–Jordan elimination with partial pivoting (m ≤ 4)."""
+    for i in range(m):
+        for j in range(m):
+            work[i, j] = S[i, j]
+            out[i, j] = 1.0 if i == j else 0.0
+    for c in range(m):
+        p = c
+        for i in range(c + 1, m):
+            if abs(work[i, c]) > abs(work[p, c]):
+                p = i
+        if p != c:
+            for j in range(m):
+                work[c, j], work[p, j] = work[p, j], work[c, j]
+                out[c, j], out[p, j] = out[p, j], out[c, j]
+        d = work[c, c]
+        for j in range(m):
+            work[c, j] /= d
+            out[c, j] /= d
+        for i in range(m):
+            if i != c:
+                f = work[i, c]
+                if f != 0.0:
+                    for j in range(m):
+                        work[i, j] -= f * work[c, j]
+                        out[i, j] -= f * out[c, j]
+
+
+@kernel(signature="void(f8[:, ::1], f8[:, ::1], f8[:, ::1], b1)")
+def mm6(A, B, out, transpose_b):
+    """``out = A @ B`` (or ``A @ Bᵀ``) for 6 × 6 matrices: fixed sizes the compiler unrolls."""
+    for i in range(6):
+        for j in range(6):
+            acc = 0.0
+            if transpose_b:
+                for t in range(6):
+                    acc += A[i, t] * B[j, t]
+            else:
+                for t in range(6):
+                    acc += A[i, t] * B[t, j]
+            out[i, j] = acc
+
+
+@kernel
+def camera_nis2(S, r, c):
+    """Camera ``c``'s ``rᵀ S_c⁻¹ r`` from its 2 × 2 block of ``S`` in closed form (NaN stays NaN)."""
+    i = 2 * c
+    a, b, d = S[i, i], S[i, i + 1], S[i + 1, i + 1]
+    u, v = r[i], r[i + 1]
+    return (d * u * u - 2.0 * b * u * v + a * v * v) / (a * d - b * b)
+
+
+@kernel
+def ekf_predict(dt, Q, x, P):
+    """``x ← A x``, ``P ← A P Aᵀ + Q`` for the constant-velocity ``A = [[I, dt·I], [0, I]]``,
+    by blocks (the same sums as the full products, without the multiplications by 0 and 1)."""
+    for i in range(3):
+        x[i] += dt * x[3 + i]
+    for i in range(3):  # rows of A P: position rows gain dt × velocity rows
+        for j in range(6):
+            P[i, j] += dt * P[3 + i, j]
+    for j in range(3):  # columns of (A P) Aᵀ: position columns gain dt × velocity columns
+        for i in range(6):
+            P[i, j] += dt * P[i, 3 + j]
+    for i in range(6):
+        for j in range(6):
+            P[i, j] += Q[i, j]
+
+
+@kernel
+def joseph_update(x, P, Hs, rs, Rs, m, nz, PHt, S, Si, K, IKH, T6, KR, work, have_S):
+    """The Joseph-form update on ``m`` observation rows (``Hs`` m × 6, residual ``rs``, noise
+    ``Rs``; x, P in place), returning the NIS ``rᵀ S⁻¹ r``: ``S = H P Hᵀ + R``, ``K = P Hᵀ S⁻¹``,
+    ``x ← x + K r``, ``P ← (I − KH) P (I − KH)ᵀ + K R Kᵀ``. Only the first ``nz`` columns of ``H``
+    are nonzero (3 without a time offset: the velocity does not enter ``h``), and the products
+    skip the zeros (sums of the same nonzero terms in the same order as the full products).
+    ``have_S``: ``PHt`` and ``S`` hold ``P Hᵀ`` and ``S`` already (the gate's, for four rows)."""
+    if not have_S:
+        mmt(P, Hs, PHt, 6, nz, m)
+        mm(Hs, PHt, S, m, nz, m)
+        for i in range(m):
+            for j in range(m):
+                S[i, j] += Rs[i, j]
+    inv_small(S, m, Si, work)
+    mm(PHt, Si, K, 6, m, m)
+    mm(K, Hs, IKH, 6, m, nz)  # columns ≥ nz of I − KH are the identity's
+    for i in range(6):
+        for j in range(nz):
+            IKH[i, j] = (1.0 if i == j else 0.0) - IKH[i, j]
+        acc = 0.0
+        for j in range(m):
+            acc += K[i, j] * rs[j]
+        x[i] += acc
+    for i in range(6):  # T = (I − KH) P
+        for j in range(6):
+            acc = 0.0
+            for t in range(nz):
+                acc += IKH[i, t] * P[t, j]
+            T6[i, j] = acc + P[i, j] if i >= nz else acc
+    for i in range(6):  # P = T (I − KH)ᵀ
+        for j in range(6):
+            acc = 0.0
+            for t in range(nz):
+                acc += T6[i, t] * IKH[j, t]
+            P[i, j] = acc + T6[i, j] if j >= nz else acc
+    mm(K, Rs, KR, 6, m, m)
+    mmt(KR, K, T6, 6, m, 6)
+    for i in range(6):
+        for j in range(6):
+            P[i, j] += T6[i, j]
+    nis = 0.0
+    for i in range(m):
+        for j in range(m):
+            nis += rs[i] * Si[i, j] * rs[j]
+    return nis
+
+
+@kernel
+def ekf_frames(Y, k0, resume, Pm, delta, dt, Q, R, threshold, restart_after, x, P, counters, scratch_x, scratch_P,
+               pos, vel, cov, pred, nis, dof, gated, restarted):
+    """The EKF over frames ``k0…`` of ``Y`` (frames × 4 pixels, NaN missing) from ``x``, ``P``
+    (in place), gating each camera at ``threshold`` (inf: off) as ``GatedFilter.gate`` does.
+    Returns the clip's length when done, or the frame at which the track was gated for
+    ``restart_after`` frames: the caller asks the initiator for a restart and calls again with
+    ``resume`` 1 (restart state in ``x``, ``P``) or 2 (none: update with what the gate kept),
+    the frame's prediction and gated count kept in ``scratch_x``, ``scratch_P``, ``counters[3:]``."""
+    n = Y.shape[0]
+    h, H = np.empty(4), np.empty((4, 6))
+    kept, r = np.empty(4), np.empty(4)
+    rows = np.empty(4, dtype=np.int64)
+    Hs, rs, Rs = np.empty((4, 6)), np.empty(4), np.empty((4, 4))
+    T6, IKH, PHt, K, KR = np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 4)), np.empty((6, 4)), np.empty((6, 4))
+    S, Si, work = np.empty((4, 4)), np.empty((4, 4)), np.empty((4, 4))
+    nz = 6 if delta != 0.0 else 3  # the nonzero columns of H
+    for k in range(k0, n):
+        if k == k0 and resume == 1:  # restarted at this frame: a new start, no update
+            counters[C_GATED] = 0
+            _ekf_output(k, x, P, pos, vel, cov, pred, False)
+            gated[k], restarted[k] = counters[3], 1.0
+            continue
+        for i in range(4):
+            kept[i] = Y[k, i]
+        resumed = k == k0 and resume == 2
+        gate_on = threshold < np.inf
+        if resumed:
+            for i in range(6):
+                x[i] = scratch_x[i]
+                for j in range(6):
+                    P[i, j] = scratch_P[i, j]
+            n_gated = counters[3]
+            for c in range(2):
+                if counters[4 + c] != 0:
+                    kept[2 * c], kept[2 * c + 1] = np.nan, np.nan
+        else:
+            ekf_predict(dt, Q, x, P)
+            n_gated = 0
+            if gate_on:
+                stereo_linearize(Pm, delta, x, h, H)
+                mmt(P, H, PHt, 6, nz, 4)
+                mm(H, PHt, S, 4, nz, 4)
+                for i in range(4):
+                    r[i] = Y[k, i] - h[i]
+                    for j in range(4):
+                        S[i, j] += R[i, j]
+                had = False
+                for c in range(2):
+                    counters[4 + c] = 0
+                    if camera_nis2(S, r, c) > threshold:
+                        kept[2 * c], kept[2 * c + 1] = np.nan, np.nan
+                        counters[4 + c] = 1
+                        n_gated += 1
+                    if math.isfinite(Y[k, 2 * c]) or math.isfinite(Y[k, 2 * c + 1]):
+                        had = True
+                _count_gated(counters, had, n_gated > 0, restart_after)
+                if counters[C_GATED] >= restart_after:
+                    for i in range(6):
+                        scratch_x[i] = x[i]
+                        for j in range(6):
+                            scratch_P[i, j] = P[i, j]
+                    counters[3] = n_gated
+                    return k
+        gated[k], restarted[k] = n_gated, 0.0
+        m = 0
+        for i in range(4):  # both coordinates of a camera go together
+            if math.isfinite(kept[i]) and math.isfinite(kept[i ^ 1]):
+                rows[m] = i
+                m += 1
+        if m == 0:
+            _ekf_output(k, x, P, pos, vel, cov, pred, True)
+            continue
+        have_S = gate_on and m == 4 and not resumed  # the gate's h, H, P Hᵀ and S are this update's
+        if not have_S:
+            stereo_linearize(Pm, delta, x, h, H)
+        for i in range(m):
+            for j in range(6):
+                Hs[i, j] = H[rows[i], j]
+            rs[i] = kept[rows[i]] - h[rows[i]]
+            for j in range(m):
+                Rs[i, j] = R[rows[i], rows[j]]
+        nis[k] = joseph_update(x, P, Hs, rs, Rs, m, nz, PHt, S, Si, K, IKH, T6, KR, work, have_S)
+        dof[k] = m
+        _ekf_output(k, x, P, pos, vel, cov, pred, False)
+    return n
+
+
+@kernel
+def _count_gated(counters, had, gated, restart_after):
+    """The gated-run, unseen and returning counters after one frame (``after_gap``'s arithmetic)."""
+    run = counters[C_GATED] + 1 if gated else (0 if had else counters[C_GATED])
+    unseen, returning = counters[C_UNSEEN], counters[C_RETURNING]
+    if had and unseen >= restart_after:
+        returning = restart_after
+    if gated and returning > 0:
+        run = max(run, restart_after)
+    if had:
+        returning = max(returning - 1, 0)
+    unseen = 0 if had else unseen + 1
+    counters[C_GATED], counters[C_UNSEEN], counters[C_RETURNING] = run, unseen, returning
+
+
+@kernel
+def _ekf_output(k, x, P, pos, vel, cov, pred, predicted):
+    for i in range(3):
+        pos[k, i] = x[i]
+        vel[k, i] = x[3 + i]
+    for i in range(6):
+        for j in range(6):
+            cov[k, i, j] = P[i, j]
+    pred[k] = predicted

@@ -1,0 +1,118 @@
+"""The compiled cores (pipeline/estimators/kernels.py): the same numbers compiled and as plain
+Python, and the same as stepping frame by frame (the estimators' streaming arithmetic), on tracks
+that start late, lose a camera, black out, carry outliers and restart."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import pipeline.estimators as estimators
+from pipeline.core.camera import Camera, StereoMeasurementModel, StereoRig
+from pipeline.estimators import create, kernels
+from pipeline.estimators.base import Estimator
+
+RIG = StereoRig.from_parameters(640, 480, (610.0, 590.0), (322.0, 241.0), 0.3, 4.0)
+ABOVE = StereoRig(RIG.left, Camera(RIG.left.K, np.eye(3), np.array([0.0, 0.3, 0.0])), RIG.image_size)  # above the left
+DT = 1 / 30
+COMPILED = ["spsa", "ekf", "ekf_rts"]
+
+
+def observations(rig: StereoRig, seed: int, n: int = 120) -> np.ndarray:
+    """A receding, turning point: late start, a one-camera gap, a blackout, single outliers, and a
+    run of frames where both cameras follow another point (the gate holds, then the track restarts)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * DT
+    X = np.column_stack([0.1 + 0.3 * np.sin(t), -0.05 + 0.1 * t, 2.0 + 0.5 * t])
+    Y = rig.project(X) + rng.normal(0, 0.7, (n, 4))
+    Y[: 3 + seed] = np.nan
+    Y[30:33, :2] = np.nan
+    Y[50:56] = np.nan
+    Y[rng.random(n) < 0.05, 2:] += 35.0
+    Y[80:100] = rig.project(X[80:100] + [0.25, 0.1, 0.0]) + rng.normal(0, 0.7, (20, 4))
+    return Y
+
+
+@pytest.fixture
+def uncompiled(monkeypatch):
+    """Every kernel as plain Python (``STEREOTRACK_JIT=0``'s module) for the estimators."""
+    monkeypatch.setattr(estimators, "kernels", kernels.uncompiled())
+
+
+def assert_same_track(a, b, tol: float = 1e-9) -> None:
+    for field in ("position", "velocity", "predicted", "covariance", "nis", "nis_dof", "reprojection_error"):
+        x, y = getattr(a, field), getattr(b, field)
+        assert (x is None) == (y is None), field
+        if x is not None:
+            np.testing.assert_allclose(x, y, rtol=tol, atol=tol, err_msg=field)
+    assert sorted(a.extra) == sorted(b.extra)
+    for key in a.extra:
+        np.testing.assert_allclose(a.extra[key], b.extra[key], rtol=tol, atol=tol, err_msg=key)
+
+
+def stepped(est: Estimator, Y: np.ndarray):
+    """The track from the streaming path: reset, step every frame, finish."""
+    est.reset()
+    return est.finish([est.step(y) for y in Y], Y)
+
+
+@pytest.mark.parametrize("rig", [RIG, ABOVE], ids=["right", "above"])
+@pytest.mark.parametrize("method", COMPILED)
+def test_compiled_run_equals_the_streaming_steps(method, rig):
+    for seed in range(2):
+        Y = observations(rig, seed)
+        est = create(method, rig, DT)
+        assert_same_track(est.run(Y), stepped(est, Y))
+
+
+@pytest.mark.parametrize("method", COMPILED)
+def test_compiled_equals_plain_python(method, uncompiled):
+    """The kernels run uncompiled (plain Python) give the numbers the compiled ones give."""
+    compiled = kernels  # this module, compiled (the fixture swapped what the estimators import)
+    assert estimators.kernels is not compiled and not estimators.kernels.JIT
+    Ys = np.stack([observations(RIG, s) for s in range(2)])
+    plain = [create(method, RIG, DT).run(Y) for Y in Ys]
+    plain_batch = create(method, RIG, DT).run_batch(Ys)
+    estimators.kernels = compiled
+    for Y, p in zip(Ys, plain, strict=True):
+        assert_same_track(create(method, RIG, DT).run(Y), p)
+    np.testing.assert_allclose(create(method, RIG, DT).run_batch(Ys), plain_batch, rtol=1e-9, atol=1e-9)
+
+
+def test_the_test_tracks_exercise_every_branch():
+    """The observations above make the EKF gate single cameras, restart, and predict through gaps."""
+    tr = create("ekf", RIG, DT).run(observations(RIG, 0))
+    assert np.nansum(tr.extra["restart"]) >= 1
+    assert np.nansum(tr.extra["gated"]) >= 5
+    assert tr.predicted[50:56].all() and not tr.predicted[60:70].any()
+    assert set(np.unique(tr.nis_dof)) >= {0, 2, 4}
+
+
+def test_ekf_with_a_time_offset_compiled_and_stepped():
+    est = create("ekf", RIG, DT, time_offset=0.4 * DT)
+    Y = observations(RIG, 1)
+    assert_same_track(est.run(Y), stepped(est, Y))
+
+
+def test_linearize_kernel_is_the_measurement_model():
+    rng = np.random.default_rng(0)
+    Pm = np.stack([RIG.left.P, RIG.right.P])
+    for delta in (0.0, 0.013):
+        model = StereoMeasurementModel(RIG, time_offset=delta)
+        for x in np.c_[rng.normal(0, 0.3, (20, 3)) + [0, 0, 3], rng.normal(0, 1, (20, 3))]:
+            h, H = np.empty(4), np.empty((4, 6))
+            kernels.stereo_linearize(Pm, delta, x, h, H)
+            h0, H0 = model.linearize(x)
+            np.testing.assert_allclose(h, h0, rtol=1e-14)
+            np.testing.assert_allclose(H, H0, rtol=1e-12, atol=1e-12 * np.abs(H0).max())
+
+
+def test_small_inverse_kernel():
+    rng = np.random.default_rng(1)
+    for m in (1, 2, 3, 4):
+        A = rng.normal(size=(m, m))
+        S = A @ A.T + np.eye(m) * 0.1
+        S[[0, -1]] = S[[-1, 0]]  # a pivot away from the diagonal
+        out, work = np.zeros((4, 4)), np.zeros((4, 4))
+        kernels.inv_small(np.ascontiguousarray(np.pad(S, ((0, 4 - m), (0, 4 - m)))), m, out, work)
+        np.testing.assert_allclose(out[:m, :m], np.linalg.inv(S), rtol=1e-10, atol=1e-12)
