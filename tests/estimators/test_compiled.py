@@ -29,7 +29,7 @@ def observations(rig: StereoRig, seed: int, n: int = 120) -> np.ndarray:
     Y[30:33, :2] = np.nan
     Y[50:56] = np.nan
     Y[rng.random(n) < 0.05, 2:] += 35.0
-    Y[80:100] = rig.project(X[80:100] + [0.25, 0.1, 0.0]) + rng.normal(0, 0.7, (20, 4))
+    Y[80:100] = rig.project(X[80:100] + np.array([0.25, 0.1, 0.0])) + rng.normal(0, 0.7, (20, 4))
     return Y
 
 
@@ -99,7 +99,7 @@ def test_linearize_kernel_is_the_measurement_model():
     Pm = np.stack([RIG.left.P, RIG.right.P])
     for delta in (0.0, 0.013):
         model = StereoMeasurementModel(RIG, time_offset=delta)
-        for x in np.c_[rng.normal(0, 0.3, (20, 3)) + [0, 0, 3], rng.normal(0, 1, (20, 3))]:
+        for x in np.c_[rng.normal(0, 0.3, (20, 3)) + np.array([0.0, 0.0, 3.0]), rng.normal(0, 1, (20, 3))]:
             h, H = np.empty(4), np.empty((4, 6))
             kernels.stereo_linearize(Pm, delta, x, h, H)
             h0, H0 = model.linearize(x)
