@@ -2,9 +2,12 @@
 processes, sensor noise, blur and MP4 encoding included) next to a bare single-process pyrender
 loop over the same scene (render only), measured in the same run, at three resolutions and with
 flat and lit shading; then, at 640×480, the bare loop with pyrender's own read-back (colour and
-depth) against the colour-only read-back, with and without multisampling.
+depth) against the colour-only read-back, with and without multisampling; the writer thread
+against writing on the rendering thread; and many clips at once on every core.
 
-    python benchmarks/render.py [--frames 60]
+    python benchmarks/render.py [--frames 150] [--out DIR | --write-docs]
+
+``--write-docs`` writes docs/bench_render.md (docs/bench_render_gpu.md when OpenGL is a GPU's).
 """
 
 from __future__ import annotations
@@ -13,11 +16,15 @@ import argparse
 import os
 import tempfile
 import time
+from pathlib import Path
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
+from _common import LiveDoc, add_output_args, output_dir
+
+from pipeline.core.io import write_text
 from renderers.motion import simulate_truth
-from renderers.render import render_clip
+from renderers.render import render_clip, render_clips
 from renderers.scenario import load_scenario
 from renderers.scene import StereoScene, create_offscreen_renderer
 
@@ -40,7 +47,9 @@ def bare_loop(scen, threads: str | None = None) -> float:
         import subprocess
         import sys
 
-        code = (f"import os; os.environ['LP_NUM_THREADS']='{threads}'; import sys; sys.path.insert(0, {str(os.getcwd())!r}); "
+        here = os.path.dirname(os.path.abspath(__file__))
+        paths = [here, os.path.dirname(here)]
+        code = (f"import os; os.environ['LP_NUM_THREADS']='{threads}'; import sys; sys.path[:0] = {paths!r}; "
                 f"from benchmarks.render import scenario, bare_loop; "
                 f"print(bare_loop(scenario({scen.rig.width}, {scen.rig.height}, {scen.render.shading!r}, {scen.frames})))")
         return float(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout)
@@ -98,32 +107,107 @@ def ours(scen, workers: int) -> float:
         return scen.frames / (time.perf_counter() - t0)
 
 
+def gl_renderer() -> str:
+    """The OpenGL renderer's name (llvmpipe on a CPU; the GPU's otherwise)."""
+    from OpenGL import GL
+
+    r = create_offscreen_renderer(64, 48)
+    name = GL.glGetString(GL.GL_RENDERER).decode()
+    r.delete()
+    return name
+
+
+def writer_thread(scen, rounds: int = 3) -> tuple[float, float]:
+    """Pairs/s of ``render_clip`` in this process (``workers=1``: both cameras one after the other)
+    with blur, noise and encoding on the writer thread, and with them on the rendering thread
+    (the writer replaced by one that writes at once), interleaved, median of ``rounds``."""
+    import statistics
+
+    import renderers.render as rr
+
+    class Inline(rr.BackgroundWriter):
+        def __init__(self, writer, blur_sigma, noise, depth=4):
+            self.writer, self.blur_sigma, self.noise, self.error = writer, blur_sigma, noise, None
+
+        def put(self, img, frame):
+            self.writer.write(rr.postprocess(img, self.blur_sigma, self.noise, frame), index=frame)
+
+        def close(self):
+            self.writer.close()
+
+        def abort(self):
+            self.writer.abort()
+
+    real, out = rr.BackgroundWriter, {"thread": [], "inline": []}
+    try:
+        for _ in range(rounds):
+            for way, cls in (("thread", real), ("inline", Inline)):
+                rr.BackgroundWriter = cls
+                out[way].append(ours(scen, 1))
+    finally:
+        rr.BackgroundWriter = real
+    return statistics.median(out["thread"]), statistics.median(out["inline"])
+
+
+def many_clips(scen, workers: int) -> float:
+    """Pairs/s of ``render_clips`` rendering ``workers / 2`` clips with ``workers`` processes."""
+    n = max(1, workers // 2)
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        render_clips([(scen, Path(tmp) / f"clip{i}") for i in range(n)], "mp4", workers)
+        return n * scen.frames / (time.perf_counter() - t0)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=150)
+    add_output_args(ap)
     args = ap.parse_args()
-    print(f"# render throughput, stereo pairs/s ({args.frames} frames of the default scenario, {os.cpu_count()} cores)\n")
-    print("| resolution | shading | bare loop, llvmpipe on 2 cores | bare loop, 1 core | render_clip, 2 workers "
-          "| ours / bare (both on 2 cores) | ours per core / bare 1 core |")
-    print("|---|---|---|---|---|---|---|")
+    out = output_dir(args, "render")
+    name = gl_renderer()
+    cpu = "llvmpipe" in name.lower()
+    cores = os.cpu_count() or 1
+    md = LiveDoc(["# Rendering throughput" + ("" if cpu else " on a GPU"), "",
+                  f"Generated by `python benchmarks/render.py --write-docs` ({args.frames} frames of the default scenario; "
+                  f"OpenGL renderer: {name}; {cores} cores). Ratios compare alternatives measured in the same run.", ""])
+    sizes_table(md, args.frames, cpu, cores)
+    readback_table(md, args.frames)
+    scen = scenario(640, 480, "flat", args.frames)
+    thread, inline = writer_thread(scen)
+    md += ["", "| 640×480, flat, `render_clip` in one process | pairs/s |", "|---|---:|",
+           f"| blur, noise and encoding on the writer thread (the default) | {thread:.1f} |",
+           f"| the same on the rendering thread | {inline:.1f} |", "",
+           f"The writer thread: {thread / inline:.2f}× the pairs per second.", ""]
+    md += ["| 640×480, flat: clips at once | render processes | pairs/s, all clips together |", "|---|---:|---:|"]
+    for workers in sorted({2, cores}):
+        md.append(f"| {max(1, workers // 2)} | {workers} | {many_clips(scen, workers):.1f} |")
+    md += ["", "render_clip: one process per camera (one llvmpipe thread each on a CPU), blur, sensor noise, MP4 encoding "
+           "and process start-up (about 1 s) included; the bare loops only render, both cameras in one process."]
+    path = out / ("bench_render.md" if cpu else "bench_render_gpu.md")
+    write_text(path, "\n".join(md) + "\n")
+    print(f"\nwrote {path}")
+
+
+def sizes_table(md: LiveDoc, frames: int, cpu: bool, cores: int) -> None:
+    md += ["| resolution | shading | bare loop (pairs/s) | bare loop, 1 rasteriser thread | render_clip, 2 workers "
+           "| render_clip / bare loop |", "|---|---|---:|---:|---:|---:|"]
     for w, h in SIZES:
         for shading in ("flat", "lit"):
-            scen = scenario(w, h, shading, args.frames)
-            bare2 = bare_loop(scen)
-            bare1 = bare_loop(scen, "1")
+            scen = scenario(w, h, shading, frames)
+            bare = bare_loop(scen)
+            bare1 = f"{bare_loop(scen, '1'):.1f}" if cpu else "— (GPU)"
             two = ours(scen, 2)
-            print(f"| {w}×{h} | {shading} | {bare2:.1f} | {bare1:.1f} | {two:.1f} | {two / bare2:.2f} | "
-                  f"{two / 2 / bare1:.2f} |", flush=True)
-    print("\n| 640×480 | read-back and anti-aliasing | bare loop (pairs/s, median of 3 interleaved rounds) | "
-          "vs pyrender's read-back |")
-    print("|---|---|---|---|")
+            md.append(f"| {w}×{h} | {shading} | {bare:.1f} | {bare1} | {two:.1f} | {two / bare:.2f} |")
+
+
+def readback_table(md: LiveDoc, frames: int) -> None:
+    md += ["", "| 640×480 | read-back and anti-aliasing | bare loop (pairs/s, median of 3 interleaved rounds) | "
+           "vs pyrender's read-back |", "|---|---|---:|---:|"]
     for shading in ("flat", "lit"):
-        res = readback(scenario(640, 480, shading, args.frames))
+        res = readback(scenario(640, 480, shading, frames))
         base = next(iter(res.values()))
-        for name, v in res.items():
-            print(f"| {shading} | {name} | {v:.1f} | {v / base:.2f}× |", flush=True)
-    print("\nrender_clip: one process per camera with one llvmpipe thread each, blur, sensor noise, MP4 encoding and "
-          "process start-up (about 1 s) included; the bare loops only render, both cameras in one process.")
+        for label, v in res.items():
+            md.append(f"| {shading} | {label} | {v:.1f} | {v / base:.2f}× |")
 
 
 if __name__ == "__main__":

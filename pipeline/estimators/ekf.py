@@ -136,7 +136,7 @@ class EKFEstimator(GatedFilter, Estimator):
     def _compiled(self, Y: np.ndarray, start: Start | bool | None = False) -> dict[str, np.ndarray]:
         """Per-frame arrays of the filter over one clip from a fresh state (``start``: the
         initiator's start when the caller has it)."""
-        from pipeline.estimators import kernels
+        import pipeline.estimators.kernels as kernels
 
         self.reset()
         n = len(Y)

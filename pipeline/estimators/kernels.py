@@ -26,14 +26,15 @@ JIT = os.environ.get("STEREOTRACK_JIT", "1") != "0"
 if JIT:
     from numba import njit
 
-    def kernel(fn=None, *, signature: str | None = None):
+    def kernel(fn=None, *, signature: str | None = None, inline: bool = False):
         """Compile ``fn`` with numba on its first call (cached on disk across processes); with a
-        ``signature``, for those argument types only (one compilation for every caller)."""
+        ``signature``, for those argument types only (one compilation for every caller);
+        ``inline``: into its callers, at numba's level (a part of a loop split out for reading)."""
         if fn is None:
-            return lambda f: njit(signature, cache=True, nogil=True)(f)
+            return lambda f: njit(signature, cache=True, nogil=True, inline="always" if inline else "never")(f)
         return njit(cache=True, nogil=True)(fn)
 else:
-    def kernel(fn=None, *, signature: str | None = None):
+    def kernel(fn=None, *, signature: str | None = None, inline: bool = False):
         return (lambda f: f) if fn is None else fn
 
 #: the signature of the small matrix helpers: three C-contiguous matrices and three sizes
@@ -322,39 +323,26 @@ def joseph_update(x, P, Hs, rs, Rs, m, nz, PHt, S, Si, K, IKH, T6, KR, work, hav
 @kernel
 def ekf_frames(Y, k0, resume, Pm, delta, dt, Q, R, threshold, restart_after, x, P, counters, scratch_x, scratch_P,
                pos, vel, cov, pred, nis, dof, gated, restarted):
-    """The EKF over frames ``k0…`` of ``Y`` (frames × 4 pixels, NaN missing) from ``x``, ``P``
-    (in place), gating each camera at ``threshold`` (inf: off) as ``GatedFilter.gate`` does.
-    Returns the clip's length when done, or the frame at which the track was gated for
-    ``restart_after`` frames: the caller asks the initiator for a restart and calls again with
-    ``resume`` 1 (restart state in ``x``, ``P``) or 2 (none: update with what the gate kept),
-    the frame's prediction and gated count kept in ``scratch_x``, ``scratch_P``, ``counters[3:]``."""
+    """The EKF over frames ``k0…`` of ``Y`` (frames × 4 px, NaN missing) from ``x``, ``P`` (in place),
+    gating each camera at ``threshold`` (inf: off) as ``GatedFilter.gate`` does. Returns the clip's
+    length, or the frame at which the track was gated ``restart_after`` frames: the caller asks for a
+    restart and calls again with ``resume`` 1 (restart state in ``x``, ``P``) or 2 (none: update with
+    what the gate kept; prediction and verdict kept in ``scratch_x``, ``scratch_P``, ``counters[3:]``)."""
     n = Y.shape[0]
-    h, H = np.empty(4), np.empty((4, 6))
-    kept, r = np.empty(4), np.empty(4)
-    rows = np.empty(4, dtype=np.int64)
-    Hs, rs, Rs = np.empty((4, 6)), np.empty(4), np.empty((4, 4))
+    h, kept, r, rs, rows = np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4, dtype=np.int64)
+    H, Hs, Rs, S, Si, work = np.empty((4, 6)), np.empty((4, 6)), np.empty((4, 4)), np.empty((4, 4)), np.empty((4, 4)), \
+        np.empty((4, 4))
     T6, IKH, PHt, K, KR = np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 4)), np.empty((6, 4)), np.empty((6, 4))
-    S, Si, work = np.empty((4, 4)), np.empty((4, 4)), np.empty((4, 4))
-    nz = 6 if delta != 0.0 else 3  # the nonzero columns of H
+    nz, gate_on = 6 if delta != 0.0 else 3, threshold < np.inf  # the nonzero columns of H; gating
     for k in range(k0, n):
         if k == k0 and resume == 1:  # restarted at this frame: a new start, no update
-            counters[C_GATED] = 0
-            _ekf_output(k, x, P, pos, vel, cov, pred, False)
-            gated[k], restarted[k] = counters[3], 1.0
+            _restarted(k, x, P, counters, pos, vel, cov, pred, gated, restarted)
             continue
         for i in range(4):
             kept[i] = Y[k, i]
         resumed = k == k0 and resume == 2
-        gate_on = threshold < np.inf
-        if resumed:
-            for i in range(6):
-                x[i] = scratch_x[i]
-                for j in range(6):
-                    P[i, j] = scratch_P[i, j]
-            n_gated = counters[3]
-            for c in range(2):
-                if counters[4 + c] != 0:
-                    kept[2 * c], kept[2 * c + 1] = np.nan, np.nan
+        if resumed:  # the prediction and the gate's verdict from before the restart was asked for
+            n_gated = _resume(scratch_x, scratch_P, x, P, counters, kept)
         else:
             ekf_predict(dt, Q, x, P)
             n_gated = 0
@@ -373,38 +361,73 @@ def ekf_frames(Y, k0, resume, Pm, delta, dt, Q, R, threshold, restart_after, x, 
                         kept[2 * c], kept[2 * c + 1] = np.nan, np.nan
                         counters[4 + c] = 1
                         n_gated += 1
-                    if math.isfinite(Y[k, 2 * c]) or math.isfinite(Y[k, 2 * c + 1]):
-                        had = True
+                    had = had or math.isfinite(Y[k, 2 * c]) or math.isfinite(Y[k, 2 * c + 1])
                 _count_gated(counters, had, n_gated > 0, restart_after)
                 if counters[C_GATED] >= restart_after:
-                    for i in range(6):
-                        scratch_x[i] = x[i]
-                        for j in range(6):
-                            scratch_P[i, j] = P[i, j]
+                    _copy_state(x, P, scratch_x, scratch_P)
                     counters[3] = n_gated
                     return k
         gated[k], restarted[k] = n_gated, 0.0
-        m = 0
-        for i in range(4):  # both coordinates of a camera go together
-            if math.isfinite(kept[i]) and math.isfinite(kept[i ^ 1]):
-                rows[m] = i
-                m += 1
+        m = _present_rows(kept, rows)
         if m == 0:
             _ekf_output(k, x, P, pos, vel, cov, pred, True)
             continue
         have_S = gate_on and m == 4 and not resumed  # the gate's h, H, P Hᵀ and S are this update's
         if not have_S:
             stereo_linearize(Pm, delta, x, h, H)
-        for i in range(m):
-            for j in range(6):
-                Hs[i, j] = H[rows[i], j]
-            rs[i] = kept[rows[i]] - h[rows[i]]
-            for j in range(m):
-                Rs[i, j] = R[rows[i], rows[j]]
+        _gather_rows(rows, m, H, kept, h, R, Hs, rs, Rs)
         nis[k] = joseph_update(x, P, Hs, rs, Rs, m, nz, PHt, S, Si, K, IKH, T6, KR, work, have_S)
         dof[k] = m
         _ekf_output(k, x, P, pos, vel, cov, pred, False)
     return n
+
+
+@kernel
+def _restarted(k, x, P, counters, pos, vel, cov, pred, gated, restarted):
+    """Frame ``k`` is a restart: the new start is its output, with the cameras the gate dropped."""
+    counters[C_GATED] = 0
+    _ekf_output(k, x, P, pos, vel, cov, pred, False)
+    gated[k], restarted[k] = counters[3], 1.0
+
+
+@kernel
+def _gather_rows(rows, m, H, y, h, R, Hs, rs, Rs):
+    """The update's ``H``, residual and ``R`` on the ``m`` rows present."""
+    for i in range(m):
+        for j in range(6):
+            Hs[i, j] = H[rows[i], j]
+        rs[i] = y[rows[i]] - h[rows[i]]
+        for j in range(m):
+            Rs[i, j] = R[rows[i], rows[j]]
+
+
+@kernel
+def _present_rows(kept, rows):
+    """The observation rows present (both coordinates of a camera together) into ``rows``; how many."""
+    m = 0
+    for i in range(4):
+        if math.isfinite(kept[i]) and math.isfinite(kept[i ^ 1]):
+            rows[m] = i
+            m += 1
+    return m
+
+
+@kernel
+def _resume(scratch_x, scratch_P, x, P, counters, kept):
+    """Back at the frame a restart was asked for: its prediction, and the gate's verdict on ``kept``."""
+    _copy_state(scratch_x, scratch_P, x, P)
+    for c in range(2):
+        if counters[4 + c] != 0:
+            kept[2 * c], kept[2 * c + 1] = np.nan, np.nan
+    return counters[3]
+
+
+@kernel
+def _copy_state(x, P, to_x, to_P):
+    for i in range(6):
+        to_x[i] = x[i]
+        for j in range(6):
+            to_P[i, j] = P[i, j]
 
 
 @kernel

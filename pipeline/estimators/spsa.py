@@ -223,7 +223,7 @@ class SPSAEstimator(Estimator):
         """Every frame from a fresh state through the compiled core (:func:`kernels.spsa_frames`,
         the arithmetic of repeated :meth:`step`): θ per frame (frames × 6, frame units; NaN before
         the start) and which frames only predicted."""
-        from pipeline.estimators import kernels
+        import pipeline.estimators.kernels as kernels
 
         self.reset()
         n = len(Y)
@@ -255,7 +255,7 @@ class SPSAEstimator(Estimator):
         """Algorithm 1 over M tracks (M × frames × 4 → M × frames × 3) through the compiled
         :func:`kernels.spsa_batch`: each track starts where the initiator says (as :meth:`run`) and
         draws the same Δ sequence a single track draws."""
-        from pipeline.estimators import kernels
+        import pipeline.estimators.kernels as kernels
 
         Y = np.asarray(Y, dtype=float)
         self.reset()
