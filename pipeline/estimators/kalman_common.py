@@ -19,6 +19,7 @@ from pipeline.estimators.base import (
     camera_gate,
     gated_cameras,
     reprojection_errors,
+    transition,
 )
 
 
@@ -221,10 +222,7 @@ def rts_smooth(est: Estimator, track: Track) -> Track:
     ok = np.flatnonzero(np.all(np.isfinite(track.position), axis=1))
     if len(ok) < 2 or track.covariance is None:  # never started: nothing to smooth
         return track
-    from filterpy.kalman import KalmanFilter  # imported when a filter is built (see base.py)
-
-    kf = KalmanFilter(dim_x=6, dim_z=1)
-    kf.F, kf.Q = est.A, est.Q
+    smoother = _smoother(est)
     track.position = track.position.copy()
     track.velocity = track.velocity.copy()
     track.covariance = track.covariance.copy()
@@ -233,10 +231,28 @@ def rts_smooth(est: Estimator, track: Track) -> Track:
     for a, b in itertools.pairwise(cuts):
         if b - a < 2:
             continue
-        Xs = np.hstack([track.position[a:b], track.velocity[a:b]])
-        xs, Ps, _, _ = kf.rts_smoother(Xs, track.covariance[a:b].copy())
+        xs, Ps = smoother(np.hstack([track.position[a:b], track.velocity[a:b]]), track.covariance[a:b].copy())
         track.position[a:b], track.velocity[a:b], track.covariance[a:b] = xs[:, :3], xs[:, 3:], Ps
     return track
+
+
+def _smoother(est: Estimator) -> Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """The backward pass for this filter: the compiled :func:`kernels.rts_backward` for the
+    constant-velocity transition every built-in filter uses (tested equal to filterpy's), filterpy's
+    ``rts_smoother`` for any other ``A``."""
+    if est.A.shape == (6, 6) and np.array_equal(est.A, transition(est.dt)):
+        import pipeline.estimators.kernels as kernels
+
+        def compiled(xs: np.ndarray, Ps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            kernels.rts_backward(xs, Ps, est.dt, np.ascontiguousarray(est.Q, dtype=float))
+            return xs, Ps
+
+        return compiled
+    from filterpy.kalman import KalmanFilter  # imported when a filter is built (see base.py)
+
+    kf = KalmanFilter(dim_x=6, dim_z=1)
+    kf.F, kf.Q = est.A, est.Q
+    return lambda xs, Ps: kf.rts_smoother(xs, Ps)[:2]
 
 
 def filtered_step(x: np.ndarray, P: np.ndarray, predicted: bool, f=None, innovation: np.ndarray | None = None,

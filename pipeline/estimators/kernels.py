@@ -204,7 +204,7 @@ def mmt(A, B, out, n, k, m):
 
 @kernel(signature="void(f8[:, ::1], i8, f8[:, ::1], f8[:, ::1])")
 def inv_small(S, m, out, work):
-    """``out[:m, :m] = S[:m, :m]⁻¹`` by Gauss–Jordan elimination with partial pivoting (m ≤ 4)."""
+    """``out[:m, :m] = S[:m, :m]⁻¹`` by Gauss–Jordan elimination with partial pivoting (``work``: m × m or larger)."""
     for i in range(m):
         for j in range(m):
             work[i, j] = S[i, j]
@@ -454,3 +454,57 @@ def _ekf_output(k, x, P, pos, vel, cov, pred, predicted):
         for j in range(6):
             cov[k, i, j] = P[i, j]
     pred[k] = predicted
+
+
+@kernel
+def rts_backward(xs, Ps, dt, Q):
+    """The Rauch–Tung–Striebel backward pass over filtered states ``xs`` (n × 6) and covariances
+    ``Ps`` (n × 6 × 6), in place, for the constant-velocity ``A = [[I, dt·I], [0, I]]`` (filterpy's
+    ``rts_smoother``)::
+
+        P⁻ = A Pₖ Aᵀ + Q,  Cₖ = Pₖ Aᵀ (P⁻)⁻¹,  xₖ ← xₖ + Cₖ (xₖ₊₁ − A xₖ),  Pₖ ← Pₖ + Cₖ (Pₖ₊₁ − P⁻) Cₖᵀ
+    """
+    xp, Pp, Pi, work = np.empty(6), np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6))
+    PAt, C, D, T = np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6))
+    for k in range(xs.shape[0] - 2, -1, -1):
+        for i in range(6):
+            xp[i] = xs[k, i]
+            for j in range(6):
+                Pp[i, j] = Ps[k, i, j]
+        ekf_predict(dt, Q, xp, Pp)  # A x, A P Aᵀ + Q
+        for i in range(6):  # P Aᵀ: columns j < 3 gain dt × column j + 3
+            for j in range(6):
+                PAt[i, j] = Ps[k, i, j] + dt * Ps[k, i, j + 3] if j < 3 else Ps[k, i, j]
+        inv_small(Pp, 6, Pi, work)
+        mm6(PAt, Pi, C, False)
+        for i in range(6):
+            acc = 0.0
+            for j in range(6):
+                acc += C[i, j] * (xs[k + 1, j] - xp[j])
+                D[i, j] = Ps[k + 1, i, j] - Pp[i, j]
+            xs[k, i] += acc
+        mm6(C, D, T, False)
+        mm6(T, C, D, True)
+        for i in range(6):
+            for j in range(6):
+                Ps[k, i, j] += D[i, j]
+
+
+_warm = False
+
+
+def warm_up() -> None:
+    """Compile, or load from numba's cache, every kernel once per process (each with the argument
+    types the estimators pass), so that a timed loop times arithmetic, not compilation."""
+    global _warm
+    if _warm or not JIT:
+        _warm = True
+        return
+    _warm = True
+    n, f, z = 3, np.zeros, np.zeros
+    Y, Pm, I6 = np.full((n, 4), np.nan), np.ones((2, 3, 4)), np.eye(6)
+    ekf_frames(Y, 1, 0, Pm, 0.0, 0.1, I6, np.eye(4), np.inf, 8, z(6), I6.copy(), z(6, dtype=np.int64), z(6), I6.copy(),
+               f((n, 3)), f((n, 3)), f((n, 6, 6)), np.ones(n, dtype=np.bool_), f(n), z(n, dtype=np.int64), f(n), f(n))
+    spsa_frames(np.full((n, 4), np.nan), np.zeros(n, np.bool_), np.zeros(n, np.bool_), np.ones((2, 6)), np.ones((2, 12)),
+                0.1, 0.01, 0.03, z(S_SIZE), f((n, 6)), np.ones(n, dtype=np.bool_))
+    rts_backward(z((n, 6)), np.stack([I6] * n), 0.1, I6)

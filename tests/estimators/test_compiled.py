@@ -116,3 +116,21 @@ def test_small_inverse_kernel():
         out, work = np.zeros((4, 4)), np.zeros((4, 4))
         kernels.inv_small(np.ascontiguousarray(np.pad(S, ((0, 4 - m), (0, 4 - m)))), m, out, work)
         np.testing.assert_allclose(out[:m, :m], np.linalg.inv(S), rtol=1e-10, atol=1e-12)
+
+
+def test_rts_kernel_is_filterpys_smoother():
+    """The compiled backward pass against filterpy's ``rts_smoother`` on a filtered EKF track."""
+    from filterpy.kalman import KalmanFilter
+
+    est = create("ekf", RIG, DT)
+    tr = est.run(observations(RIG, 0)[:79])  # before the restart: one segment
+    ok = np.all(np.isfinite(tr.position), axis=1)
+    xs, Ps = np.hstack([tr.position[ok], tr.velocity[ok]]), tr.covariance[ok]
+    kf = KalmanFilter(dim_x=6, dim_z=1)
+    kf.F, kf.Q = est.A, est.Q
+    want_x, want_P, _, _ = kf.rts_smoother(xs.copy(), Ps.copy())
+    got_x, got_P = xs.copy(), Ps.copy()
+    kernels.rts_backward(got_x, got_P, DT, np.ascontiguousarray(est.Q))
+    np.testing.assert_allclose(got_x, want_x, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(got_P, want_P, rtol=1e-9, atol=1e-15)
+    assert np.abs(got_x - xs).max() > 1e-4  # it smoothed
