@@ -276,7 +276,8 @@ def ekf_predict(dt, Q, x, P):
 def joseph_update(x, P, Hs, rs, Rs, m, nz, PHt, S, Si, K, IKH, T6, KR, work, have_S):
     """The Joseph-form update on ``m`` observation rows (``Hs`` m × 6, residual ``rs``, noise
     ``Rs``; x, P in place), returning the NIS ``rᵀ S⁻¹ r``: ``S = H P Hᵀ + R``, ``K = P Hᵀ S⁻¹``,
-    ``x ← x + K r``, ``P ← (I − KH) P (I − KH)ᵀ + K R Kᵀ``. Only the first ``nz`` columns of ``H``
+    ``x ← x + K r``, ``P ← (I − KH) P (I − KH)ᵀ + K R Kᵀ`` (its upper triangle, mirrored: a covariance
+    is symmetric). Only the first ``nz`` columns of ``H``
     are nonzero (3 without a time offset: the velocity does not enter ``h``), and the products
     skip the zeros (sums of the same nonzero terms in the same order as the full products).
     ``have_S``: ``PHt`` and ``S`` hold ``P Hᵀ`` and ``S`` already (the gate's, for four rows)."""
@@ -302,17 +303,19 @@ def joseph_update(x, P, Hs, rs, Rs, m, nz, PHt, S, Si, K, IKH, T6, KR, work, hav
             for t in range(nz):
                 acc += IKH[i, t] * P[t, j]
             T6[i, j] = acc + P[i, j] if i >= nz else acc
-    for i in range(6):  # P = T (I − KH)ᵀ
-        for j in range(6):
+    mm(K, Rs, KR, 6, m, m)
+    for i in range(6):  # P = T (I − KH)ᵀ + K R Kᵀ, symmetric: the upper triangle, mirrored
+        for j in range(i, 6):
             acc = 0.0
             for t in range(nz):
                 acc += T6[i, t] * IKH[j, t]
-            P[i, j] = acc + T6[i, j] if j >= nz else acc
-    mm(K, Rs, KR, 6, m, m)
-    mmt(KR, K, T6, 6, m, 6)
-    for i in range(6):
-        for j in range(6):
-            P[i, j] += T6[i, j]
+            if j >= nz:
+                acc += T6[i, j]
+            krk = 0.0
+            for t in range(m):
+                krk += KR[i, t] * K[j, t]
+            P[i, j] = acc + krk
+            P[j, i] = P[i, j]
     nis = 0.0
     for i in range(m):
         for j in range(m):
