@@ -25,6 +25,8 @@ from pathlib import Path
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
+from _common import page
+
 from pipeline.batch import run_batch
 from renderers.render import render_clips
 from renderers.scenario import load_scenario
@@ -125,4 +127,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    page("batch", main)

@@ -17,6 +17,7 @@ from pathlib import Path
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 import cv2
+from _common import page
 
 from detectors.blob import BlobDetector, MarkerColor
 from detectors.blob_tracker import search_window
@@ -102,4 +103,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    page("detect", main)

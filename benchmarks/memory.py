@@ -18,6 +18,8 @@ from pathlib import Path
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
+from _common import page
+
 from renderers.render import render_clip
 from renderers.scenario import load_scenario
 
@@ -48,4 +50,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    page("memory", main)

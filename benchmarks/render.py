@@ -126,8 +126,8 @@ def writer_thread(scen, rounds: int = 3) -> tuple[float, float]:
     import renderers.render as rr
 
     class Inline(rr.BackgroundWriter):
-        def __init__(self, writer, blur_sigma, noise, depth=4):
-            self.writer, self.blur_sigma, self.noise, self.error = writer, blur_sigma, noise, None
+        def __init__(self, open_writer, blur_sigma, noise, depth=4):
+            self.writer, self.blur_sigma, self.noise, self.error = open_writer(), blur_sigma, noise, None
 
         def put(self, img, frame):
             self.writer.write(rr.postprocess(img, self.blur_sigma, self.noise, frame), index=frame)

@@ -22,6 +22,8 @@ from pathlib import Path
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 os.environ.setdefault("LP_NUM_THREADS", "1")  # one llvmpipe thread per process, ours and bare alike
 
+from _common import page
+
 from renderers.render import render_clips
 from renderers.scenario import load_scenario
 
@@ -101,4 +103,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    page("render_batch", main)

@@ -13,6 +13,8 @@ import subprocess
 import sys
 import time
 
+from _common import page
+
 CASES = {
     "stereotrack --help": [sys.executable, "-m", "pipeline.cli", "--help"],
     "stereotrack methods": [sys.executable, "-m", "pipeline.cli", "methods"],
@@ -40,4 +42,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    page("startup", main)

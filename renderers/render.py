@@ -130,25 +130,35 @@ class FrameWriter:
 class BackgroundWriter:
     """Blur, noise and encoding of one camera's frames on a thread of their own, in frame order:
     OpenCV releases the GIL in all three, so the next frame renders while this one is encoded
-    (on a GPU the render loop then waits on neither). The first error is raised by the next
-    :meth:`put` or by :meth:`close`; :meth:`abort` drops what is queued."""
+    (on a GPU the render loop then waits on neither). The video writer is opened, written,
+    closed or discarded on that thread alone. The first error is raised by the next :meth:`put`
+    or by :meth:`close`; :meth:`abort` drops what is queued and removes the partial file."""
 
-    def __init__(self, writer: FrameWriter, blur_sigma: float, noise: SensorNoise, depth: int = 4) -> None:
-        self.writer, self.blur_sigma, self.noise = writer, blur_sigma, noise
+    def __init__(self, open_writer: Callable[[], FrameWriter], blur_sigma: float, noise: SensorNoise,
+                 depth: int = 4) -> None:
+        self.blur_sigma, self.noise = blur_sigma, noise
         self.queue: queue.Queue = queue.Queue(maxsize=depth)
         self.error: BaseException | None = None
-        self.cancelled = False
-        self.thread = threading.Thread(target=self._loop, name="frame-writer", daemon=True)
+        self.commit = False
+        self.thread = threading.Thread(target=self._loop, args=(open_writer,), name="frame-writer", daemon=True)
         self.thread.start()
 
-    def _loop(self) -> None:
-        while (item := self.queue.get()) is not None:
-            if self.error is None and not self.cancelled:
-                try:
-                    img, k = item
-                    self.writer.write(postprocess(img, self.blur_sigma, self.noise, k), index=k)
-                except BaseException as exc:  # handed to the rendering thread
-                    self.error = exc
+    def _loop(self, open_writer: Callable[[], FrameWriter]) -> None:
+        writer = None
+        try:
+            writer = open_writer()
+            while (item := self.queue.get()) is not None:
+                img, k = item
+                writer.write(postprocess(img, self.blur_sigma, self.noise, k), index=k)
+            if self.commit:
+                writer.close()
+                return
+        except BaseException as exc:  # handed to the rendering thread
+            self.error = exc
+            while self.queue.get() is not None:  # drain until the renderer says stop
+                pass
+        if writer is not None:
+            writer.abort()
 
     def _raise(self) -> None:
         if self.error is not None:
@@ -160,16 +170,16 @@ class BackgroundWriter:
 
     def close(self) -> None:
         """Wait for every queued frame, then move the file into place."""
+        self.commit = True
         self.queue.put(None)
         self.thread.join()
         self._raise()
-        self.writer.close()
 
     def abort(self) -> None:
-        self.cancelled = True
-        self.queue.put(None)
-        self.thread.join()
-        self.writer.abort()
+        if self.thread.is_alive():
+            self.commit = False
+            self.queue.put(None)
+            self.thread.join()
 
 
 def render_camera(
@@ -196,7 +206,7 @@ def render_camera(
         w, h = rig.image_size
         rs = scenario.render
         noise = SensorNoise((h, w, 3), rs.noise_std, scenario.seed, cam_index)
-        writer = BackgroundWriter(FrameWriter(clip_dir, CAMERA_NAMES[cam_index], fmt, scenario.fps, rig.image_size),
+        writer = BackgroundWriter(lambda: FrameWriter(clip_dir, CAMERA_NAMES[cam_index], fmt, scenario.fps, rig.image_size),
                                   rs.blur_sigma, noise)
         try:
             for k in range(scenario.frames):
