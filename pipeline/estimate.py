@@ -43,7 +43,10 @@ class EstimateResult:
     dt: float
     n_frames: int
     observations: dict[str, np.ndarray]
-    tracks: dict[str, dict[str, Track]]  # method → marker → track
+    #: method → marker → track; a track keeps its covariance's position block (frames × 3 × 3), all
+    #: that metrics, report and recording use (the full state covariance of a run's tracks grew
+    #: the memory of long clips by a quarter)
+    tracks: dict[str, dict[str, Track]]
     truth: ClipTruth | None
     target: TargetInfo | None = None
     target_tracks: dict[str, Track] = field(default_factory=dict)
@@ -235,6 +238,9 @@ def _run_point(m: str, seen: Observed, config: dict | None, out_dir: Path, resol
         tracks[marker] = _run_method(est, Y, marker)
         count.tick()
     _write_estimates(Outputs(out_dir).estimates(m), tracks, seen.dt, seen.truth)
+    for tr in tracks.values():  # what the later stages use of it: memory that does not grow 4× per frame
+        if tr.covariance is not None and tr.covariance.shape[1] > 3:
+            tr.covariance = np.ascontiguousarray(tr.covariance[:, :3, :3])
     return tracks
 
 
