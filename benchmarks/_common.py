@@ -26,6 +26,11 @@ def output_dir(args: argparse.Namespace, prefix: str) -> Path:
     return args.out or Path(tempfile.mkdtemp(prefix=f"stereotrack-{prefix}-"))
 
 
+def command() -> str:
+    """The command line this benchmark was started with, as the docs quote it."""
+    return " ".join(["python", f"benchmarks/{Path(sys.argv[0]).name}", *sys.argv[1:]])
+
+
 class LiveDoc(list):
     """Markdown lines, each printed (and flushed) the moment it is added, so a long benchmark
     shows every table row as it is measured."""

@@ -36,6 +36,7 @@ def main() -> None:
     root = args.out or Path(tempfile.mkdtemp(prefix="stereotrack-memory-"))
     print("| frames (640×480, stereo) | `stereotrack run` peak RSS (MB) | run time (s) | run.rrd (MB) |")
     print("|---|---|---|---|", flush=True)
+    peaks: list[float] = []
     for n in args.frames:
         clip = root / f"default_{n}"
         if not (clip / "calib.yaml").is_file():
@@ -47,6 +48,10 @@ def main() -> None:
         peak = int(proc.stdout.rsplit("PEAK", 1)[1]) / 1024
         rrd = (clip / "out" / "run.rrd").stat().st_size / 2**20
         print(f"| {n} | {peak:.0f} | {time.perf_counter() - t0:.1f} | {rrd:.1f} |", flush=True)
+        peaks.append(peak)
+    if len(peaks) > 1:
+        print(f"\nPeak at {args.frames[-1]} frames over the peak at {args.frames[0]}: {peaks[-1] / peaks[0]:.2f}× "
+              f"({(peaks[-1] - peaks[0]) / (args.frames[-1] - args.frames[0]) * 1024:.0f} kB per frame).")
 
 
 if __name__ == "__main__":

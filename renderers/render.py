@@ -128,20 +128,23 @@ class FrameWriter:
 
 
 class BackgroundWriter:
-    """Blur, noise and encoding of one camera's frames on a thread of their own, in frame order:
+    """Blur, noise and encoding of one camera's frames on a thread of their own (``threaded``; else
+    on the caller's, as each frame comes), in frame order:
     OpenCV releases the GIL in all three, so the next frame renders while this one is encoded
     (on a GPU the render loop then waits on neither). The video writer is opened, written,
     closed or discarded on that thread alone. The first error is raised by the next :meth:`put`
     or by :meth:`close`; :meth:`abort` drops what is queued and removes the partial file."""
 
     def __init__(self, open_writer: Callable[[], FrameWriter], blur_sigma: float, noise: SensorNoise,
-                 depth: int = 4) -> None:
+                 depth: int = 4, threaded: bool = True) -> None:
         self.blur_sigma, self.noise = blur_sigma, noise
         self.queue: queue.Queue = queue.Queue(maxsize=depth)
         self.error: BaseException | None = None
         self.commit = False
+        self.inline = None if threaded else open_writer()  # unthreaded: everything on the caller's thread
         self.thread = threading.Thread(target=self._loop, args=(open_writer,), name="frame-writer", daemon=True)
-        self.thread.start()
+        if threaded:
+            self.thread.start()
 
     def _loop(self, open_writer: Callable[[], FrameWriter]) -> None:
         writer = None
@@ -165,21 +168,36 @@ class BackgroundWriter:
             raise self.error
 
     def put(self, img: np.ndarray, frame: int) -> None:
+        if self.inline is not None:
+            self.inline.write(postprocess(img, self.blur_sigma, self.noise, frame), index=frame)
+            return
         self._raise()
         self.queue.put((img, frame))
 
     def close(self) -> None:
         """Wait for every queued frame, then move the file into place."""
+        if self.inline is not None:
+            self.inline.close()
+            return
         self.commit = True
         self.queue.put(None)
         self.thread.join()
         self._raise()
 
     def abort(self) -> None:
-        if self.thread.is_alive():
+        if self.inline is not None:
+            self.inline.abort()
+        elif self.thread.is_alive():
             self.commit = False
             self.queue.put(None)
             self.thread.join()
+
+
+def writer_threaded(renderer) -> bool:
+    """Whether post-processing and encoding get a thread of their own: on a GPU, where the
+    rendering thread mostly waits; not under a software rasteriser (llvmpipe), which keeps the
+    cores busy itself (measured in benchmarks/render.py: a thread there cost more than it saved)."""
+    return not getattr(renderer, "software", True)
 
 
 def render_camera(
@@ -207,7 +225,7 @@ def render_camera(
         rs = scenario.render
         noise = SensorNoise((h, w, 3), rs.noise_std, scenario.seed, cam_index)
         writer = BackgroundWriter(lambda: FrameWriter(clip_dir, CAMERA_NAMES[cam_index], fmt, scenario.fps, rig.image_size),
-                                  rs.blur_sigma, noise)
+                                  rs.blur_sigma, noise, threaded=writer_threaded(renderer))
         try:
             for k in range(scenario.frames):
                 if times.present[cam_index, k]:

@@ -46,6 +46,10 @@ def create_offscreen_renderer(width: int, height: int, multisample: int = 4):  #
         ) from None
     _read_colour_only(r._renderer)
     set_multisample(r, multisample)
+    from OpenGL import GL
+
+    name = (GL.glGetString(GL.GL_RENDERER) or b"").decode(errors="replace").lower()
+    r.software = any(s in name for s in ("llvmpipe", "softpipe", "swrast"))  # Mesa's CPU rasterisers
     return r
 
 

@@ -59,6 +59,20 @@ def _expm(data: bytes, shape: tuple[int, ...]) -> np.ndarray:
     return E
 
 
+#: clips shorter than this run a compiled method's interpreted loop (the same numbers, tested),
+#: unless the compiled cores are loaded already: loading numba and the cached kernels costs a
+#: fresh process about half a second, which the compiled EKF earns back only over ~10,000 steps
+JIT_MIN_FRAMES = 1000
+
+
+def use_compiled(frames: int) -> bool:
+    """Whether a ``run`` over ``frames`` frames goes through the compiled cores
+    (:mod:`pipeline.estimators.kernels`): long clips, or any clip once the cores are loaded."""
+    import sys
+
+    return frames >= JIT_MIN_FRAMES or "pipeline.estimators.kernels" in sys.modules
+
+
 def transition(dt: float, dim: int = 3) -> np.ndarray:
     """Constant-velocity transition ``A = [[I, dt·I], [0, I]]``."""
     A = np.eye(2 * dim)

@@ -29,6 +29,7 @@ from pipeline.estimators.base import (
     not_started,
     register,
     transition,
+    use_compiled,
     white_noise_acceleration,
 )
 from pipeline.estimators.kalman_common import (
@@ -120,11 +121,14 @@ class EKFEstimator(GatedFilter, Estimator):
 
     def run(self, Y: np.ndarray) -> Track:
         """The clip through the compiled core (:func:`kernels.ekf_frames`, the arithmetic of
-        repeated :meth:`step`; the kernels compiled or loaded before the timing starts)."""
+        repeated :meth:`step`; the kernels compiled or loaded before the timing starts), or step by
+        step where compiling would not pay (:func:`~pipeline.estimators.base.use_compiled`)."""
+        Y = self.check(Y)
+        if not use_compiled(len(Y)):
+            return Estimator.run(self, Y)
         import pipeline.estimators.kernels as kernels
 
-        Y = self.check(Y)
-        kernels.warm_up()
+        kernels.warm_up("ekf_frames")
         t0 = time.perf_counter()
         a = self._compiled(Y)
         elapsed = (time.perf_counter() - t0) / max(len(Y), 1)

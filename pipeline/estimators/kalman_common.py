@@ -20,6 +20,7 @@ from pipeline.estimators.base import (
     gated_cameras,
     reprojection_errors,
     transition,
+    use_compiled,
 )
 
 
@@ -222,7 +223,7 @@ def rts_smooth(est: Estimator, track: Track) -> Track:
     ok = np.flatnonzero(np.all(np.isfinite(track.position), axis=1))
     if len(ok) < 2 or track.covariance is None:  # never started: nothing to smooth
         return track
-    smoother = _smoother(est)
+    smoother = _smoother(est, len(track.position))
     track.position = track.position.copy()
     track.velocity = track.velocity.copy()
     track.covariance = track.covariance.copy()
@@ -236,11 +237,11 @@ def rts_smooth(est: Estimator, track: Track) -> Track:
     return track
 
 
-def _smoother(est: Estimator) -> Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+def _smoother(est: Estimator, frames: int) -> Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
     """The backward pass for this filter: the compiled :func:`kernels.rts_backward` for the
-    constant-velocity transition every built-in filter uses (tested equal to filterpy's), filterpy's
-    ``rts_smoother`` for any other ``A``."""
-    if est.A.shape == (6, 6) and np.array_equal(est.A, transition(est.dt)):
+    constant-velocity transition every built-in filter uses (tested equal to filterpy's) where
+    compiling pays (:func:`~pipeline.estimators.base.use_compiled`), else filterpy's ``rts_smoother``."""
+    if est.A.shape == (6, 6) and np.array_equal(est.A, transition(est.dt)) and use_compiled(frames):
         import pipeline.estimators.kernels as kernels
 
         def compiled(xs: np.ndarray, Ps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

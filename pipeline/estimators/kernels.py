@@ -493,21 +493,32 @@ def rts_backward(xs, Ps, dt, Q):
                 Ps[k, i, j] += D[i, j]
 
 
-_warm = False
+_warm: set[str] = set()
 
 
-def warm_up() -> None:
-    """Compile, or load from numba's cache, every kernel once per process (each with the argument
-    types the estimators pass), so that a timed loop times arithmetic, not compilation."""
-    global _warm
-    if _warm or not JIT:
-        _warm = True
-        return
-    _warm = True
-    n, f, z = 3, np.zeros, np.zeros
-    Y, Pm, I6 = np.full((n, 4), np.nan), np.ones((2, 3, 4)), np.eye(6)
-    ekf_frames(Y, 1, 0, Pm, 0.0, 0.1, I6, np.eye(4), np.inf, 8, z(6), I6.copy(), z(6, dtype=np.int64), z(6), I6.copy(),
-               f((n, 3)), f((n, 3)), f((n, 6, 6)), np.ones(n, dtype=np.bool_), f(n), z(n, dtype=np.int64), f(n), f(n))
+def warm_up(*names: str) -> None:
+    """Compile, or load from numba's cache, the named kernels (``ekf_frames``, ``spsa_frames``,
+    ``rts_backward``; all without names) once per process, each with the argument types the
+    estimators pass, so that a timed loop times arithmetic, not compilation."""
+    for name in names or ("ekf_frames", "spsa_frames", "rts_backward"):
+        if name not in _warm:
+            _warm.add(name)
+            if JIT:
+                _WARM_UPS[name]()
+
+
+def _warm_ekf() -> None:
+    n, f, z, I6 = 3, np.zeros, np.zeros, np.eye(6)
+    ekf_frames(np.full((n, 4), np.nan), 1, 0, np.ones((2, 3, 4)), 0.0, 0.1, I6, np.eye(4), np.inf, 8, z(6), I6.copy(),
+               z(6, dtype=np.int64), z(6), I6.copy(), f((n, 3)), f((n, 3)), f((n, 6, 6)), np.ones(n, dtype=np.bool_), f(n),
+               z(n, dtype=np.int64), f(n), f(n))
+
+
+def _warm_spsa() -> None:
+    n = 3
     spsa_frames(np.full((n, 4), np.nan), np.zeros(n, np.bool_), np.zeros(n, np.bool_), np.ones((2, 6)), np.ones((2, 12)),
-                0.1, 0.01, 0.03, z(S_SIZE), f((n, 6)), np.ones(n, dtype=np.bool_))
-    rts_backward(z((n, 6)), np.stack([I6] * n), 0.1, I6)
+                0.1, 0.01, 0.03, np.zeros(S_SIZE), np.zeros((n, 6)), np.ones(n, dtype=np.bool_))
+
+
+_WARM_UPS = {"ekf_frames": _warm_ekf, "spsa_frames": _warm_spsa,
+             "rts_backward": lambda: rts_backward(np.zeros((3, 6)), np.stack([np.eye(6)] * 3), 0.1, np.eye(6))}

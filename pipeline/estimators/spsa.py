@@ -37,6 +37,7 @@ from pipeline.estimators.base import (
     Track,
     not_started,
     register,
+    use_compiled,
 )
 
 BIG_COST = 1.0e6  # cost of a trial point behind a camera (keeps the iteration finite)
@@ -243,11 +244,14 @@ class SPSAEstimator(Estimator):
         return states, pred
 
     def run(self, Y: np.ndarray) -> Track:
-        """The clip through :meth:`_fast` (the kernels compiled or loaded before the timing starts)."""
+        """The clip through :meth:`_fast` (the kernels compiled or loaded before the timing starts),
+        or step by step where compiling would not pay (:func:`~pipeline.estimators.base.use_compiled`)."""
+        Y = self.check(Y)
+        if not use_compiled(len(Y)):
+            return Estimator.run(self, Y)
         import pipeline.estimators.kernels as kernels
 
-        Y = self.check(Y)
-        kernels.warm_up()
+        kernels.warm_up("spsa_frames")
         t0 = time.perf_counter()
         states, pred = self._fast(Y)
         elapsed = time.perf_counter() - t0

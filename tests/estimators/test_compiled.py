@@ -9,7 +9,7 @@ import pytest
 
 import pipeline.estimators as estimators
 from pipeline.core.camera import Camera, StereoMeasurementModel, StereoRig
-from pipeline.estimators import create, kernels
+from pipeline.estimators import base, create, kernels
 from pipeline.estimators.base import Estimator
 
 RIG = StereoRig.from_parameters(640, 480, (610.0, 590.0), (322.0, 241.0), 0.3, 4.0)
@@ -31,6 +31,12 @@ def observations(rig: StereoRig, seed: int, n: int = 120) -> np.ndarray:
     Y[rng.random(n) < 0.05, 2:] += 35.0
     Y[80:100] = rig.project(X[80:100] + np.array([0.25, 0.1, 0.0])) + rng.normal(0, 0.7, (20, 4))
     return Y
+
+
+@pytest.fixture(autouse=True)
+def always_compiled(monkeypatch):
+    """The compiled cores for every clip length (``run`` steps through short clips otherwise)."""
+    monkeypatch.setattr(base, "JIT_MIN_FRAMES", 0)
 
 
 @pytest.fixture
@@ -134,3 +140,17 @@ def test_rts_kernel_is_filterpys_smoother():
     np.testing.assert_allclose(got_x, want_x, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(got_P, want_P, rtol=1e-9, atol=1e-15)
     assert np.abs(got_x - xs).max() > 1e-4  # it smoothed
+
+
+def test_short_clips_step_unless_the_cores_are_loaded(monkeypatch):
+    """Below ``JIT_MIN_FRAMES`` a fresh process steps (no numba to load); the numbers are the same."""
+    import sys
+
+    monkeypatch.setattr(base, "JIT_MIN_FRAMES", 10_000)
+    monkeypatch.delitem(sys.modules, "pipeline.estimators.kernels")
+    assert not base.use_compiled(120) and base.use_compiled(10_000)
+    Y = observations(RIG, 0)
+    stepped_track = create("ekf", RIG, DT).run(Y)
+    assert "pipeline.estimators.kernels" not in sys.modules
+    monkeypatch.setattr(base, "JIT_MIN_FRAMES", 0)
+    assert_same_track(create("ekf", RIG, DT).run(Y), stepped_track)
