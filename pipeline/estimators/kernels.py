@@ -37,8 +37,8 @@ else:
     def kernel(fn=None, *, signature: str | None = None, inline: bool = False):
         return (lambda f: f) if fn is None else fn
 
-#: the signature of the small matrix helpers: three C-contiguous matrices and three sizes
-_MM = "void(f8[:, ::1], f8[:, ::1], f8[:, ::1], i8, i8, i8)"
+#: the signature of the small matrix product: three C-contiguous matrices, three sizes, a transpose flag
+_MM = "void(f8[:, ::1], f8[:, ::1], f8[:, ::1], i8, i8, i8, b1)"
 
 
 def uncompiled() -> ModuleType:
@@ -181,24 +181,18 @@ def stereo_linearize(Pm, delta, x, h, H):
 
 
 @kernel(signature=_MM)
-def mm(A, B, out, n, k, m):
-    """``out[:n, :m] = A[:n, :k] @ B[:k, :m]`` in plain loops (no BLAS call for tiny matrices)."""
+def mm(A, B, out, n, k, m, transpose_b):
+    """``out[:n, :m] = A[:n, :k] @ B[:k, :m]`` (``B[:m, :k]ᵀ`` with ``transpose_b``) in plain loops:
+    no BLAS call for tiny matrices."""
     for i in range(n):
         for j in range(m):
             acc = 0.0
-            for t in range(k):
-                acc += A[i, t] * B[t, j]
-            out[i, j] = acc
-
-
-@kernel(signature=_MM)
-def mmt(A, B, out, n, k, m):
-    """``out[:n, :m] = A[:n, :k] @ B[:m, :k]ᵀ``."""
-    for i in range(n):
-        for j in range(m):
-            acc = 0.0
-            for t in range(k):
-                acc += A[i, t] * B[j, t]
+            if transpose_b:
+                for t in range(k):
+                    acc += A[i, t] * B[j, t]
+            else:
+                for t in range(k):
+                    acc += A[i, t] * B[t, j]
             out[i, j] = acc
 
 
@@ -282,14 +276,14 @@ def joseph_update(x, P, Hs, rs, Rs, m, nz, PHt, S, Si, K, IKH, T6, KR, work, hav
     skip the zeros (sums of the same nonzero terms in the same order as the full products).
     ``have_S``: ``PHt`` and ``S`` hold ``P Hᵀ`` and ``S`` already (the gate's, for four rows)."""
     if not have_S:
-        mmt(P, Hs, PHt, 6, nz, m)
-        mm(Hs, PHt, S, m, nz, m)
+        mm(P, Hs, PHt, 6, nz, m, True)
+        mm(Hs, PHt, S, m, nz, m, False)
         for i in range(m):
             for j in range(m):
                 S[i, j] += Rs[i, j]
     inv_small(S, m, Si, work)
-    mm(PHt, Si, K, 6, m, m)
-    mm(K, Hs, IKH, 6, m, nz)  # columns ≥ nz of I − KH are the identity's
+    mm(PHt, Si, K, 6, m, m, False)
+    mm(K, Hs, IKH, 6, m, nz, False)  # columns ≥ nz of I − KH are the identity's
     for i in range(6):
         for j in range(nz):
             IKH[i, j] = (1.0 if i == j else 0.0) - IKH[i, j]
@@ -303,7 +297,7 @@ def joseph_update(x, P, Hs, rs, Rs, m, nz, PHt, S, Si, K, IKH, T6, KR, work, hav
             for t in range(nz):
                 acc += IKH[i, t] * P[t, j]
             T6[i, j] = acc + P[i, j] if i >= nz else acc
-    mm(K, Rs, KR, 6, m, m)
+    mm(K, Rs, KR, 6, m, m, False)
     for i in range(6):  # P = T (I − KH)ᵀ + K R Kᵀ, symmetric: the upper triangle, mirrored
         for j in range(i, 6):
             acc = 0.0
@@ -351,8 +345,8 @@ def ekf_frames(Y, k0, resume, Pm, delta, dt, Q, R, threshold, restart_after, x, 
             n_gated = 0
             if gate_on:
                 stereo_linearize(Pm, delta, x, h, H)
-                mmt(P, H, PHt, 6, nz, 4)
-                mm(H, PHt, S, 4, nz, 4)
+                mm(P, H, PHt, 6, nz, 4, True)
+                mm(H, PHt, S, 4, nz, 4, False)
                 for i in range(4):
                     r[i] = Y[k, i] - h[i]
                     for j in range(4):
