@@ -306,10 +306,10 @@ def _remove_leftovers(out_root: Path) -> list[tuple[str, str]]:
         if stale.is_dir() and ".partial-" in stale.name:
             key = (stale.parent / stale.name[1:].rsplit(".partial-", 1)[0]).relative_to(out_root).as_posix()
             try:
-                info = json.loads((stale / ATTEMPT).read_text())
-                dead.append((key, str(info.get("worker", "?"))))
-            except (OSError, ValueError, AttributeError):
-                pass
+                worker = str(json.loads((stale / ATTEMPT).read_text()).get("worker", "?"))
+            except (OSError, ValueError, AttributeError):  # killed before it wrote its record: an attempt all the same
+                worker = "?"
+            dead.append((key, worker))
         shutil.rmtree(stale, ignore_errors=True) if stale.is_dir() else stale.unlink(missing_ok=True)
     return dead
 

@@ -16,7 +16,7 @@ from pathlib import Path
 import psutil
 import pytest
 
-from pipeline.batch import run_batch
+from pipeline.batch import ATTEMPT, run_batch
 from pipeline.core.io import read_csv
 from pipeline.manifest import MANIFEST, verify_manifest
 from tests.conftest import REPO
@@ -234,7 +234,10 @@ def test_dask_worker_killed_mid_batch(reference, tmp_path):
         batch = subprocess.Popen(batch_cmd(inp, out, "--scheduler-file", str(sched_file)), stdout=subprocess.PIPE,
                                  stderr=subprocess.PIPE, text=True, cwd=REPO)
         deadline = time.time() + 120
-        while time.time() < deadline and not (out.is_dir() and any(".partial-" in p.name for p in out.iterdir())):
+        # the attempt is the worker's once its record is in its folder (killed between the folder and the
+        # record, as a loaded machine once did, the attempt leaves nothing to count)
+        while time.time() < deadline and not (out.is_dir() and any(".partial-" in p.name and (p / ATTEMPT).is_file()
+                                                                   for p in out.iterdir())):
             time.sleep(0.02)
         holder = next(p for p in out.iterdir() if ".partial-" in p.name).name[1:].split(".partial-")[0]
         (worker,) = [p for p in psutil.Process(procs[1].pid).children(recursive=True)
