@@ -297,7 +297,7 @@ class Initiator:
         need = self.config.frames
         got, F, pts = np.zeros(M, dtype=int), np.zeros((M, need), dtype=int), np.zeros((M, need, 3))
         todo = np.arange(M)
-        lo, chunk = 0, need + 2
+        lo, chunk = 0, need
         while len(todo) and lo < n:
             hi = min(n, lo + chunk)
             X = self.model.inverse_function(Y[todo, lo:hi])

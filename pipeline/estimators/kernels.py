@@ -135,21 +135,30 @@ def spsa_frames(Yn, okl, okr, deltas, cams, alpha, beta, th, s, states, pred):
 
 
 @kernel
-def spsa_batch(Yn, okl, okr, begin, theta0, deltas, cams, alpha, beta, th, out):
-    """Algorithm 1 over M tracks (``Yn`` M × frames × 4), each from ``theta0[m]`` at its frame
-    ``begin[m]`` (none when ``begin[m]`` is the clip's length); positions into ``out`` (M × frames × 3)."""
-    M, n = Yn.shape[0], Yn.shape[1]
-    states = np.empty((n, 6))
-    pred = np.empty(n, dtype=np.bool_)
+def spsa_batch(Y, Ks, begin, theta0, deltas, cams, alpha, beta, th, out):
+    """Algorithm 1 over M tracks (``Y`` M × frames × 4 pixels), each from ``theta0[m]`` at its frame
+    ``begin[m]`` (none when ``begin[m]`` is the clip's length); positions into ``out`` (M × frames ×
+    3). Each track's pixels are normalized here through the cameras' intrinsics ``Ks`` (2 × 3 × 3),
+    with :meth:`Camera.normalize`'s arithmetic."""
+    M, n = Y.shape[0], Y.shape[1]
+    states, Yn = np.empty((n, 6)), np.empty((n, 4))
+    pred, okl, okr = np.empty(n, dtype=np.bool_), np.empty(n, dtype=np.bool_), np.empty(n, dtype=np.bool_)
     s = np.zeros(S_SIZE)
     for m in range(M):
         k0 = begin[m]
         if k0 >= n:
             continue
+        for k in range(k0 + 1, n):
+            for c in range(2):
+                K, u, v = Ks[c], Y[m, k, 2 * c], Y[m, k, 2 * c + 1]
+                Yn[k, 2 * c] = (u - K[0, 2] - K[0, 1] * (v - K[1, 2]) / K[1, 1]) / K[0, 0]
+                Yn[k, 2 * c + 1] = (v - K[1, 2]) / K[1, 1]
+            okl[k] = math.isfinite(Y[m, k, 0]) and math.isfinite(Y[m, k, 1])
+            okr[k] = math.isfinite(Y[m, k, 2]) and math.isfinite(Y[m, k, 3])
         for a in range(S_SIZE):
             s[a] = theta0[m, a] if a < 6 else 0.0
-        spsa_frames(Yn[m, k0 + 1 :], okl[m, k0 + 1 :], okr[m, k0 + 1 :], deltas, cams, alpha, beta, th, s,
-                    states[k0 + 1 :], pred[k0 + 1 :])
+        spsa_frames(Yn[k0 + 1 :], okl[k0 + 1 :], okr[k0 + 1 :], deltas, cams, alpha, beta, th, s, states[k0 + 1 :],
+                    pred[k0 + 1 :])
         for a in range(3):
             out[m, k0, a] = theta0[m, a]
             for j in range(k0 + 1, n):

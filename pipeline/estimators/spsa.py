@@ -268,13 +268,12 @@ class SPSAEstimator(Estimator):
         M, n, _ = Y.shape
         starts = self.initiator.first_batch(Y)
         begin = np.array([s.frame if s is not None else n for s in starts], dtype=np.int64)
-        theta0 = np.zeros((M, 6))
-        for m, s in enumerate(starts):
-            if s is not None:
-                theta0[m] = np.r_[s.state[:3], s.state[3:] * self.dt]
+        theta0 = np.array([s.state if s is not None else np.zeros(6) for s in starts]).reshape(M, 6)
+        theta0[:, 3:] *= self.dt  # frame units: [p, v·dt]
         out = np.full((M, n, 3), np.nan)
-        kernels.spsa_batch(self.rig.normalize(Y), *_present(Y), begin, theta0, delta_sequence(self.config.seed, n // 2 + 2, 6),
-                           spsa_cameras(self.rig), self._alpha, self._beta, self._th, out)
+        Ks = np.stack([c.K for c in self.rig.cameras]).astype(float)
+        kernels.spsa_batch(Y, Ks, begin, theta0, delta_sequence(self.config.seed, n // 2 + 2, 6), spsa_cameras(self.rig),
+                           self._alpha, self._beta, self._th, out)
         return out
 
 
