@@ -2,8 +2,9 @@
 EKF, single track and batch. Each core is plain Python over float arrays, compiled by numba
 (``njit``, cached on disk, so a fresh process loads it instead of compiling) and run as it is
 when ``STEREOTRACK_JIT=0`` is set before this module is imported (:func:`uncompiled` loads such a
-copy: the tests run both and compare). The estimators import this module on the first ``run``,
-so neither ``import pipeline`` nor the streaming ``step`` pays for numba.
+copy: the tests run both and compare). The estimators import this module on the first ``run``
+that takes the compiled path (:func:`pipeline.estimators.base.use_compiled`), so neither
+``import pipeline``, the streaming ``step`` nor a short clip pays for numba.
 
 The arithmetic is the estimators' own, operation for operation (see
 :mod:`pipeline.estimators.spsa` and :mod:`pipeline.estimators.ekf` for the equations, after
@@ -26,15 +27,14 @@ JIT = os.environ.get("STEREOTRACK_JIT", "1") != "0"
 if JIT:
     from numba import njit
 
-    def kernel(fn=None, *, signature: str | None = None, inline: bool = False):
+    def kernel(fn=None, *, signature: str | None = None):
         """Compile ``fn`` with numba on its first call (cached on disk across processes); with a
-        ``signature``, for those argument types only (one compilation for every caller);
-        ``inline``: into its callers, at numba's level (a part of a loop split out for reading)."""
+        ``signature``, for those argument types only (one compilation for every caller)."""
         if fn is None:
-            return lambda f: njit(signature, cache=True, nogil=True, inline="always" if inline else "never")(f)
+            return lambda f: njit(signature, cache=True, nogil=True)(f)
         return njit(cache=True, nogil=True)(fn)
 else:
-    def kernel(fn=None, *, signature: str | None = None, inline: bool = False):
+    def kernel(fn=None, *, signature: str | None = None):
         return (lambda f: f) if fn is None else fn
 
 #: the signature of the small matrix product: three C-contiguous matrices, three sizes, a transpose flag
@@ -61,7 +61,7 @@ def uncompiled() -> ModuleType:
     return module
 
 
-BIG_COST = 1.0e6  # as pipeline.estimators.spsa.BIG_COST
+BIG_COST = 1.0e6  # a trial point behind a camera, as pipeline.estimators.spsa.BIG_COST (which must not import numba)
 
 # -- SPSA (Algorithm 1) -------------------------------------------------------------------------
 #: layout of an SPSA track's state vector ``s``: θ (frame units), phase, Δ index, the odd frame's
