@@ -7,12 +7,13 @@ model's analytic ``jacobian``, zeros for the velocity)::
     S = H P⁻ Hᵀ + R,      K = P⁻ Hᵀ S⁻¹
     x = x⁻ + K (y − h(x⁻)),  P = (I − K H) P⁻ (I − K H)ᵀ + K R Kᵀ   (Joseph form, as filterpy)
 
-Single tracks run filterpy's ``ExtendedKalmanFilter`` equations written out in numpy (a test holds
+``step`` runs filterpy's ``ExtendedKalmanFilter`` equations written out in numpy (a test holds
 them equal to filterpy itself, driven directly, to 1e-9; the per-call checks filterpy makes cost
-about as much as the arithmetic). ``run_batch`` runs the same
-equations vectorised over many tracks. A camera without a detection drops its two rows.
-``ekf_rts`` adds the Rauch–Tung–Striebel backward pass (the transition is linear, so filterpy's
-smoother applies as it is).
+about as much as the arithmetic). ``run`` on a long clip and ``run_batch`` run the same arithmetic
+compiled (:func:`pipeline.estimators.kernels.ekf_frames`, tested equal to ``step``). A camera
+without a detection drops its two rows. ``ekf_rts`` adds the Rauch–Tung–Striebel backward pass
+(the transition is linear, so filterpy's smoother applies as it is; long clips use its compiled
+twin).
 """
 
 from __future__ import annotations

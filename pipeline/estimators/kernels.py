@@ -1,15 +1,18 @@
-"""Compiled cores of the estimators whose per-frame loop is the cost: Algorithm 1 (SPSA) and the
-EKF, single track and batch. Each core is plain Python over float arrays, compiled by numba
-(``njit``, cached on disk, so a fresh process loads it instead of compiling) and run as it is
-when ``STEREOTRACK_JIT=0`` is set before this module is imported (:func:`uncompiled` loads such a
-copy: the tests run both and compare). The estimators import this module on the first ``run``
-that takes the compiled path (:func:`pipeline.estimators.base.use_compiled`), so neither
-``import pipeline``, the streaming ``step`` nor a short clip pays for numba.
+"""Compiled cores of the estimators whose per-frame loop is the cost: Algorithm 1 (SPSA) and the EKF,
+single track and batch, and the Rauch–Tung–Striebel backward pass of the smoothers. Each core is
+plain Python over float arrays, compiled by numba (``njit``, cached on disk, so a fresh process
+loads it instead of compiling) and run as it is when ``STEREOTRACK_JIT=0`` is set before this module
+is imported (:func:`uncompiled` loads such a copy: the tests run both and compare). The estimators
+import this module on the first ``run`` that takes the compiled path
+(:func:`pipeline.estimators.base.use_compiled`), so neither ``import pipeline``, the streaming
+``step`` nor a short clip pays for numba.
 
-The arithmetic is the estimators' own, operation for operation (see
-:mod:`pipeline.estimators.spsa` and :mod:`pipeline.estimators.ekf` for the equations, after
-Krivokon 2011, Algorithm 1 and App. I), and the measurement model is
-:meth:`pipeline.core.camera.StereoMeasurementModel.linearize` written out for one state.
+The equations are the estimators' own (see :mod:`pipeline.estimators.spsa` and
+:mod:`pipeline.estimators.ekf`, after Krivokon 2011, Algorithm 1 and App. I), and the measurement
+model is :meth:`pipeline.core.camera.StereoMeasurementModel.linearize` written out for one state.
+Algorithm 1 is the same operations in the same order; the EKF differs in rounding only (the
+prediction by blocks, the covariance's upper triangle mirrored, small inverses by Gauss–Jordan
+rather than LAPACK), and the tests hold every path equal to 1e-9.
 """
 
 from __future__ import annotations

@@ -17,7 +17,8 @@ velocities are reported in m/s. The cost is computed in normalized image coordin
 (``(u − cx)/fx``, ``(v − cy)/fy``) so α, β, th do not depend on resolution. A camera missing in
 either frame of a pair is left out of both costs; with no camera in common the iteration only
 predicts. The single-track step is written in plain Python scalars (a 6-vector is too small for
-numpy to pay off); ``run_batch`` is the same iteration vectorised over tracks.
+numpy to pay off); ``run`` on a long clip and ``run_batch`` run the same iteration compiled
+(:func:`pipeline.estimators.kernels.spsa_frames`, tested equal to ``step``).
 """
 
 from __future__ import annotations
