@@ -283,24 +283,21 @@ class Recorder:
         """The 95 % position ellipsoid of each marker per frame (filters with a covariance)."""
         import rerun as rr
 
-        centers, half, quats, lengths, frames = [], [], [], [], []
-        for k in range(n):
-            got = [(t.position[k], t.covariance[k, :3, :3]) for t in per_marker.values()
-                   if t.covariance is not None and k < len(t.position) and np.all(np.isfinite(t.position[k]))
-                   and np.all(np.isfinite(t.covariance[k, :3, :3]))]
-            if got:
-                frames.append(k)
-                lengths.append(len(got))
-                centers += [c for c, _ in got]
-                h, q = ellipsoid_columns(np.array([P for _, P in got]))
-                half.append(h)
-                quats.append(q)
-        if not frames:
+        tracks = [t for t in per_marker.values() if t.covariance is not None]
+        pos, cov = np.full((n, len(tracks), 3), np.nan), np.full((n, len(tracks), 3, 3), np.nan)
+        for j, t in enumerate(tracks):
+            m = min(n, len(t.position))
+            pos[:m, j], cov[:m, j] = t.position[:m], t.covariance[:m, :3, :3]
+        ok = np.isfinite(pos).all(axis=2) & np.isfinite(cov).all(axis=(2, 3))  # frame-major, markers in order
+        if not ok.any():
             return False
-        cols = rr.Ellipsoids3D.columns(centers=np.array(centers), half_sizes=np.vstack(half), quaternions=np.vstack(quats),
+        frames, lengths = np.flatnonzero(ok.any(axis=1)), ok.sum(axis=1)[ok.any(axis=1)]
+        centers = pos[ok]
+        half, quats = ellipsoid_columns(cov[ok])
+        cols = rr.Ellipsoids3D.columns(centers=centers, half_sizes=half, quaternions=quats,
                                        colors=np.tile(method_rgb(meth), (len(centers), 1)).astype(np.uint8),
                                        fill_mode=[rr.components.FillMode.MajorWireframe] * len(centers))
-        self._columns(f"world/uncertainty/{meth}", np.array(frames, dtype=np.int64), cols.partition(lengths))
+        self._columns(f"world/uncertainty/{meth}", frames.astype(np.int64), cols.partition(lengths.tolist()))
         return True
 
     def _target(self, est: EstimateResult, truth: dict | None, n: int) -> None:

@@ -13,16 +13,39 @@ from typing import Any
 import numpy as np
 
 from pipeline import html as H
-from pipeline.core.io import write_csv, write_text
+from pipeline.core.io import Schema, write_csv, write_text
 from pipeline.core.outputs import REPORT_HTML, Outputs
 from pipeline.metrics import runaways
 from pipeline.style import method_hex
 from pipeline.tables import Column, Table, inline, number, to_html, to_markdown
 
-SUMMARY_COLUMNS = ["clip", "status", "method", "rmse_m", "final_m", "reprojection_rmse_px", "steps_per_second",
-                   "attempts", "error"]
-METHOD_COLUMNS = ["method", "clips", "mean_rmse_m", "mean_ci_low_m", "mean_ci_high_m", "median_rmse_m",
-                  "median_ci_low_m", "median_ci_high_m", "runaways", "failures", "median_steps_per_second"]
+SUMMARY = Schema("OUT/summary.csv", "one clip and method (a clip with no method scored has one row)", "batch", {
+    "clip": "the clip's folder name",
+    "status": "ok, failed, or skipped (complete from an earlier batch, its manifest verified)",
+    "method": "the method",
+    "rmse_m": "3-D RMSE against the truth, m (empty without truth)",
+    "final_m": "3-D error at the last frame, m",
+    "reprojection_rmse_px": "RMSE of the estimates reprojected into both cameras against the detections, px",
+    "steps_per_second": "the method's estimation speed on this clip (wall clock), steps/s",
+    "attempts": "attempts made (more than 1 where a worker died under an attempt)",
+    "error": "why the clip failed (one line), else empty",
+})
+METHODS_SUMMARY = Schema("OUT/summary_methods.csv", "one method across the batch's clips", "batch", {
+    "method": "the method",
+    "clips": "clips that scored it",
+    "mean_rmse_m": "mean of its 3-D RMSE over those clips, m",
+    "mean_ci_low_m": "Student-t 95 % interval for that mean (lower end clipped at 0), m",
+    "mean_ci_high_m": "Student-t 95 % interval for that mean (lower end clipped at 0), m",
+    "median_rmse_m": "median of its 3-D RMSE over the clips, m",
+    "median_ci_low_m": "distribution-free 95 % interval for the median (binomial order statistics; none below 6 "
+                       "clips), m",
+    "median_ci_high_m": "distribution-free 95 % interval for the median (binomial order statistics; none below 6 "
+                        "clips), m",
+    "runaways": "clips where its error was over 10× that clip's median",
+    "failures": "clips where it scored nothing (no estimate, or the clip failed)",
+    "median_steps_per_second": "its median speed over the clips, steps/s",
+})
+SUMMARY_COLUMNS, METHOD_COLUMNS = SUMMARY.names, METHODS_SUMMARY.names
 
 
 @dataclass

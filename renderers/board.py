@@ -91,17 +91,16 @@ def render_view(cam: Camera, rays: np.ndarray, board: Board, texture: np.ndarray
     """One camera's grey image of the board at ``pose`` (board → world rotation and the world
     position of its top-left outer corner), averaged over the sub-pixel samples."""
     Rb, tb = pose
-    C = cam.center
-    d = rays.reshape(-1, 3) @ cam.R  # camera → world: Rᵀ d for each row
-    n = Rb[:, 2]
+    # the board plane seen through the camera is a homography: a ray r ∝ M (u, v, 1) with
+    # M = [R Rb₁ | R Rb₂ | R tb + t], so (u, v, w) = M⁻¹ r, in front of the camera where w > 0
+    M = np.column_stack([cam.R @ Rb[:, 0], cam.R @ Rb[:, 1], cam.R @ tb + np.ravel(cam.t)])
+    uvw = rays.reshape(-1, 3) @ np.linalg.inv(M).T.astype(rays.dtype)
     with np.errstate(divide="ignore", invalid="ignore"):
-        lam = ((tb - C) @ n) / (d @ n)
-        hit = C + lam[:, None] * d
-        uv = (hit - tb) @ Rb[:, :2]
+        uv = uvw[:, :2] / uvw[:, 2:]
     W, H = board.size
     th, tw = texture.shape
-    inside = (lam > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
-    val = np.full(len(d), float(BACKGROUND))
+    inside = (uvw[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+    val = np.full(len(uvw), float(BACKGROUND))
     px = np.clip((uv[inside, 0] / W * tw).astype(int), 0, tw - 1)
     py = np.clip((uv[inside, 1] / H * th).astype(int), 0, th - 1)
     val[inside] = 40.0 + 175.0 * texture[py, px] / 255.0  # printed black and white under light

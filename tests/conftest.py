@@ -1,4 +1,7 @@
-"""Shared fixtures: small rendered clips (rendered once per session) and the shared-data paths."""
+"""Shared fixtures: small rendered clips (rendered once per session) and the shared-data paths.
+
+Tests render with ``workers=1``, in their own process: a pool's two fresh interpreters cost about
+2 s of CPU per clip, and the pool itself is exercised by the tests that run the CLI."""
 
 from __future__ import annotations
 
@@ -50,7 +53,7 @@ def small_multi_marker(frames: int = 24, width: int = 320, height: int = 240, **
 def png_clip(tmp_path_factory) -> Path:
     """A lossless 320×240 clip of three markers (rendered once per test session)."""
     out = tmp_path_factory.mktemp("clips") / "multi_png"
-    render_clip(parse_scenario(small_multi_marker()), out, fmt="png")
+    render_clip(parse_scenario(small_multi_marker()), out, fmt="png", workers=1)
     return out
 
 
@@ -58,7 +61,7 @@ def png_clip(tmp_path_factory) -> Path:
 def mp4_clip(tmp_path_factory) -> Path:
     """The same scene as MP4 videos."""
     out = tmp_path_factory.mktemp("clips") / "multi_mp4"
-    render_clip(parse_scenario(small_multi_marker()), out, fmt="mp4")
+    render_clip(parse_scenario(small_multi_marker()), out, fmt="mp4", workers=1)
     return out
 
 
@@ -67,7 +70,7 @@ def target_clip(tmp_path_factory) -> Path:
     """A short four-point-target clip (PNG)."""
     out = tmp_path_factory.mktemp("clips") / "target"
     scen = load_scenario("four_point").with_overrides(frames=40)
-    render_clip(scen, out, fmt="png")
+    render_clip(scen, out, fmt="png", workers=1)
     return out
 
 

@@ -8,6 +8,7 @@ import json
 import os
 import tempfile
 from collections.abc import Iterable, Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -117,6 +118,24 @@ def _jsonable(obj: Any) -> Any:
     if isinstance(obj, np.bool_):
         return bool(obj)
     return obj
+
+
+@dataclass(frozen=True)
+class Schema:
+    """A CSV table of the file contract: its file, what one row is, who writes it, and each
+    column's meaning in order (the docs' file-format tables are generated from these)."""
+
+    file: str
+    row: str
+    written_by: str
+    columns: dict[str, str]
+    #: a table whose columns come first (``columns`` are added after them)
+    extends: Schema | None = None
+
+    @property
+    def names(self) -> list[str]:
+        """The header, in order."""
+        return [*(self.extends.names if self.extends else []), *self.columns]
 
 
 def write_csv(path: str | Path, header: Sequence[str], rows: Iterable[Sequence[Any]]) -> None:

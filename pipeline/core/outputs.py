@@ -22,10 +22,11 @@ EXPORT = "export"
 
 
 class _File:
-    """A file of the output folder, by name: ``Outputs(folder).metrics`` is ``folder/metrics.json``."""
+    """A file of the output folder, by name: ``Outputs(folder).metrics`` is ``folder/metrics.json``;
+    ``what`` says what it holds (the docs' list of outputs is generated from it)."""
 
-    def __init__(self, name: str) -> None:
-        self.name = name
+    def __init__(self, name: str, what: str) -> None:
+        self.name, self.what = name, what
 
     def __get__(self, outputs: Outputs | None, owner: type | None = None):
         return self if outputs is None else outputs.folder / self.name
@@ -37,15 +38,23 @@ class Outputs:
 
     folder: Path
 
-    detections = _File(DETECTIONS)
-    detect_info = _File(DETECT_INFO)
-    estimates_dir = _File(ESTIMATES)
-    metrics = _File(METRICS)
-    report_md = _File(REPORT_MD)
-    report_html = _File(REPORT_HTML)
-    recording = _File(RECORDING)
-    manifest = _File(MANIFEST)
-    export_dir = _File(EXPORT)
+    detections = _File(DETECTIONS, "every detection, undistorted pixels (`detect`)")
+    detect_info = _File(DETECT_INFO, "frames, frame size, the marker colour ranges used and their display colours, "
+                        "and the detect stage's checks")
+    estimates_dir = _File(ESTIMATES, "one table per method, `<method>.csv` (`estimate`)")
+    metrics = _File(METRICS, "per method: errors against the truth, reprojection, NIS/NEES summaries, gating and "
+                    "restart counts, speed; the run's checks")
+    report_md = _File(REPORT_MD, "the report in Markdown, its figures in `figures/`")
+    report_html = _File(REPORT_HTML, "the report, self-contained (figures embedded, nothing fetched)")
+    figures_dir = _File(FIGURES, "the Markdown report's PNG figures")
+    recording = _File(RECORDING, "the rerun recording (`rerun run.rrd`)")
+    manifest = _File(MANIFEST, "the settings and checksums of a batch's clip folder: what makes it complete")
+    export_dir = _File(EXPORT, "`<method>.trc`, `.c3d` or `.csv` after `stereotrack export`")
+
+    @classmethod
+    def files(cls) -> list[_File]:
+        """Every file and folder an output folder can hold, in the order the stages write them."""
+        return [v for v in vars(cls).values() if isinstance(v, _File)]
 
     @classmethod
     def of(cls, clip_folder: str | Path, out_dir: str | Path | None = None) -> Outputs:

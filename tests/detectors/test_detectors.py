@@ -148,7 +148,7 @@ def test_four_point_labels_never_swap(tmp_path):
     data["objects"][0]["motion"]["alpha_noise"] = 0.6  # keep it turning
     data["rig"]["width"], data["rig"]["height"], data["rig"]["focal"] = 320, 240, 300
     clip = tmp_path / "fp"
-    render_clip(parse_scenario(data), clip, fmt="png")
+    render_clip(parse_scenario(data), clip, fmt="png", workers=1)
     detect_clip(clip, "blob", out_dir=tmp_path / "out")
     tr = read_csv(clip / "truth.csv")
     det = load_detections(tmp_path / "out" / "detections.csv", 100)

@@ -210,7 +210,7 @@ def test_rendered_offset_found_from_detections_and_from_timestamps(tmp_path):
     from renderers.render import render_clip
 
     clip = tmp_path / "clip"
-    render_clip(load_scenario("sync_offset").with_overrides(frames=90), clip, fmt="png")
+    render_clip(load_scenario("sync_offset").with_overrides(frames=90), clip, fmt="png", workers=1)
     detect_clip(clip)
     stamped = estimate_clip(clip, ["triangulation", "ekf"], out_dir=tmp_path / "a", in_dir=clip / "out")
     (clip / "timestamps.csv").rename(tmp_path / "timestamps.csv")

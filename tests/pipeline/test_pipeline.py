@@ -37,7 +37,7 @@ def noisy_receding(seed: int = 1) -> dict:
 @pytest.fixture(scope="module")
 def e2e_run(tmp_path_factory):
     clip = tmp_path_factory.mktemp("e2e") / "clip"
-    render_clip(parse_scenario(noisy_receding()), clip, fmt="mp4")
+    render_clip(parse_scenario(noisy_receding()), clip, fmt="mp4", workers=1)
     return process_clip(clip, methods=METHODS)
 
 
@@ -54,6 +54,22 @@ def test_end_to_end_accuracy(e2e_run):
     for meth in METHODS:
         cols = read_csv(out / "estimates" / f"{meth}.csv", ["frame", "t", "marker", "x", "y", "z", "vx", "vy", "vz"])
         assert len(cols["frame"]) == 40
+
+
+def test_every_file_written_is_documented(e2e_run):
+    """The Files page is generated from ``Outputs.files`` and the schemas: every file of a run's
+    output folder is listed there, and every table's header is its schema's."""
+    from pipeline.core.clip import DETECTIONS, ESTIMATES, TIMESTAMPS_SCHEMA, TRUTH
+    from pipeline.core.outputs import Outputs
+
+    out = e2e_run.out_dir
+    assert {p.name for p in out.iterdir()} <= {f.name for f in Outputs.files()}
+    header = lambda p: p.read_text().splitlines()[0].split(",")  # noqa: E731
+    assert header(out / "detections.csv") == DETECTIONS.names
+    assert {p.stem for p in (out / "estimates").iterdir()} == set(METHODS)
+    assert all(header(p) == ESTIMATES.names for p in (out / "estimates").iterdir())
+    assert header(out.parent / "truth.csv") == TRUTH.names
+    assert header(out.parent / "timestamps.csv") == TIMESTAMPS_SCHEMA.names
 
 
 @pytest.mark.slow
@@ -312,6 +328,13 @@ def test_recording_shows_what_the_run_was(e2e_run):
             assert series["SeriesLines:names"][0] == [meth]
             assert series["SeriesLines:colors"][0] == [packed(method_rgb(meth))]
     assert "/world/uncertainty/ekf" in cols and "/world/uncertainty/alphabeta" not in cols  # filters' ellipsoids
+    ell, tr = cols["/world/uncertainty/ekf"], e2e_run.estimate.tracks["ekf"]["red"]
+    k = np.array(ell["frame"])
+    np.testing.assert_allclose(np.vstack(ell["Ellipsoids3D:centers"]), tr.position[k], atol=1e-6)
+    for f, half, q in zip(k, ell["Ellipsoids3D:half_sizes"], ell["Ellipsoids3D:quaternions"], strict=True):
+        from scipy.spatial.transform import Rotation  # the 95 % ellipsoid: R diag(half²/χ²₃) Rᵀ = P
+        R, h2 = Rotation.from_quat(q[0]).as_matrix(), np.array(half[0]) ** 2 / 7.814727903251178
+        np.testing.assert_allclose(R @ np.diag(h2) @ R.T, tr.covariance[f, :3, :3], rtol=1e-4, atol=1e-12)
     hidden = [p for p, c in bp.items() if c.get("EntityBehavior:visible") == [[False]] or
               c.get("EntityBehavior:visible") == [False]]
     assert any("/overrides/world/uncertainty/ekf/" in p for p in hidden), hidden  # shown on one click
