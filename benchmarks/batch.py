@@ -25,7 +25,7 @@ from pathlib import Path
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
-from _common import page
+from _common import page, stack_tree
 
 from pipeline.batch import run_batch
 from renderers.render import render_clips
@@ -51,16 +51,6 @@ def dask_processes(folder: Path, workers: int):
         for p in reversed(procs):
             p.terminate()
             p.wait(timeout=30)
-
-
-def stack_tree(tmp: Path, rev: str) -> Path:
-    """A checkout of ``rev`` (git worktree, removed with the temporary folder's repository entry)."""
-    tree = tmp / "then"
-    subprocess.run(["git", "worktree", "add", "--detach", str(tree), rev], check=True, capture_output=True)
-    import atexit
-
-    atexit.register(lambda: subprocess.run(["git", "worktree", "remove", "--force", str(tree)], capture_output=True))
-    return tree
 
 
 def batch_at(tree: Path, inp: Path, out: Path, workers: int) -> float:

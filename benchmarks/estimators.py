@@ -5,7 +5,10 @@ cores against the same methods stepped frame by frame in Python, the first ``run
 process with and without numba's on-disk cache, and the EKF against filterpy's own. Every row is
 printed as it is measured; ratios compare alternatives measured in the same run.
 
-    python benchmarks/estimators.py [--frames 300] [--tracks 1000] [--out DIR | --write-docs]
+    python benchmarks/estimators.py [--frames 300] [--tracks 1000] [--against REV] [--out DIR | --write-docs]
+
+``--against REV`` also times the same runs with stereotrack as of git revision REV (a worktree, its
+own interpreter): the issue's targets are ratios to the code of the day it was filed.
 
 ``--write-docs`` writes docs/bench_estimators.md, the page the docs show.
 """
@@ -18,9 +21,10 @@ import subprocess
 import sys
 import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
-from _common import LiveDoc, add_output_args, command, output_dir
+from _common import LiveDoc, add_output_args, command, output_dir, stack_tree
 
 import pipeline.estimators.kernels  # noqa: F401  (loaded: every run below goes through the compiled cores)
 from pipeline.core.io import write_text
@@ -48,6 +52,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--tracks", type=int, default=1000)
+    ap.add_argument("--against", default=None, help="a git revision to time the same runs with")
     add_output_args(ap)
     args = ap.parse_args()
     out = output_dir(args, "estimators")
@@ -63,6 +68,8 @@ def main() -> None:
                   "compare the ratios, measured in the same run, not the absolute numbers).", ""])
     single = every_method(md, rig, dt, Y, Yb, args)
     compiled_against_interpreted(md, rig, dt, Y, Yb, single, args)
+    if args.against:
+        against_revision(md, args.against, rig, dt, Y, Yb, args)
     first_run_cost(md)
     ekf_against_filterpy(md, rig, dt, Y, args.frames)
     path = out / "bench_estimators.md"
@@ -114,6 +121,65 @@ def compiled_against_interpreted(md: LiveDoc, rig, dt: float, Y: np.ndarray, Yb:
         est = create(m, rig, dt)
         rate = args.tracks * args.frames / timed(lambda est=est: est.run_batch(Yb), repeat=2)
         md.append(f"| {m} ({args.tracks:,} × {args.frames} frames) | {rate:,.0f} | {goal:,.0f} |")
+    md.append("")
+
+
+#: run in a checkout of another revision: best-of-3 steps/s of its single-track runs and batches
+THEN = """import sys, time, numpy as np
+from pipeline.estimators import create
+from renderers.scenario import load_scenario
+Y, Yb = np.load(sys.argv[1]), np.load(sys.argv[2])
+s = load_scenario("receding").with_overrides(frames=len(Y)); rig, dt = s.rig.build(), s.dt
+def best(fn, repeat=3):
+    out = []
+    for _ in range(repeat):
+        t0 = time.perf_counter(); fn(); out.append(time.perf_counter() - t0)
+    return min(out)
+for m in ("ekf", "spsa", "spsa_stereo"):
+    e = create(m, rig, dt); e.run(Y)
+    print(m, len(Y) / best(lambda: e.run(Y)))
+for m in ("ekf", "spsa"):
+    e = create(m, rig, dt)
+    print("batch " + m, Yb.shape[0] * len(Y) / best(lambda: e.run_batch(Yb), 2))
+"""
+
+
+def fresh_rates(root: Path, data: Path) -> dict[str, float]:
+    """:data:`THEN`'s steps/s per run, with the code in ``root``, in a fresh interpreter."""
+    res = subprocess.run([sys.executable, "-c", THEN, str(data / "Y.npy"), str(data / "Yb.npy")], capture_output=True,
+                         text=True, env={**os.environ, "PYTHONPATH": str(root)}, cwd=root, check=True)
+    return {line.rsplit(" ", 1)[0]: float(line.rsplit(" ", 1)[1]) for line in res.stdout.strip().splitlines()}
+
+
+def against_revision(md: LiveDoc, rev: str, rig, dt: float, Y: np.ndarray, Yb: np.ndarray, args) -> None:
+    """The same single-track runs and batches with the code of revision ``rev`` and with today's,
+    each in a fresh interpreter (today's short-clip path), then today's compiled paths here; each
+    best of 3, measured in this run."""
+    with tempfile.TemporaryDirectory() as tmp:
+        tree = stack_tree(Path(tmp), rev)
+        np.save(Path(tmp) / "Y.npy", Y)
+        np.save(Path(tmp) / "Yb.npy", Yb)
+        then, now = fresh_rates(tree, Path(tmp)), fresh_rates(Path(__file__).resolve().parent.parent, Path(tmp))
+    md += [f"## Against the code of `{rev}`", "",
+           f"The same runs with stereotrack as of `{rev}` (a git worktree) and as of today, each in a fresh "
+           f"interpreter, measured in this run. A fresh process runs a clip under {JIT_MIN_FRAMES:,} frames "
+           "without loading the compiled cores (\"today, short clip\": `ekf` steps frame by frame, `spsa` runs "
+           "Algorithm 1's step in one loop, `spsa_stereo` its own `run`); \"compiled\" is what longer clips, "
+           "batches and a process that has loaded the cores take.", "",
+           f"| run | `{rev}` (steps/s) | today, short clip | today, compiled | today's best / `{rev}` | target |",
+           "|---|---:|---:|---:|---:|---|"]
+    for m in ("ekf", "spsa", "spsa_stereo"):
+        est = create(m, rig, dt)
+        compiled = args.frames / timed(lambda est=est: est.run(Y)) if m in COMPILED else None
+        best = max(compiled or 0.0, now[m])
+        target = f"≥ {TARGETS[m]:.0f}×" if m in TARGETS else ""
+        md.append(f"| {m}, one track | {then[m]:,.0f} | {now[m]:,.0f} | "
+                  f"{f'{compiled:,.0f}' if compiled else '(not compiled)'} | {best / then[m]:.1f}× | {target} |")
+    for m, goal in BATCH_TARGETS.items():
+        est = create(m, rig, dt)
+        rate = args.tracks * args.frames / timed(lambda est=est: est.run_batch(Yb), repeat=2)
+        md.append(f"| {m}, batch of {args.tracks:,} | {then['batch ' + m]:,.0f} | — | {rate:,.0f} | "
+                  f"{rate / then['batch ' + m]:.1f}× | ≥ {goal:,.0f} track-steps/s |")
     md.append("")
 
 

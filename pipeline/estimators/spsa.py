@@ -244,17 +244,38 @@ class SPSAEstimator(Estimator):
         self.frame = n
         return states, pred
 
+    def _loop(self, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """As :meth:`_fast`, through :meth:`_iterate` in one interpreted loop (observations
+        normalized at once, no per-frame objects): the arithmetic of repeated :meth:`step`, for
+        clips too short for compiling to pay."""
+        self.reset()
+        n = len(Y)
+        states, pred = np.full((n, 6), np.nan), np.ones(n, dtype=bool)
+        rows, okl, okr = normalized_rows(self.rig, Y)
+        start = self.initiator.first(Y)
+        if start is not None:
+            self._begin(start)
+            k = start.frame
+            states[k], pred[k] = self.theta, False
+            for j in range(k + 1, n):
+                states[j], pred[j] = self._iterate(tuple(rows[j]), okl[j], okr[j])
+        self.frame = n
+        return states, pred
+
     def run(self, Y: np.ndarray) -> Track:
         """The clip through :meth:`_fast` (the kernels compiled or loaded before the timing starts),
-        or step by step where compiling would not pay (:func:`~pipeline.estimators.base.use_compiled`)."""
+        or through :meth:`_loop` where compiling would not pay (:func:`~pipeline.estimators.base.use_compiled`)."""
         Y = self.check(Y)
-        if not use_compiled(len(Y)):
-            return Estimator.run(self, Y)
-        import pipeline.estimators.kernels as kernels
+        if use_compiled(len(Y)):
+            import pipeline.estimators.kernels as kernels
 
-        kernels.warm_up("spsa_frames")
+            kernels.warm_up("spsa_frames")
+            frames = self._fast
+        else:
+            frames = self._loop
+            frames(Y[: self.warmup_frames])
         t0 = time.perf_counter()
-        states, pred = self._fast(Y)
+        states, pred = frames(Y)
         elapsed = time.perf_counter() - t0
         return self.make_track(states[:, :3], states[:, 3:] / self.dt, pred, elapsed / max(len(Y), 1), Y)
 

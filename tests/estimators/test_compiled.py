@@ -154,3 +154,18 @@ def test_short_clips_step_unless_the_cores_are_loaded(monkeypatch):
     assert "pipeline.estimators.kernels" not in sys.modules
     monkeypatch.setattr(base, "JIT_MIN_FRAMES", 0)
     assert_same_track(create("ekf", RIG, DT).run(Y), stepped_track)
+
+
+@pytest.mark.parametrize("rig", [RIG, ABOVE], ids=["right", "above"])
+def test_short_spsa_clips_loop_as_the_steps(monkeypatch, rig):
+    """Below ``JIT_MIN_FRAMES`` spsa runs its interpreted loop (:meth:`SPSAEstimator._loop`, no
+    numba loaded): the same numbers as stepping it frame by frame."""
+    import sys
+
+    monkeypatch.setattr(base, "JIT_MIN_FRAMES", 10_000)
+    monkeypatch.delitem(sys.modules, "pipeline.estimators.kernels")
+    for seed in range(3):
+        Y = observations(rig, seed)
+        looped = create("spsa", rig, DT).run(Y)
+        assert "pipeline.estimators.kernels" not in sys.modules
+        assert_same_track(looped, Estimator.run(create("spsa", rig, DT), Y))
