@@ -1,16 +1,17 @@
 """Compiled cores of the estimators whose per-frame loop is the cost: Algorithm 1 (SPSA) and the EKF,
-single track and batch, and the Rauch–Tung–Striebel backward pass of the smoothers. Each core is
-plain Python over float arrays, compiled by numba (``njit``, cached on disk, so a fresh process
-loads it instead of compiling) and run as it is when ``STEREOTRACK_JIT=0`` is set before this module
-is imported (:func:`uncompiled` loads such a copy: the tests run both and compare). The estimators
-import this module on the first ``run`` that takes the compiled path
+single track and batch, ``spsa_stereo``'s frame update, and the Rauch–Tung–Striebel backward pass of
+the smoothers. Each core is plain Python over float arrays, compiled by numba (``njit``, cached on
+disk, so a fresh process loads it instead of compiling) and run as it is when ``STEREOTRACK_JIT=0``
+is set before this module is imported (:func:`uncompiled` loads such a copy: the tests run both and
+compare). The estimators import this module on the first ``run`` that takes the compiled path
 (:func:`pipeline.estimators.base.use_compiled`), so neither ``import pipeline``, the streaming
 ``step`` nor a short clip pays for numba.
 
-The equations are the estimators' own (see :mod:`pipeline.estimators.spsa` and
-:mod:`pipeline.estimators.ekf`, after Krivokon 2011, Algorithm 1 and App. I), and the measurement
-model is :meth:`pipeline.core.camera.StereoMeasurementModel.linearize` written out for one state.
-Algorithm 1 is the same operations in the same order; the EKF differs in rounding only (the
+The equations are the estimators' own (see :mod:`pipeline.estimators.spsa`,
+:mod:`pipeline.estimators.spsa_stereo` and :mod:`pipeline.estimators.ekf`, after Krivokon 2011,
+Algorithm 1 and App. I), and the measurement model is
+:meth:`pipeline.core.camera.StereoMeasurementModel.linearize` written out for one state. Algorithm 1
+and ``spsa_stereo`` are the same operations in the same order; the EKF differs in rounding only (the
 prediction by blocks, the covariance's upper triangle mirrored, small inverses by Gauss–Jordan
 rather than LAPACK), and the tests hold every path equal to 1e-9.
 """
@@ -499,6 +500,272 @@ def rts_backward(xs, Ps, dt, Q):
                 Ps[k, i, j] += D[i, j]
 
 
+# -- spsa_stereo ----------------------------------------------------------------------------------
+#: layout of a ``spsa_stereo`` track's state ``t``: position, velocity (m, m/s), each coordinate's
+#: memory n, its run of same-signed innovations, its last innovation, and the run of gated frames
+T_P, T_V, T_MEM, T_RUN, T_SGN, T_GRUN = 0, 3, 6, 9, 12, 15
+T_SIZE = 16
+#: layout of its parameters ``prm``: the rectifying frame (R row-major, t), the baseline, the two
+#: disparity maps (3×4 row-major), both cameras' poses (R, t), fx·fy per camera, then scalars
+P_R, P_T, P_B, P_AL, P_AR, P_POSE, P_F2 = 0, 9, 12, 13, 25, 37, 61
+P_DT, P_C, P_FAR, P_SWEEPS, P_COST_GATE, P_NIS_GATE, P_SIGMA2, P_NMAX, P_KD, P_AMIN_D, P_RUNLEN, P_RESTART = range(63, 75)
+P_SIZE = 75
+#: the robust scale's ring of recent NIS values (``RobustNISScale``): values, count, next slot,
+#: the current scale, its floor
+SC_MEMORY = 30
+SC_COUNT, SC_HEAD, SC_VALUE, SC_MIN = 30, 31, 32, 33
+SC_SIZE = 34
+LN4 = math.log(4.0)
+DIAGONALS = np.array([[1.0, 1.0, 1.0], [1.0, 1.0, -1.0], [1.0, -1.0, 1.0], [-1.0, 1.0, 1.0]])
+
+
+@kernel
+def st_cost(q0, q1, q2, yn, use_l, use_r, prm):
+    """``J(q) = ‖h(g⁻¹(q)) − y‖²`` through the disparity maps (``SPSAStereoEstimator.cost``)."""
+    s0, s1, s2 = q0, q1, q0 - q2
+    if s2 <= 1e-12:
+        return BIG_COST
+    c = 0.0
+    for cam in range(2):
+        if (use_l if cam == 0 else use_r):
+            a = P_AL if cam == 0 else P_AR
+            w = prm[a + 8] * s0 + prm[a + 9] * s1 + prm[a + 10] + prm[a + 11] * s2
+            if w <= 1e-12:
+                return BIG_COST
+            du = (prm[a] * s0 + prm[a + 1] * s1 + prm[a + 2] + prm[a + 3] * s2) / w - yn[2 * cam]
+            dv = (prm[a + 4] * s0 + prm[a + 5] * s1 + prm[a + 6] + prm[a + 7] * s2) / w - yn[2 * cam + 1]
+            c += du * du + dv * dv
+    return c
+
+
+@kernel
+def st_minimise(q0, q1, q2, yn, use_l, use_r, prm):
+    """Simultaneous-perturbation Newton steps on the frame's cost (``SPSAStereoEstimator._minimise``)."""
+    c = prm[P_C]
+    J0 = st_cost(q0, q1, q2, yn, use_l, use_r, prm)
+    one = use_l != use_r
+    s1 = math.sqrt(0.5) if (use_l and use_r) else 1.0
+    dim = 2.0 if one else 3.0
+    for _ in range(int(prm[P_SWEEPS])):
+        g0 = g1 = g2 = hsum = 0.0
+        for i in range(4):
+            D0, D1, D2 = DIAGONALS[i, 0], DIAGONALS[i, 1], DIAGONALS[i, 2]
+            d0, d1, d2 = D0, D1 * s1, (D0 if one else D2)
+            Jp = st_cost(q0 + c * d0, q1 + c * d1, q2 + c * d2, yn, use_l, use_r, prm)
+            Jm = st_cost(q0 - c * d0, q1 - c * d1, q2 - c * d2, yn, use_l, use_r, prm)
+            d = Jp - Jm
+            g0 += D0 * d
+            g1 += D1 * d
+            g2 += (D0 if one else D2) * d
+            hsum += Jp + Jm - 2.0 * J0
+        if not hsum > 0.0:
+            break
+        k = dim * c / (2.0 * hsum)
+        t0, t1, t2 = k * g0, k * g1 * s1, k * g2
+        while (q0 - t0) - (q2 - t2) <= 1e-12:
+            t0, t1, t2 = 0.5 * t0, 0.5 * t1, 0.5 * t2
+        J1 = st_cost(q0 - t0, q1 - t1, q2 - t2, yn, use_l, use_r, prm)
+        if not J1 < J0:
+            break
+        q0, q1, q2, J0 = q0 - t0, q1 - t1, q2 - t2, J1
+        if max(abs(t0), abs(t1), abs(t2)) < prm[P_FAR]:
+            break
+    return q0, q1, q2, J0
+
+
+@kernel
+def st_g(p0, p1, p2, prm, q):
+    """``q = g(p)`` into ``q``; False behind the rectifying frame (``SPSAStereoEstimator.g``)."""
+    x = prm[P_R] * p0 + prm[P_R + 1] * p1 + prm[P_R + 2] * p2 + prm[P_T]
+    y = prm[P_R + 3] * p0 + prm[P_R + 4] * p1 + prm[P_R + 5] * p2 + prm[P_T + 1]
+    z = prm[P_R + 6] * p0 + prm[P_R + 7] * p1 + prm[P_R + 8] * p2 + prm[P_T + 2]
+    if z <= 1e-9:
+        return False
+    q[0], q[1], q[2] = x / z, y / z, (x - prm[P_B]) / z
+    return True
+
+
+@kernel
+def st_g_inv(q0, q1, q2, prm, out, at):
+    """``g⁻¹(q)`` into ``out[at:at + 3]`` (``SPSAStereoEstimator.g_inv``)."""
+    z = prm[P_B] / (q0 - q2)
+    a, b, c = q0 * z - prm[P_T], q1 * z - prm[P_T + 1], z - prm[P_T + 2]
+    out[at] = prm[P_R] * a + prm[P_R + 3] * b + prm[P_R + 6] * c
+    out[at + 1] = prm[P_R + 1] * a + prm[P_R + 4] * b + prm[P_R + 7] * c
+    out[at + 2] = prm[P_R + 2] * a + prm[P_R + 5] * b + prm[P_R + 8] * c
+
+
+@kernel
+def st_scale_add(sc, nis):
+    """``RobustNISScale.add`` of one value: the ring's median over ln 4, at least the floor."""
+    if not math.isfinite(nis):
+        return
+    sc[int(sc[SC_HEAD])] = nis
+    sc[SC_HEAD] = (sc[SC_HEAD] + 1) % SC_MEMORY
+    sc[SC_COUNT] = min(sc[SC_COUNT] + 1, SC_MEMORY)
+    m = int(sc[SC_COUNT])
+    v = np.sort(sc[:m])
+    med = v[m // 2] if m % 2 else 0.5 * (v[m // 2 - 1] + v[m // 2])
+    sc[SC_VALUE] = max(sc[SC_MIN], med / LN4)
+
+
+@kernel
+def st_gate(pp, yn, use_l, use_r, consistent, prm, sc):
+    """``SPSAStereoEstimator._gate_cameras``: (use left, use right, cameras gated, whether the
+    frame's ``consistent`` is needed and not known yet: NaN)."""
+    for i in range(3):
+        if not math.isfinite(pp[i]):
+            return use_l, use_r, 0, False
+    out_l, out_r, gated = use_l, use_r, 0
+    for c in range(2):
+        if (out_l if c == 0 else out_r):
+            r = P_POSE + 12 * c
+            x = prm[r] * pp[0] + prm[r + 1] * pp[1] + prm[r + 2] * pp[2] + prm[r + 9]
+            y = prm[r + 3] * pp[0] + prm[r + 4] * pp[1] + prm[r + 5] * pp[2] + prm[r + 10]
+            z = prm[r + 6] * pp[0] + prm[r + 7] * pp[1] + prm[r + 8] * pp[2] + prm[r + 11]
+            nis = ((x / z - yn[2 * c]) ** 2 + (y / z - yn[2 * c + 1]) ** 2) * prm[P_F2 + c] / prm[P_SIGMA2]
+            scale = sc[SC_VALUE]
+            st_scale_add(sc, nis)
+            if nis / scale > prm[P_NIS_GATE]:
+                gated += 1
+                if c == 0:
+                    out_l = False
+                else:
+                    out_r = False
+    if gated == 2:
+        if math.isnan(consistent):
+            return use_l, use_r, gated, True
+        if consistent > 0.0:
+            return use_l, use_r, 0, False
+    return out_l, out_r, gated, False
+
+
+@kernel
+def st_memory(t, i, e, cap, runlen):
+    """Kesten's rule on coordinate ``i``'s memory (``SPSAStereoEstimator._memory``)."""
+    same = (e > 0.0) == (t[T_SGN + i] > 0.0)
+    t[T_SGN + i] = e
+    t[T_RUN + i] = t[T_RUN + i] + 1 if same else 0
+    if t[T_RUN + i] >= runlen:
+        t[T_MEM + i] = max(1.0, 0.5 * t[T_MEM + i])
+        t[T_RUN + i] = 0
+    else:
+        t[T_MEM + i] = min(t[T_MEM + i] + 1.0, cap)
+    return t[T_MEM + i]
+
+
+@kernel
+def st_gains(n):
+    """(α, β/α) of the growing-memory line fit after n corrections (``SPSAStereoEstimator._gains``)."""
+    if n <= 1.0:
+        return 1.0, 0.0
+    return 2.0 * (2 * n - 1) / (n * (n + 1)), 3.0 / (2 * n - 1)
+
+
+@kernel
+def st_max_memory(alpha):
+    """The memory at which the growing-memory gain falls to α (``spsa_stereo.max_memory``)."""
+    return ((4 - alpha) + math.sqrt((4 - alpha) ** 2 - 8 * alpha)) / (2 * alpha)
+
+
+@kernel
+def st_begin(t, p0, p1, p2, v0, v1, v2, memory):
+    """A fresh start at ``(p, v)`` with ``memory`` frames of evidence (``SPSAStereoEstimator._begin``)."""
+    t[T_P], t[T_P + 1], t[T_P + 2], t[T_V], t[T_V + 1], t[T_V + 2] = p0, p1, p2, v0, v1, v2
+    for i in range(3):
+        t[T_MEM + i], t[T_RUN + i], t[T_SGN + i] = memory, 0.0, 0.0
+
+
+@kernel
+def st_correct(t, q, h0, h1, h2, prm, w):
+    """The line-fit correction of (x/z, y/z, b/z) and the velocity from it (the end of
+    ``SPSAStereoEstimator._update``); the image coordinates' gain α."""
+    e0, e1, ed = h0 - q[0], h1 - q[1], (h0 - h2) - (q[0] - q[2])
+    dd = q[0] - q[2]
+    runlen = prm[P_RUNLEN]
+    a0, r0 = st_gains(st_memory(t, 0, e0, prm[P_NMAX], runlen))
+    a1, r1 = st_gains(st_memory(t, 1, e1, prm[P_NMAX], runlen))
+    cap = st_max_memory(min(1.0, max(prm[P_AMIN_D], prm[P_KD] * dd)))
+    ad, rad = st_gains(st_memory(t, 2, ed, cap, runlen))
+    d_new = dd + ad * ed
+    if d_new <= 1e-12:
+        d_new = dd
+    x0, x1 = q[0] + a0 * e0, q[1] + a1 * e1
+    st_g_inv(x0, x1, x0 - d_new, prm, w, 0)
+    d_vel = dd + rad * ad * ed
+    x0v, x1v = q[0] + r0 * a0 * e0, q[1] + r1 * a1 * e1
+    if d_vel > 1e-12:
+        st_g_inv(x0v, x1v, x0v - d_vel, prm, w, 3)
+    else:
+        w[3], w[4], w[5] = w[0], w[1], w[2]
+    k = 1.0 / prm[P_DT]
+    for i in range(3):
+        t[T_V + i] = t[T_V + i] + k * (w[3 + i] - t[T_P + i])  # t[T_P] still holds the prediction
+        t[T_P + i] = w[i]
+    return a0
+
+
+@kernel
+def st_update(t, yn, use_l, use_r, consistent, tri, prm, sc, q, w):
+    """One frame after the start (``SPSAStereoEstimator._update``): (predicted, cost, gain α,
+    gated, need) where ``need`` asks for the frame's ``consistent`` (1) or ``tri`` (2) when they
+    are not known yet (NaN; the state is then left half-updated: the caller restores it)."""
+    for i in range(3):
+        t[T_P + i] = t[T_P + i] + t[T_V + i] * prm[P_DT]
+    if not (use_l or use_r):
+        return True, math.nan, math.nan, 0, 0
+    gated = 0
+    if math.isfinite(prm[P_NIS_GATE]):
+        use_l, use_r, gated, need = st_gate(t[T_P : T_P + 3], yn, use_l, use_r, consistent, prm, sc)
+        if need:
+            return True, math.nan, math.nan, gated, 1
+        if not (use_l or use_r):
+            return True, math.nan, math.nan, gated, 0
+    if not st_g(t[T_P], t[T_P + 1], t[T_P + 2], prm, q):  # behind the camera: from the frame's own minimum
+        if use_l and use_r and math.isnan(tri[3]):
+            return True, math.nan, math.nan, gated, 2
+        if not (use_l and use_r and st_g(tri[0], tri[1], tri[2], prm, q)) or not (
+                math.isfinite(q[0]) and math.isfinite(q[1]) and math.isfinite(q[2])) or q[0] - q[2] <= 1e-12:
+            return True, math.nan, math.nan, gated, 0
+        h0, h1, h2, cost = st_minimise(q[0], q[1], q[2], yn, True, True, prm)
+        st_g_inv(h0, h1, h2, prm, w, 0)
+        st_begin(t, w[0], w[1], w[2], 0.0, 0.0, 0.0, 1.0)
+        return False, cost, 1.0, gated, 0
+    h0, h1, h2, cost = st_minimise(q[0], q[1], q[2], yn, use_l, use_r, prm)
+    if cost > prm[P_COST_GATE] * (int(use_l) + int(use_r)):
+        return True, cost, math.nan, gated, 0
+    return False, cost, st_correct(t, q, h0, h1, h2, prm, w), gated, 0
+
+
+#: why :func:`spsa_stereo_frames` stopped: the end, a restart to ask for, or a frame's
+#: ``consistent`` or ``tri`` to compute (then that frame is run again)
+ST_DONE, ST_RESTART, ST_CONSISTENT, ST_TRI = 0, 1, 2, 3
+
+
+@kernel
+def spsa_stereo_frames(Yn, okl, okr, consistent, tri, k0, prm, t, sc, states, pred, costs, gains, gated, restarts):
+    """``spsa_stereo`` from frame ``k0`` on (``SPSAStereoEstimator._update`` and the count of gated
+    frames, frame after frame): ``(frame, why)``. At a restart (the gated run reached
+    ``restart_after``) the frame's outputs are written as if none and the caller asks the initiator.
+    A frame that needs what only the caller computes (``consistent``: both cameras gated;
+    ``tri``, row ``[x, y, z, known]``: a prediction behind the cameras) is undone, to be run again."""
+    q, w, t0, sc0 = np.empty(3), np.empty(6), np.empty(T_SIZE), np.empty(SC_SIZE)
+    for j in range(k0, Yn.shape[0]):
+        t0[:], sc0[:] = t, sc
+        p, cost, gain, g, need = st_update(t, Yn[j], okl[j], okr[j], consistent[j], tri[j], prm, sc, q, w)
+        if need:
+            t[:], sc[:] = t0, sc0
+            return j, ST_CONSISTENT if need == 1 else ST_TRI
+        had = okl[j] or okr[j]
+        t[T_GRUN] = t[T_GRUN] + 1 if g else (0.0 if had else t[T_GRUN])
+        for i in range(6):
+            states[j, i] = t[i]
+        pred[j], costs[j], gains[j], gated[j], restarts[j] = p, cost, gain, g, 0.0
+        if t[T_GRUN] >= prm[P_RESTART]:
+            return j, ST_RESTART
+    return Yn.shape[0], ST_DONE
+
+
 _warm: set[str] = set()
 
 
@@ -506,7 +773,7 @@ def warm_up(*names: str) -> None:
     """Compile, or load from numba's cache, the named kernels (``ekf_frames``, ``spsa_frames``,
     ``rts_backward``; all without names) once per process, each with the argument types the
     estimators pass, so that a timed loop times arithmetic, not compilation."""
-    for name in names or ("ekf_frames", "spsa_frames", "rts_backward"):
+    for name in names or ("ekf_frames", "spsa_frames", "rts_backward", "spsa_stereo_frames"):
         if name not in _warm:
             _warm.add(name)
             if JIT:
@@ -526,5 +793,11 @@ def _warm_spsa() -> None:
                 0.1, 0.01, 0.03, np.zeros(S_SIZE), np.zeros((n, 6)), np.ones(n, dtype=np.bool_))
 
 
-_WARM_UPS = {"ekf_frames": _warm_ekf, "spsa_frames": _warm_spsa,
+def _warm_spsa_stereo() -> None:
+    n, f = 3, np.zeros
+    spsa_stereo_frames(np.full((n, 4), np.nan), f(n, np.bool_), f(n, np.bool_), f(n), f((n, 4)), 0, f(P_SIZE),
+                       f(T_SIZE), f(SC_SIZE), f((n, 6)), np.ones(n, dtype=np.bool_), f(n), f(n), f(n), f(n))
+
+
+_WARM_UPS = {"ekf_frames": _warm_ekf, "spsa_frames": _warm_spsa, "spsa_stereo_frames": _warm_spsa_stereo,
              "rts_backward": lambda: rts_backward(np.zeros((3, 6)), np.stack([np.eye(6)] * 3), 0.1, np.eye(6))}

@@ -99,6 +99,7 @@ from pipeline.estimators.base import (
     not_started,
     register,
     stereo_consistent,
+    use_compiled,
 )
 from pipeline.estimators.spsa import normalized_rows
 
@@ -457,12 +458,75 @@ class SPSAStereoEstimator(Estimator):
         self.frame = n
         return states, pred, costs, gains, gated, restarts
 
+    def _parameters(self):
+        """Everything :func:`kernels.spsa_stereo_frames` reads besides the frames, packed in its layout."""
+        import pipeline.estimators.kernels as kernels
+
+        prm = np.zeros(kernels.P_SIZE)
+        prm[kernels.P_R : kernels.P_T], prm[kernels.P_T : kernels.P_B], prm[kernels.P_B] = self._Rl, self._tl, self._b
+        prm[kernels.P_AL : kernels.P_AR], prm[kernels.P_AR : kernels.P_POSE] = self._Al, self._Ar
+        prm[kernels.P_POSE : kernels.P_F2] = [v for R, t in self._poses for v in (*R, *t)]
+        prm[kernels.P_F2 : kernels.P_F2 + 2] = self._f2
+        prm[kernels.P_DT :] = (self.dt, self._c, self._far, self._sweeps, self._gate, self._nis_gate,
+                               self.config.pixel_sigma**2, self._nmax_image, self._kd, self._amin_d, self._runlen,
+                               self.config.restart_after)
+        sc = np.zeros(kernels.SC_SIZE)
+        sc[kernels.SC_VALUE] = sc[kernels.SC_MIN] = self._scale.minimum
+        return prm, sc
+
+    def _compiled(self, Y: np.ndarray) -> tuple:
+        """:meth:`_fast` through :func:`kernels.spsa_stereo_frames`. Where the kernel stops, this
+        asks the initiator for a restart, or computes what a frame needs and only Python has (both
+        cameras gated: whether the detections are one point; a prediction behind the cameras: the
+        frame's triangulation), and lets the kernel run that frame again."""
+        import pipeline.estimators.kernels as kernels
+
+        self.reset()
+        n = len(Y)
+        states, pred = np.full((n, 6), np.nan), np.ones(n, dtype=bool)
+        costs, gains, gated, restarts = (np.full(n, np.nan) for _ in range(4))
+        start = self.initiator.first(Y)
+        if start is not None:
+            rows = self.rig.normalize(Y)
+            okl, okr = np.isfinite(rows[:, :2]).all(axis=1), np.isfinite(rows[:, 2:]).all(axis=1)
+            prm, sc = self._parameters()
+            t = np.zeros(kernels.T_SIZE)
+            kernels.st_begin(t, *start.state, self._start_memory())
+            states[start.frame], pred[start.frame] = t[:6], False
+            consistent, tri = np.full(n, np.nan), np.full((n, 4), np.nan)
+            j, ra = start.frame + 1, self.config.restart_after
+            while j < n:
+                j, why = kernels.spsa_stereo_frames(rows, okl, okr, consistent, tri, j, prm, t, sc, states, pred, costs,
+                                                    gains, gated, restarts)
+                if why == kernels.ST_CONSISTENT:
+                    consistent[j] = stereo_consistent(self.model, Y[j], self.config.pixel_sigma, self.config.gate)
+                elif why == kernels.ST_TRI:
+                    tri[j] = (*self._unit_rig.triangulate(rows[j]), 1.0)
+                elif why == kernels.ST_RESTART:
+                    s = self.initiator.restart(j, Y[max(0, j + 1 - ra) : j + 1])
+                    if s is not None:
+                        kernels.st_begin(t, *s.state, self._start_memory())
+                        t[kernels.T_GRUN] = 0.0
+                        states[j], pred[j], restarts[j] = t[:6], False, 1.0
+                    j += 1
+        self.frame = n
+        return states, pred, costs, gains, gated, restarts
+
     def run(self, Y: np.ndarray) -> Track:
-        """The clip through :meth:`_fast` (a warm-up on the first frames outside the timing)."""
+        """The clip through the compiled core (:meth:`_compiled`, the kernels compiled or loaded
+        before the timing starts), or through :meth:`_fast` where compiling would not pay
+        (:func:`~pipeline.estimators.base.use_compiled`); a warm-up on the first frames outside the timing."""
         Y = self.check(Y)
-        self._fast(Y[: self.warmup_frames])
+        if use_compiled(len(Y)):
+            import pipeline.estimators.kernels as kernels
+
+            kernels.warm_up("spsa_stereo_frames")
+            frames = self._compiled
+        else:
+            frames = self._fast
+            frames(Y[: self.warmup_frames])
         t0 = time.perf_counter()
-        states, pred, costs, gains, gated, restarts = self._fast(Y)
+        states, pred, costs, gains, gated, restarts = frames(Y)
         elapsed = time.perf_counter() - t0
         n = len(Y)
         S = np.array(states, dtype=float).reshape(n, 6)

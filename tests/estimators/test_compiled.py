@@ -15,7 +15,7 @@ from pipeline.estimators.base import Estimator
 RIG = StereoRig.from_parameters(640, 480, (610.0, 590.0), (322.0, 241.0), 0.3, 4.0)
 ABOVE = StereoRig(RIG.left, Camera(RIG.left.K, np.eye(3), np.array([0.0, 0.3, 0.0])), RIG.image_size)  # above the left
 DT = 1 / 30
-COMPILED = ["spsa", "ekf", "ekf_rts"]
+COMPILED = ["spsa", "ekf", "ekf_rts", "spsa_stereo"]
 
 
 def observations(rig: StereoRig, seed: int, n: int = 120) -> np.ndarray:
@@ -92,6 +92,36 @@ def test_the_test_tracks_exercise_every_branch():
     assert np.nansum(tr.extra["gated"]) >= 5
     assert tr.predicted[50:56].all() and not tr.predicted[60:70].any()
     assert set(np.unique(tr.nis_dof)) >= {0, 2, 4}
+
+
+def stereo_observations(rig: StereoRig, seed: int, n: int = 160) -> np.ndarray:
+    """:func:`observations`, then the second camera's detection sliding 40 px along its epipolar
+    line for 15 frames (one camera gated until the track restarts), then running off along it (gated
+again right after a restart), then the marker rushing at the
+    cameras (``spsa_stereo``'s prediction falls behind them and it starts from the frame's minimum)."""
+    rng = np.random.default_rng(seed)
+    Y = observations(rig, seed, n)
+    Y[110:125, 2 if rig is RIG else 3] += 40.0
+    Y[128:136, 2 if rig is RIG else 3] += 12.0 * np.arange(1, 9)  # and then runs away from it, frame after frame
+    z = np.linspace(0.6, 0.02, n - 140)
+    Y[140:] = rig.project(np.column_stack([np.full_like(z, 0.05), np.full_like(z, 0.02), z])) + rng.normal(0, 0.7, (len(z), 4))
+    return Y
+
+
+@pytest.mark.parametrize("rig", [RIG, ABOVE], ids=["right", "above"])
+def test_spsa_stereo_compiled_through_every_branch(rig):
+    """The compiled ``spsa_stereo`` equals its streaming steps through restarts (the kernel stops,
+    the initiator is asked, the kernel resumes), single cameras gated, both gated but one point
+    (lag, not an outlier), gaps and a prediction behind the cameras; the branches occur."""
+    for seed in range(3):
+        Y = stereo_observations(rig, seed)
+        for restart_after in (3, 8):
+            est = create("spsa_stereo", rig, DT, {"restart_after": restart_after})
+            tr = est.run(Y)
+            assert_same_track(tr, stepped(est, Y))
+            assert np.nansum(tr.extra["restart"]) >= 1 and np.nansum(tr.extra["gated"]) >= 5
+    behind = create("spsa_stereo", rig, DT, {"restart_after": 8}).run(stereo_observations(rig, 0))
+    assert np.any(behind.extra["gain"][140:] == 1.0)  # the start from the frame's own minimum
 
 
 def test_ekf_with_a_time_offset_compiled_and_stepped():
