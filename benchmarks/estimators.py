@@ -5,7 +5,7 @@ cores against the same methods stepped frame by frame in Python, the first ``run
 process with and without numba's on-disk cache, and the EKF against filterpy's own. Every row is
 printed as it is measured; ratios compare alternatives measured in the same run.
 
-    python benchmarks/estimators.py [--frames 300] [--tracks 1000] [--against REV] [--out DIR | --write-docs]
+    python benchmarks/estimators.py [--frames 300] [--tracks 1000] [--against REV [--long 1000]] [--out DIR | --write-docs]
 
 ``--against REV`` also times the same runs with stereotrack as of git revision REV (a worktree, its
 own interpreter): the issue's targets are ratios to the code of the day it was filed.
@@ -53,6 +53,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--tracks", type=int, default=1000)
     ap.add_argument("--against", default=None, help="a git revision to time the same runs with")
+    ap.add_argument("--long", type=int, default=1000, help="frames of the longer single track timed against REV")
     add_output_args(ap)
     args = ap.parse_args()
     out = output_dir(args, "estimators")
@@ -138,47 +139,54 @@ def best(fn, repeat=3):
 for m in ("ekf", "spsa", "spsa_stereo"):
     e = create(m, rig, dt); e.run(Y)
     print(m, len(Y) / best(lambda: e.run(Y)))
-for m in ("ekf", "spsa"):
+for m in ("ekf", "spsa") if len(Yb) else ():
     e = create(m, rig, dt)
     print("batch " + m, Yb.shape[0] * len(Y) / best(lambda: e.run_batch(Yb), 2))
 """
 
 
-def fresh_rates(root: Path, data: Path) -> dict[str, float]:
+def fresh_rates(root: Path, Y: Path, Yb: Path) -> dict[str, float]:
     """:data:`THEN`'s steps/s per run, with the code in ``root``, in a fresh interpreter."""
-    res = subprocess.run([sys.executable, "-c", THEN, str(data / "Y.npy"), str(data / "Yb.npy")], capture_output=True,
-                         text=True, env={**os.environ, "PYTHONPATH": str(root)}, cwd=root, check=True)
+    res = subprocess.run([sys.executable, "-c", THEN, str(Y), str(Yb)], capture_output=True, text=True,
+                         env={**os.environ, "PYTHONPATH": str(root)}, cwd=root, check=True)
     return {line.rsplit(" ", 1)[0]: float(line.rsplit(" ", 1)[1]) for line in res.stdout.strip().splitlines()}
 
 
 def against_revision(md: LiveDoc, rev: str, rig, dt: float, Y: np.ndarray, Yb: np.ndarray, args) -> None:
-    """The same single-track runs and batches with the code of revision ``rev`` and with today's,
-    each in a fresh interpreter (today's short-clip path), then today's compiled paths here; each
-    best of 3, measured in this run."""
+    """The same single-track runs (``--frames`` and ``--long`` frames) and batches with the code of
+    revision ``rev`` and with today's, each in a fresh interpreter (today's short-clip path), then
+    today's compiled paths here; each best of 3, measured in this run."""
+    s = load_scenario("receding").with_overrides(frames=args.long)
+    Yl = rig.project(simulate_truth(s).positions[:, 0]) + np.random.default_rng(1).normal(0, 1.0, (args.long, 4))
+    here = Path(__file__).resolve().parent.parent
     with tempfile.TemporaryDirectory() as tmp:
-        tree = stack_tree(Path(tmp), rev)
-        np.save(Path(tmp) / "Y.npy", Y)
-        np.save(Path(tmp) / "Yb.npy", Yb)
-        then, now = fresh_rates(tree, Path(tmp)), fresh_rates(Path(__file__).resolve().parent.parent, Path(tmp))
+        tmp = Path(tmp)
+        tree = stack_tree(tmp, rev)
+        for name, a in (("Y", Y), ("Yb", Yb), ("Yl", Yl), ("none", np.zeros((0, 1, 4)))):
+            np.save(tmp / f"{name}.npy", a)
+        then, now = (fresh_rates(root, tmp / "Y.npy", tmp / "Yb.npy") for root in (tree, here))
+        then_l = fresh_rates(tree, tmp / "Yl.npy", tmp / "none.npy")
     md += [f"## Against the code of `{rev}`", "",
            f"The same runs with stereotrack as of `{rev}` (a git worktree) and as of today, each in a fresh "
-           f"interpreter, measured in this run. A fresh process runs a clip under {JIT_MIN_FRAMES:,} frames "
-           "without loading the compiled cores (\"today, short clip\": `ekf` steps frame by frame, `spsa` runs "
-           "Algorithm 1's step in one loop, `spsa_stereo` its frame update in one loop); \"compiled\" is what longer clips, "
-           "batches and a process that has loaded the cores take.", "",
-           f"| run | `{rev}` (steps/s) | today, short clip | today, compiled | today's best / `{rev}` | target |",
+           f"interpreter, measured in this run, on {args.frames:,} and on {args.long:,} frames of `receding`. A fresh "
+           f"process runs a clip under {JIT_MIN_FRAMES:,} frames without loading the compiled cores (\"today, "
+           "interpreted\": `ekf` steps frame by frame, `spsa` runs Algorithm 1's step in one loop, `spsa_stereo` its "
+           "frame update in one loop), and a longer one compiled (\"today, compiled\", also what batches and a "
+           "process that has loaded the cores take). The ratio is today's compiled path over the old code.", "",
+           f"| run | `{rev}` (steps/s) | today, interpreted | today, compiled | compiled / `{rev}` | target |",
            "|---|---:|---:|---:|---:|---|"]
-    for m in ("ekf", "spsa", "spsa_stereo"):
-        est = create(m, rig, dt)
-        compiled = args.frames / timed(lambda est=est: est.run(Y)) if m in COMPILED else None
-        best = max(compiled or 0.0, now[m])
-        target = f"≥ {TARGETS[m]:.0f}×" if m in TARGETS else ""
-        md.append(f"| {m}, one track | {then[m]:,.0f} | {now[m]:,.0f} | "
-                  f"{f'{compiled:,.0f}' if compiled else '(not compiled)'} | {best / then[m]:.1f}× | {target} |")
+    for frames, Ys, old, new in ((args.frames, Y, then, now), (args.long, Yl, then_l, None)):
+        for m in ("ekf", "spsa", "spsa_stereo"):
+            est = create(m, rig, dt)
+            compiled = frames / timed(lambda est=est, Ys=Ys: est.run(Ys))
+            target = f"≥ {TARGETS[m]:.0f}×" if m in TARGETS else ""
+            interpreted = f"{new[m]:,.0f}" if new and frames < JIT_MIN_FRAMES else "— (compiled)"
+            md.append(f"| {m}, one track of {frames:,} frames | {old[m]:,.0f} | {interpreted} | {compiled:,.0f} | "
+                      f"{compiled / old[m]:.1f}× | {target} |")
     for m, goal in BATCH_TARGETS.items():
         est = create(m, rig, dt)
         rate = args.tracks * args.frames / timed(lambda est=est: est.run_batch(Yb), repeat=2)
-        md.append(f"| {m}, batch of {args.tracks:,} | {then['batch ' + m]:,.0f} | — | {rate:,.0f} | "
+        md.append(f"| {m}, batch of {args.tracks:,} × {args.frames} | {then['batch ' + m]:,.0f} | — | {rate:,.0f} | "
                   f"{rate / then['batch ' + m]:.1f}× | ≥ {goal:,.0f} track-steps/s |")
     md.append("")
 

@@ -510,11 +510,12 @@ T_SIZE = 16
 P_R, P_T, P_B, P_AL, P_AR, P_POSE, P_F2 = 0, 9, 12, 13, 25, 37, 61
 P_DT, P_C, P_FAR, P_SWEEPS, P_COST_GATE, P_NIS_GATE, P_SIGMA2, P_NMAX, P_KD, P_AMIN_D, P_RUNLEN, P_RESTART = range(63, 75)
 P_SIZE = 75
-#: the robust scale's ring of recent NIS values (``RobustNISScale``): values, count, next slot,
-#: the current scale, its floor
+#: the robust scale's recent NIS values (``RobustNISScale``): a ring in arrival order, the same
+#: values sorted (the median without sorting every frame), count, next slot, the scale, its floor
 SC_MEMORY = 30
-SC_COUNT, SC_HEAD, SC_VALUE, SC_MIN = 30, 31, 32, 33
-SC_SIZE = 34
+SC_SORTED = 30
+SC_COUNT, SC_HEAD, SC_VALUE, SC_MIN = 60, 61, 62, 63
+SC_SIZE = 64
 LN4 = math.log(4.0)
 DIAGONALS = np.array([[1.0, 1.0, 1.0], [1.0, 1.0, -1.0], [1.0, -1.0, 1.0], [-1.0, 1.0, 1.0]])
 
@@ -597,15 +598,27 @@ def st_g_inv(q0, q1, q2, prm, out, at):
 
 @kernel
 def st_scale_add(sc, nis):
-    """``RobustNISScale.add`` of one value: the ring's median over ln 4, at least the floor."""
+    """``RobustNISScale.add`` of one value: the oldest value leaves the sorted copy when the ring
+    is full, the new one is inserted in order, and the scale is their median over ln 4, at least
+    the floor."""
     if not math.isfinite(nis):
         return
-    sc[int(sc[SC_HEAD])] = nis
-    sc[SC_HEAD] = (sc[SC_HEAD] + 1) % SC_MEMORY
-    sc[SC_COUNT] = min(sc[SC_COUNT] + 1, SC_MEMORY)
-    m = int(sc[SC_COUNT])
-    v = np.sort(sc[:m])
-    med = v[m // 2] if m % 2 else 0.5 * (v[m // 2 - 1] + v[m // 2])
+    m, h, srt = int(sc[SC_COUNT]), int(sc[SC_HEAD]), SC_SORTED
+    if m == SC_MEMORY:
+        i = 0
+        while sc[srt + i] != sc[h]:
+            i += 1
+        for r in range(i, m - 1):
+            sc[srt + r] = sc[srt + r + 1]
+        m -= 1
+    i = m
+    while i > 0 and sc[srt + i - 1] > nis:
+        sc[srt + i] = sc[srt + i - 1]
+        i -= 1
+    sc[srt + i] = nis
+    m += 1
+    sc[h], sc[SC_HEAD], sc[SC_COUNT] = nis, (h + 1) % SC_MEMORY, m
+    med = sc[srt + m // 2] if m % 2 else 0.5 * (sc[srt + m // 2 - 1] + sc[srt + m // 2])
     sc[SC_VALUE] = max(sc[SC_MIN], med / LN4)
 
 
