@@ -181,6 +181,15 @@ class SPSAStereoEstimator(Estimator):
 
     def reset(self) -> None:
         super().reset()
+        if not hasattr(self, "_Rl"):
+            self._constants()
+        self._scale = RobustNISScale(self.config.pixel_sigma)
+        self._gated_run = 0  # frames in a row with a camera gated (restart after cfg.restart_after)
+        self.p = [0.0, 0.0, 0.0]
+        self.v = [0.0, 0.0, 0.0]
+
+    def _constants(self) -> None:
+        """What the rig and the settings fix, computed at the first reset (neither changes after)."""
         cfg = self.config
         self._unit_rig = self.rig.normalized()  # triangulates normalized observations (restarts)
         R0, t0 = rectifying_frame(self.rig)  # q lives in this frame: any layout is a "right" one
@@ -198,10 +207,7 @@ class SPSAStereoEstimator(Estimator):
         self._nis_gate = camera_gate(cfg.pixel_sigma, cfg.gate)
         self._f2 = [float(c.K[0, 0] * c.K[1, 1]) for c in self.rig.cameras]  # px² per normalized unit²
         self._poses = [(c.R.ravel().tolist(), c.t.ravel().tolist()) for c in self.rig.cameras]  # for the gate
-        self._scale = RobustNISScale(cfg.pixel_sigma)
-        self._gated_run = 0  # frames in a row with a camera gated (restart after cfg.restart_after)
-        self.p = [0.0, 0.0, 0.0]
-        self.v = [0.0, 0.0, 0.0]
+        self._prm: np.ndarray | None = None  # the compiled core's parameters (:meth:`_parameters`)
 
     @property
     def x(self) -> np.ndarray:
@@ -458,10 +464,15 @@ class SPSAStereoEstimator(Estimator):
         self.frame = n
         return states, pred, costs, gains, gated, restarts
 
-    def _parameters(self):
-        """Everything :func:`kernels.spsa_stereo_frames` reads besides the frames, packed in its layout."""
+    def _parameters(self) -> tuple[np.ndarray, np.ndarray]:
+        """Everything :func:`kernels.spsa_stereo_frames` reads besides the frames, packed in its
+        layout (made once), and a fresh robust scale."""
         import pipeline.estimators.kernels as kernels
 
+        sc = np.zeros(kernels.SC_SIZE)
+        sc[kernels.SC_VALUE] = sc[kernels.SC_MIN] = self._scale.minimum
+        if self._prm is not None:
+            return self._prm, sc
         prm = np.zeros(kernels.P_SIZE)
         prm[kernels.P_R : kernels.P_T], prm[kernels.P_T : kernels.P_B], prm[kernels.P_B] = self._Rl, self._tl, self._b
         prm[kernels.P_AL : kernels.P_AR], prm[kernels.P_AR : kernels.P_POSE] = self._Al, self._Ar
@@ -470,8 +481,7 @@ class SPSAStereoEstimator(Estimator):
         prm[kernels.P_DT :] = (self.dt, self._c, self._far, self._sweeps, self._gate, self._nis_gate,
                                self.config.pixel_sigma**2, self._nmax_image, self._kd, self._amin_d, self._runlen,
                                self.config.restart_after)
-        sc = np.zeros(kernels.SC_SIZE)
-        sc[kernels.SC_VALUE] = sc[kernels.SC_MIN] = self._scale.minimum
+        self._prm = prm
         return prm, sc
 
     def _compiled(self, Y: np.ndarray) -> tuple:
