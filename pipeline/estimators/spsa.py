@@ -250,7 +250,7 @@ class SPSAEstimator(Estimator):
         clips too short for compiling to pay."""
         self.reset()
         n = len(Y)
-        states, pred = np.full((n, 6), np.nan), np.ones(n, dtype=bool)
+        states, pred = np.full((n, self.state_dim), np.nan), np.ones(n, dtype=bool)
         rows, okl, okr = normalized_rows(self.rig, Y)
         start = self.initiator.first(Y)
         if start is not None:
@@ -266,18 +266,23 @@ class SPSAEstimator(Estimator):
         """The clip through :meth:`_fast` (the kernels compiled or loaded before the timing starts),
         or through :meth:`_loop` where compiling would not pay (:func:`~pipeline.estimators.base.use_compiled`)."""
         Y = self.check(Y)
-        if use_compiled(len(Y)):
-            import pipeline.estimators.kernels as kernels
-
-            kernels.warm_up("spsa_frames")
-            frames = self._fast
-        else:
-            frames = self._loop
+        frames = self._path(len(Y))
+        if frames == self._loop:
             frames(Y[: self.warmup_frames])
         t0 = time.perf_counter()
         states, pred = frames(Y)
         elapsed = time.perf_counter() - t0
-        return self.make_track(states[:, :3], states[:, 3:] / self.dt, pred, elapsed / max(len(Y), 1), Y)
+        vel = states[:, 3:] / self.dt if self.state_dim == 6 else np.full((len(Y), 3), np.nan)
+        return self.make_track(states[:, :3], vel, pred, elapsed / max(len(Y), 1), Y)
+
+    def _path(self, frames: int):
+        """:meth:`_fast` (its kernel compiled or loaded here) where compiling pays, else :meth:`_loop`."""
+        if not use_compiled(frames):
+            return self._loop
+        import pipeline.estimators.kernels as kernels
+
+        kernels.warm_up("spsa_frames")
+        return self._fast
 
     def run_batch(self, Y: np.ndarray) -> np.ndarray:
         """Algorithm 1 over M tracks (M × frames × 4 → M × frames × 3) through the compiled

@@ -64,5 +64,8 @@ class SPSAVGGEstimator(SPSAEstimator):
                 self.theta = [t[i] - cfg.alpha * d * D[i] for i in range(3)]
         return list(self.theta), not (use_l or use_r)
 
-    run = Estimator.run  # step by step: the compiled core is Algorithm 1's, not this iteration's
+    def _path(self, frames: int):
+        """Always the interpreted loop: the compiled core is Algorithm 1's, not this iteration's."""
+        return self._loop
+
     run_batch = Estimator.run_batch

@@ -187,15 +187,16 @@ def test_short_clips_step_unless_the_cores_are_loaded(monkeypatch):
 
 
 @pytest.mark.parametrize("rig", [RIG, ABOVE], ids=["right", "above"])
-def test_short_spsa_clips_loop_as_the_steps(monkeypatch, rig):
+@pytest.mark.parametrize("method", ["spsa", "spsa_vgg"])
+def test_short_spsa_clips_loop_as_the_steps(monkeypatch, rig, method):
     """Below ``JIT_MIN_FRAMES`` spsa runs its interpreted loop (:meth:`SPSAEstimator._loop`, no
-    numba loaded): the same numbers as stepping it frame by frame."""
+    numba loaded), and spsa_vgg always does: the same numbers as stepping them frame by frame."""
     import sys
 
     monkeypatch.setattr(base, "JIT_MIN_FRAMES", 10_000)
     monkeypatch.delitem(sys.modules, "pipeline.estimators.kernels")
     for seed in range(3):
         Y = observations(rig, seed)
-        looped = create("spsa", rig, DT).run(Y)
+        looped = create(method, rig, DT).run(Y)
         assert "pipeline.estimators.kernels" not in sys.modules
-        assert_same_track(looped, Estimator.run(create("spsa", rig, DT), Y))
+        assert_same_track(looped, Estimator.run(create(method, rig, DT), Y))
