@@ -18,6 +18,9 @@ import numpy as np
 
 from pipeline.core.errors import StereotrackError
 
+#: the 5×5 structuring element that grows a blob by 2 px (its anti-aliased rim)
+DILATE_2PX = np.ones((5, 5), np.uint8)
+
 
 @dataclass(frozen=True)
 class MarkerColor:
@@ -331,7 +334,9 @@ class BlobDetector:
             found = [Detection(mk.name, kp.pt[0] + ox, kp.pt[1] + oy, np.pi * (kp.size / 2) ** 2, 1.0)
                      for kp in self._sbd.detect(mask)]
             return sorted(found, key=lambda d: -d.area)
-        n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+        # 16-bit labels where they cannot overflow (a search window): a third of the time of 32-bit ones
+        ltype = cv2.CV_16U if mask.size <= 0xFFFF else cv2.CV_32S
+        n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8, ltype=ltype)
         found = []
         H, W = mask.shape
         for i in range(1, n):
@@ -364,9 +369,10 @@ class BlobDetector:
         H, W = labels.shape
         x0, y0, x1, y1 = max(x - 3, 0), max(y - 3, 0), min(x + w + 3, W), min(y + h + 3, H)
         comp = (labels[y0:y1, x0:x1] == i).astype(np.uint8)
-        region = cv2.dilate(comp, np.ones((5, 5), np.uint8)).astype(bool)
+        region = cv2.dilate(comp, DILATE_2PX).astype(bool)
         patch = bgr[y0:y1, x0:x1]
-        c = patch.max(axis=2).astype(np.float32) - patch.min(axis=2)
+        b, g, r = patch[..., 0], patch[..., 1], patch[..., 2]  # per channel: a reduction over 3 is slow
+        c = np.maximum(np.maximum(b, g), r).astype(np.float32) - np.minimum(np.minimum(b, g), r)
         hue = hsv[y0:y1, x0:x1, 0].astype(np.int16)
         lo, hi = (mk.h_lo - 5) % 180, (mk.h_hi + 5) % 180
         hue_ok = (hue >= lo) & (hue <= hi) if lo <= hi else (hue >= lo) | (hue <= hi)
@@ -378,5 +384,5 @@ class BlobDetector:
         if s <= 0:
             ys, xs = np.nonzero(comp)
             return float(xs.mean() + x0), float(ys.mean() + y0)
-        ys, xs = np.mgrid[y0:y1, x0:x1]
+        xs, ys = np.arange(x0, x1)[None, :], np.arange(y0, y1)[:, None]  # broadcast: the same products as a grid
         return float((wts * xs).sum() / s), float((wts * ys).sum() / s)
