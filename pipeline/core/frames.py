@@ -3,7 +3,6 @@ OpenCV reads, or folders of numbered PNGs), or a single video as a one-camera cl
 
 from __future__ import annotations
 
-import os
 import queue
 import re
 import threading
@@ -21,11 +20,6 @@ VIDEO_EXTS = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm")
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 
 _FRAME_NUMBER = re.compile(r"(\d+)$")
-
-#: decoder threads per camera: the two cameras decode side by side while the detect stage works on
-#: a third thread, so each gets a share of the other cores (on 2 cores, one: ffmpeg's default of
-#: one per core made the stage 8 % slower there)
-DECODE_THREADS = max(1, ((os.cpu_count() or 2) - 1) // 2)
 
 
 def find_camera_source(clip_dir: Path, name: str) -> Path:
@@ -87,7 +81,7 @@ class CameraReader:
                 raise ClipError("file not found", self.source)
             if self.source.stat().st_size == 0:
                 raise ClipError("empty video file", self.source)
-            self.cap = cv2.VideoCapture(str(self.source), cv2.CAP_ANY, [cv2.CAP_PROP_N_THREADS, DECODE_THREADS])
+            self.cap = cv2.VideoCapture(str(self.source))
             if not self.cap.isOpened():
                 raise ClipError("OpenCV cannot open this video (corrupt or unsupported)", self.source)
             ok, first = self.cap.read()
