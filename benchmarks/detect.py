@@ -3,13 +3,18 @@ and 1280×720, next to the bare decode rate of the same videos (``cv2.VideoCaptu
 each frame discarded, as the stage's own reader does), measured in the same run. Clips are
 rendered first (one marker, the `receding` scene).
 
-    python benchmarks/detect.py [--frames 150]
+    python benchmarks/detect.py [--frames 150] [--repeat 5] [--against REV]
+
+``--against REV`` also times the stage with stereotrack as of git revision REV against today's,
+each in a fresh interpreter, interleaved, on the same clips.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import subprocess
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -17,7 +22,7 @@ from pathlib import Path
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 import cv2
-from _common import page
+from _common import page, stack_tree
 
 from detectors.blob import BlobDetector, MarkerColor
 from detectors.blob_tracker import search_window
@@ -56,9 +61,43 @@ def decode_seconds(path: Path) -> tuple[int, float]:
     return n, time.perf_counter() - t0
 
 
+def decode_and_stage(clip: Path, out: Path, repeat: int) -> tuple[float, float]:
+    """Frames/s per camera of the bare decode (both videos) and of the detect stage, each the
+    best of ``repeat`` runs, interleaved (the machine's load moves both alike)."""
+    decode, stage = [], []
+    for _ in range(repeat):
+        (n_l, t_l), (n_r, t_r) = decode_seconds(clip / "left.mp4"), decode_seconds(clip / "right.mp4")
+        decode.append((n_l + n_r) / (t_l + t_r))
+        t0 = time.perf_counter()
+        detect_clip(clip, "blob", out_dir=out)
+        stage.append((n_l + n_r) / (time.perf_counter() - t0))
+    return max(decode), max(stage)
+
+
+#: one detect stage in a fresh interpreter with the code in argv[1] (a warm-up run first): seconds
+STAGE = ("import sys, time; sys.path.insert(0, sys.argv[1]); from detectors.stage import detect_clip; "
+         "detect_clip(sys.argv[2], out_dir=sys.argv[3]); t = time.perf_counter(); "
+         "detect_clip(sys.argv[2], out_dir=sys.argv[3]); print(time.perf_counter() - t)")
+
+
+def stage_against(tree: Path, clip: Path, out: Path, repeat: int) -> tuple[float, float]:
+    """Seconds of the stage with the code in ``tree`` and with today's, each the best of ``repeat``
+    fresh interpreters, interleaved."""
+    here = Path(__file__).resolve().parent.parent
+    times: dict[Path, list[float]] = {tree: [], here: []}
+    for _ in range(repeat):
+        for root in times:
+            res = subprocess.run([sys.executable, "-c", STAGE, str(root), str(clip), str(out)], capture_output=True,
+                                 text=True, cwd=root, env={**os.environ, "PYTHONPATH": str(root)}, check=True)
+            times[root].append(float(res.stdout.strip().splitlines()[-1]))
+    return min(times[tree]), min(times[here])
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=150)
+    ap.add_argument("--repeat", type=int, default=5, help="runs of the decode and of the stage, interleaved (best kept)")
+    ap.add_argument("--against", default=None, help="a git revision whose detect stage to time beside today's")
     args = ap.parse_args()
     marker = MarkerColor.from_rgb("red", (230, 30, 30))
     print(f"# detection throughput, frames/s per camera ({args.frames} frames, one marker, {os.cpu_count()} cores)\n")
@@ -70,8 +109,7 @@ def main() -> None:
         for w, h in SIZES:
             clip = render(Path(tmp), w, h, args.frames)
             frames = decode_all(clip / "left.mp4")
-            (n_l, t_l), (n_r, t_r) = decode_seconds(clip / "left.mp4"), decode_seconds(clip / "right.mp4")
-            decode_fps = (n_l + n_r) / (t_l + t_r)
+            decode_fps, stage_fps = decode_and_stage(clip, Path(tmp) / f"out{w}", args.repeat)
             cv2.setNumThreads(1)  # "alone on one core"
             blob = BlobDetector([marker])
             t0 = time.perf_counter()
@@ -92,14 +130,19 @@ def main() -> None:
                     tr.update(f)
                 rates[mode] = len(frames) / (time.perf_counter() - t0)
             cv2.setNumThreads(-1)
-            t0 = time.perf_counter()
-            detect_clip(clip, "blob", out_dir=Path(tmp) / f"out{w}")
-            stage_fps = 2 * len(frames) / (time.perf_counter() - t0)
             print(f"| {w}×{h} | {decode_fps:.0f} | {blob_fps:.0f} | {blob_win_fps:.0f} | {rates['meanshift']:.0f} "
                   f"| {rates['camshift']:.0f} "
                   f"| {stage_fps:.0f} | {stage_fps / decode_fps:.2f} |", flush=True)
+        if args.against:
+            print(f"\n| resolution | stage, `{args.against}` (s) | stage, today (s) | today's speed / `{args.against}` |")
+            print("|---|---:|---:|---:|")
+            tree = stack_tree(Path(tmp), args.against)
+            for w, _h in SIZES:
+                then, now = stage_against(tree, Path(tmp) / f"clip{w}", Path(tmp) / "against", args.repeat)
+                print(f"| {w}×{_h} | {then:.3f} | {now:.3f} | {then / now:.2f}× |", flush=True)
     print("\nBare decode: both videos read one after the other in one thread. The stage decodes both cameras in "
-          "background threads while detecting, so it can approach or pass that rate on two cores.")
+          "background threads while detecting, so it can approach or pass that rate on two cores. Both are the best "
+          f"of {args.repeat} runs, interleaved; the detectors alone, one run.")
 
 
 if __name__ == "__main__":
