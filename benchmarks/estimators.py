@@ -192,22 +192,22 @@ def against_revision(md: LiveDoc, rev: str, rig, dt: float, Y: np.ndarray, Yb: n
 
 
 def first_run_cost(md: LiveDoc) -> None:
-    """A fresh process's first ``run`` of the compiled EKF and SPSA, with numba's cache empty (it
+    """A fresh process's first ``run`` of the compiled EKF, SPSA and spsa_stereo, with numba's cache empty (it
     compiles) and then filled (it loads), against the same run with the cache warm in-process."""
     code = ("import time, numpy as np; from pipeline.estimators import base, create; base.JIT_MIN_FRAMES = 0; "
             "from renderers.scenario import "
             "load_scenario; s = load_scenario('receding').with_overrides(frames=60); r = s.rig.build(); "
             "Y = r.project(np.c_[np.zeros(60), np.zeros(60), np.linspace(2, 3, 60)]); t0 = time.perf_counter(); "
-            "[create(m, r, s.dt).run(Y) for m in ('ekf', 'spsa')]; print(time.perf_counter() - t0)")
+            "[create(m, r, s.dt).run(Y) for m in ('ekf', 'spsa', 'spsa_stereo')]; print(time.perf_counter() - t0)")
     with tempfile.TemporaryDirectory() as cache:
         env = {**os.environ, "NUMBA_CACHE_DIR": cache}
         runs = [float(subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
                                      check=True).stdout) for _ in range(3)]
     md += ["## What a fresh process pays", "",
-           "The first `run` of `ekf` and of `spsa` (60 frames each, made to take the compiled path, which a clip takes "
-           f"from {JIT_MIN_FRAMES:,} frames or once the cores are loaded) in a fresh interpreter, numba's cache in an "
+           "The first `run` of `ekf`, `spsa` and `spsa_stereo` (60 frames each, made to take the compiled path, which a "
+           f"clip takes from {JIT_MIN_FRAMES:,} frames or once the cores are loaded) in a fresh interpreter, numba's cache in an "
            "empty folder (`NUMBA_CACHE_DIR`): the first process compiles and writes the cache, the next ones load it.", "",
-           "| process | first run of ekf + spsa (s) |", "|---|---:|",
+           "| process | first run of ekf + spsa + spsa_stereo (s) |", "|---|---:|",
            f"| 1st (compiles; once per installation and source change) | {runs[0]:.2f} |",
            f"| 2nd (loads the cache) | {runs[1]:.2f} |", f"| 3rd (loads the cache) | {runs[2]:.2f} |", ""]
 
