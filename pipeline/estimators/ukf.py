@@ -50,5 +50,7 @@ class UKFEstimator(GatedFilter, Estimator):
         if not len(rows):
             f.x, f.P = f.x_prior.copy(), f.P_prior.copy()
             return gated_step(filtered_step(f.x, f.P, True), n_gated)
-        f.update(y[rows], R=self.R[np.ix_(rows, rows)], hx=lambda x: self.model.function(x)[rows])
+        # every sigma point through the measurement model at once; filterpy asks for them in order
+        h = iter(self.model.function(f.sigmas_f)[:, rows])
+        f.update(y[rows], R=self.R[np.ix_(rows, rows)], hx=lambda _x: next(h))
         return gated_step(filtered_step(f.x, f.P, False, f), n_gated)
