@@ -142,8 +142,9 @@ class BackgroundWriter:
         self.error: BaseException | None = None
         self.commit = False
         self.inline = None if threaded else open_writer()  # unthreaded: everything on the caller's thread
-        self.thread = threading.Thread(target=self._loop, args=(open_writer,), name="frame-writer", daemon=True)
+        self.thread: threading.Thread | None = None
         if threaded:
+            self.thread = threading.Thread(target=self._loop, args=(open_writer,), name="frame-writer", daemon=True)
             self.thread.start()
 
     def _loop(self, open_writer: Callable[[], FrameWriter]) -> None:
@@ -179,6 +180,7 @@ class BackgroundWriter:
         if self.inline is not None:
             self.inline.close()
             return
+        assert self.thread is not None
         self.commit = True
         self.queue.put(None)
         self.thread.join()
@@ -187,7 +189,7 @@ class BackgroundWriter:
     def abort(self) -> None:
         if self.inline is not None:
             self.inline.abort()
-        elif self.thread.is_alive():
+        elif self.thread is not None and self.thread.is_alive():
             self.commit = False
             self.queue.put(None)
             self.thread.join()

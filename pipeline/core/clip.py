@@ -86,8 +86,6 @@ DETECTIONS = Schema("out/detections.csv", "one detection (a camera may have none
     "area": "the blob's area, px²",
     "score": "the detector's confidence in [0, 1]: the blob's roundness, or the tracker's share of the colour mass",
 })
-#: per frame: position, velocity, and for filters the NIS of the update (with its degrees of
-#: freedom) and the position NEES against the truth (empty where there is none)
 ESTIMATES = Schema("out/estimates/<method>.csv", "one marker at one frame", "estimate", {
     "frame": _FRAME,
     "t": "the frame time, s",
