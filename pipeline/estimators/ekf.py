@@ -173,12 +173,25 @@ class EKFEstimator(GatedFilter, Estimator):
 
     def run_batch(self, Y: np.ndarray) -> np.ndarray:
         """The filter over M tracks (M × frames × 4 → M × frames × 3): the starts found for all
-        tracks at once, then each track through the compiled core."""
+        tracks at once, then every track through the compiled batch core; a track that asks for a
+        restart (the initiator is Python) runs again on its own through :meth:`_compiled`."""
+        import pipeline.estimators.kernels as kernels
+
         Y = np.asarray(Y, dtype=float)
         self.reset()
-        starts = self.initiator.first_batch(Y)
-        return np.stack([self._compiled(y, s)["pos"] for y, s in zip(Y, starts, strict=True)]) if len(Y) else \
-            np.zeros((0, Y.shape[1], 3))
+        M, n = Y.shape[:2]
+        out = np.full((M, n, 3), np.nan)
+        starts = self.initiator.first_batch(Y) if M else []
+        begin = np.array([s.frame if s is not None else n for s in starts], dtype=np.int64)
+        x0 = np.array([s.state if s is not None else np.zeros(6) for s in starts]).reshape(M, 6)
+        P0 = np.array([s.covariance if s is not None else np.eye(6) for s in starts]).reshape(M, 6, 6)
+        cfg = self.config
+        threshold = self.gate_threshold() if cfg.gate > 0 else np.inf
+        stopped = kernels.ekf_batch(Y, begin, x0, P0, np.stack([self.rig.left.P, self.rig.right.P]),
+                                    self.model.time_offset, self.dt, self.Q, self.R, threshold, cfg.restart_after, out)
+        for m in np.flatnonzero(stopped < n):
+            out[m] = self._compiled(Y[m], starts[m])["pos"]
+        return out
 
 
 @register

@@ -130,6 +130,21 @@ def test_ekf_with_a_time_offset_compiled_and_stepped():
     assert_same_track(est.run(Y), stepped(est, Y))
 
 
+@pytest.mark.parametrize("offset", [0.0, 0.4 * DT])
+def test_ekf_batch_mixes_restarting_plain_and_unstarted_tracks(offset):
+    """The batch core runs the tracks that never restart, a track that asks for a restart runs again
+    on its own, and one that never starts stays NaN: every row equals that track's own ``run``."""
+    rng = np.random.default_rng(5)
+    t = np.arange(120) * DT
+    plain = RIG.project(np.column_stack([0.2 * np.cos(t), 0.1 * t, 2.5 + 0.3 * t])) + rng.normal(0, 0.7, (120, 4))
+    Ys = np.stack([observations(RIG, 0), plain, np.full((120, 4), np.nan), plain[::-1], observations(RIG, 1)])
+    est = create("ekf", RIG, DT, time_offset=offset)
+    runs = [est.run(Y) for Y in Ys]
+    restarts = [np.nansum(tr.extra.get("restart", [0.0])) for tr in runs]
+    assert restarts[0] >= 1 and restarts[4] >= 1 and restarts[1] == restarts[3] == 0
+    np.testing.assert_allclose(est.run_batch(Ys), np.stack([tr.position for tr in runs]), rtol=1e-9, atol=1e-9)
+
+
 def test_linearize_kernel_is_the_measurement_model():
     rng = np.random.default_rng(0)
     Pm = np.stack([RIG.left.P, RIG.right.P])
