@@ -3,7 +3,8 @@ per-camera summary, with pixel errors against ``truth.csv`` when the clip has on
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from array import array
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -50,7 +51,7 @@ class CameraSummary:
 @dataclass
 class DetectResult:
     path: Path
-    rows: list[tuple]
+    rows: DetectionTable  # every detection written, in compact columns; iterating gives the CSV's rows
     summaries: list[CameraSummary] = field(default_factory=list)
     learned: dict[str, str] = field(default_factory=dict)  # window-learned marker → the range chosen
     checks: list[Check] = field(default_factory=list)
@@ -150,9 +151,48 @@ def detect_clip(
     return _write_detections(out_dir, clip_, source, scan, checks, record)
 
 
+class DetectionTable:
+    """Detections as the scan finds them, in compact columns (a long clip has tens of thousands;
+    as Python tuples each row weighs about 200 bytes, and the memory stays with the process)."""
+
+    def __init__(self) -> None:
+        self.frame, self.camera, self.marker = array("q"), array("b"), array("h")
+        self.u, self.v, self.area, self.score = array("d"), array("d"), array("d"), array("d")
+        self.names: list[str] = []
+        self._index: dict[str, int] = {}
+
+    def add(self, frame: int, camera: int, marker: str, u: float, v: float, area: float, score: float) -> None:
+        if marker not in self._index:
+            self._index[marker] = len(self.names)
+            self.names.append(marker)
+        self.frame.append(frame)
+        self.camera.append(camera)
+        self.marker.append(self._index[marker])
+        for col, value in ((self.u, u), (self.v, v), (self.area, area), (self.score, score)):
+            col.append(value)
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+    def columns(self) -> dict[str, np.ndarray]:
+        """The ``detections.csv`` columns as arrays (camera and marker names as strings)."""
+        names = np.array(self.names, dtype=object)
+        return {"frame": np.frombuffer(self.frame, dtype=np.int64).astype(float),
+                "camera": np.array(CAMERAS, dtype=object)[np.frombuffer(self.camera, dtype=np.int8)],
+                "marker": names[np.frombuffer(self.marker, dtype=np.int16)],
+                **{k: np.frombuffer(getattr(self, k), dtype=float) for k in ("u", "v", "area", "score")}}
+
+    def __iter__(self) -> Iterator[tuple]:
+        """The table's rows ``(frame, camera, marker, u, v, area, score)``, in the order found
+        (``detections.csv``)."""
+        for k, c, m, u, v, a, sc in zip(self.frame, self.camera, self.marker, self.u, self.v, self.area, self.score,
+                                        strict=True):
+            yield k, CAMERAS[c], self.names[m], u, v, a, sc
+
+
 @dataclass
 class _Scanned:
-    rows: list[tuple]
+    rows: DetectionTable
     samples: dict[tuple[str, str], list]
     frames: int
     cameras: int
@@ -164,7 +204,7 @@ def _scan(source: StereoFrameSource, finders: list, rig: StereoRig | None, marke
     whole-frame colour samples from a few frames for the colour checks."""
     total = len(source)
     sample_at = set(np.linspace(0, max(total - 1, 0), min(CHECK_SAMPLES, max(total, 1))).astype(int).tolist())
-    out = _Scanned([], {}, 0, len(finders))
+    out = _Scanned(DetectionTable(), {}, 0, len(finders))
     sampler = BlobDetector(markers, max_per_marker=2)
     for fr in source:
         if frame_sink is not None:
@@ -177,7 +217,7 @@ def _scan(source: StereoFrameSource, finders: list, rig: StereoRig | None, marke
                 _sample_colours(sampler, img, CAMERAS[c], unsampled, out.samples)
             for d in finders[c].detect(img):
                 u, v = (d.u, d.v) if rig is None else rig.cameras[c].undistort(np.array([[d.u, d.v]]))[0]
-                out.rows.append((fr.index, CAMERAS[c], d.marker, u, v, d.area, d.score))
+                out.rows.add(fr.index, c, d.marker, u, v, d.area, d.score)
         out.frames = fr.index + 1
         if progress is not None:
             progress(out.frames, total)
@@ -189,12 +229,12 @@ def _write_detections(out_dir: Path, clip: Clip, source: StereoFrameSource, scan
     """``detections.csv`` and ``detect.json``; the result the estimate stage takes in memory."""
     path = Outputs(out_dir).detections
     write_csv(path, DETECTION_COLUMNS, scan.rows)
-    summaries = summarize(scan.rows, clip, scan.frames, scan.cameras)
+    cols = scan.rows.columns()
+    summaries = summarize(cols, clip, scan.frames, scan.cameras)
     cameras = [asdict(s) for s in summaries]
     write_json(Outputs(out_dir).detect_info, {
         "clip": str(clip.path), "frames": scan.frames, "frame_size": list(source.size), "stereo": source.stereo,
         **record, "checks": [c.as_dict() for c in checks], "cameras": cameras})
-    cols = {name: [r[i] for r in scan.rows] for i, name in enumerate(DETECTION_COLUMNS)}
     return DetectResult(path, scan.rows, summaries, learned=record["learned"], checks=checks,
                         marker_colours=record["marker_colours"],
                         observations=observations_from_columns(cols, scan.frames, path),
@@ -234,35 +274,47 @@ def _sample_colours(sampler: BlobDetector, img: np.ndarray, cam: str, skip: set[
                                                       areas[1], one))
 
 
-def summarize(rows: list[tuple], clip: Clip, n_frames: int, n_cams: int) -> list[CameraSummary]:
-    """Frames, detections, misses and pixel errors against truth (when ``truth.csv`` exists)."""
+def summarize(cols: dict[str, np.ndarray], clip: Clip, n_frames: int, n_cams: int) -> list[CameraSummary]:
+    """Frames, detections, misses and pixel errors against truth (when ``truth.csv`` exists), from
+    the detection columns (the ``detections.csv`` schema)."""
     truth = clip.truth_table()
     out = []
     grid = _footage_to_grid(clip) if truth is not None else None
     for c in range(n_cams):
         cam = CAMERAS[c]
-        mine = [r for r in rows if r[1] == cam]
-        s = CameraSummary(cam, n_frames, len(mine))
+        mine = {k: v[cols["camera"] == cam] for k, v in cols.items()}
+        s = CameraSummary(cam, n_frames, len(mine["frame"]))
         if truth is not None:
-            place = grid[cam] if grid is not None else None  # truth rows are grid frames
-            det = {(int(r[0]) if place is None else int(place[int(r[0])]), r[2]): (r[3], r[4]) for r in mine}
-            errs, misses, false = [], 0, 0
-            # detections are undistorted: compare with the pinhole truth where the clip has it
-            us, vs = (truth.get(f"{a}_{cam}_pinhole", truth[f"{a}_{cam}"]) for a in ("u", "v"))
-            for k, name, u, v, vis in zip(truth["frame"], truth["marker"], us, vs, truth[f"visible_{cam}"], strict=True):
-                key = (int(k), name)
-                if vis and key in det:
-                    errs.append(np.hypot(det[key][0] - u, det[key][1] - v))
-                elif vis:
-                    misses += 1
-                elif key in det:
-                    false += 1
-            s.misses, s.false = misses, false
-            if errs:
-                e = np.array(errs)
-                s.err_median, s.err_p95, s.err_max = float(np.median(e)), float(np.percentile(e, 95)), float(e.max())
+            _against_truth(s, mine, truth, grid[cam] if grid is not None else None)
         out.append(s)
     return out
+
+
+def _against_truth(s: CameraSummary, mine: dict[str, np.ndarray], truth: dict[str, np.ndarray],
+                   place: np.ndarray | None) -> None:
+    """One camera's misses, false detections and pixel errors: each truth row (a grid frame and a
+    marker; ``place`` maps footage frames to grid frames) against the last detection of that
+    marker in that frame, as arrays (a long clip's truth is tens of thousands of rows)."""
+    cam = s.camera
+    names = sorted(set(truth["marker"].tolist()) | set(mine["marker"].tolist()))
+    index = {n: i for i, n in enumerate(names)}
+    frames = mine["frame"].astype(np.int64)
+    if place is not None and len(frames):
+        frames = np.asarray(place, dtype=np.int64)[frames]
+    keys = frames * len(names) + np.array([index[n] for n in mine["marker"]], dtype=np.int64)
+    tkeys = truth["frame"].astype(np.int64) * len(names) + np.array([index[n] for n in truth["marker"]], dtype=np.int64)
+    table = np.full(max(int(keys.max(initial=-1)), int(tkeys.max(initial=-1))) + 1, -1, dtype=np.int64)
+    np.maximum.at(table, keys, np.arange(len(keys)))  # the last detection of a (frame, marker) wins
+    hit = table[tkeys] if len(tkeys) else np.zeros(0, dtype=np.int64)
+    vis = truth[f"visible_{cam}"].astype(bool)
+    found = hit >= 0
+    s.misses, s.false = int(np.sum(vis & ~found)), int(np.sum(~vis & found))
+    ok = vis & found
+    if ok.any():
+        # detections are undistorted: compare with the pinhole truth where the clip has it
+        us, vs = (truth.get(f"{a}_{cam}_pinhole", truth[f"{a}_{cam}"]) for a in ("u", "v"))
+        e = np.hypot(mine["u"][hit[ok]] - us[ok], mine["v"][hit[ok]] - vs[ok])
+        s.err_median, s.err_p95, s.err_max = float(np.median(e)), float(np.percentile(e, 95)), float(e.max())
 
 
 def _footage_to_grid(clip: Clip) -> dict[str, np.ndarray] | None:

@@ -9,6 +9,7 @@ truth reprojection RMSE, over :data:`RUNAWAY` × the run's median) is clipped an
 
 from __future__ import annotations
 
+import gc
 import io
 import warnings
 from collections.abc import Callable
@@ -198,6 +199,40 @@ def _runaway_note(data: ReportData, drawn: list[str]) -> str:
         f"{m} (RMSE {unit(data.metrics['methods'][m][key])})" for m in off) + " run off them")
 
 
+#: the most points one line of a figure holds: a figure is 1,200 pixels wide (12 in at :data:`DPI`),
+#: so a longer series is thinned before it is drawn (which also keeps a long clip's figures from
+#: holding several copies of every frame of every track)
+MAX_LINE_POINTS = 2000
+
+
+def _thin(*columns: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Every k-th point of a path (and its last) when it has over :data:`MAX_LINE_POINTS`."""
+    n = len(columns[0])
+    step = -(-n // MAX_LINE_POINTS)
+    if step <= 1:
+        return columns
+    idx = np.r_[np.arange(0, n - 1, step), n - 1]
+    return tuple(c[idx] for c in columns)
+
+
+def _envelope(y: np.ndarray, x: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """A per-frame series as (x, y) of at most :data:`MAX_LINE_POINTS` points: each bucket of
+    frames gives its smallest and its largest value, in frame order, so spikes stay visible and a
+    bucket with no value stays a gap."""
+    n = len(y)
+    x = np.arange(n) if x is None else x
+    step = -(-n // (MAX_LINE_POINTS // 2))
+    if step <= 1:
+        return x, y
+    Y = np.concatenate([y, np.full(-n % step, np.nan)]).reshape(-1, step)
+    ok = np.isfinite(Y)
+    lo, hi = np.where(ok, Y, np.inf).argmin(axis=1), np.where(ok, Y, -np.inf).argmax(axis=1)
+    base = np.arange(len(Y)) * step
+    idx = np.stack([base + np.minimum(lo, hi), base + np.maximum(lo, hi)], axis=1).ravel()
+    idx = np.unique(idx[idx < n])
+    return x[idx], y[idx]
+
+
 def fig_trajectories(data: ReportData, plt) -> tuple[object, str] | None:
     """Top (x–z) and side (y–z) views of every marker: truth dashed black, each method its colour."""
     if not data.point:
@@ -208,11 +243,11 @@ def fig_trajectories(data: ReportData, plt) -> tuple[object, str] | None:
     for ax, i in zip(axes, (0, 1), strict=True):
         for mk in markers:
             if data.truth and mk in data.truth:
-                ax.plot(data.truth[mk][:, 2], data.truth[mk][:, i], label="truth", **TRUTH_STYLE)
+                ax.plot(*_thin(data.truth[mk][:, 2], data.truth[mk][:, i]), label="truth", **TRUTH_STYLE)
             for meth, per in data.point.items():
                 if mk in per:
-                    ax.plot(per[mk][:, 2], per[mk][:, i], method_linestyle(meth), lw=1, color=method_colour(meth),
-                            label=meth)
+                    ax.plot(*_thin(per[mk][:, 2], per[mk][:, i]), method_linestyle(meth), lw=1,
+                            color=method_colour(meth), label=meth)
         shown = [per[mk][:, j] for per in (data.point[m] for m in keep) for mk in per for j in (2, i)]
         truth = [T[:, j] for T in (data.truth or {}).values() for j in (2, i)]
         zx = _limits([a for a in shown[::2] + truth[::2]]), _limits([a for a in shown[1::2] + truth[1::2]])
@@ -239,7 +274,7 @@ def fig_error(data: ReportData, plt) -> tuple[object, str] | None:
             with np.errstate(all="ignore"), warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
                 errs[meth] = np.nanmean([x[:n] for x in e], axis=0) * 1000
-            ax.semilogy(errs[meth], method_linestyle(meth), color=method_colour(meth), lw=1, label=meth)
+            ax.semilogy(*_envelope(errs[meth]), method_linestyle(meth), color=method_colour(meth), lw=1, label=meth)
     shown = [errs[m][errs[m] > 0] for m in data.tracking() if m in errs]
     lim = _limits([np.log10(a) for a in shown], pad=0.05)
     if lim:
@@ -258,7 +293,7 @@ def fig_image_tracks(data: ReportData, plt) -> tuple[object, str] | None:
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
     for c, ax in enumerate(axes):
         for i, (mk, Y) in enumerate(sorted(data.obs.items())):
-            ax.plot(Y[:, 2 * c], Y[:, 2 * c + 1], ".", ms=2, label=mk,
+            ax.plot(*_thin(Y[:, 2 * c], Y[:, 2 * c + 1]), ".", ms=2, label=mk,
                     color=np.array(marker_rgb(data.marker_colours, mk, i)) / 255)
         ax.set(xlabel="u (px)", ylabel="v (px)", title=("left", "right")[c] + " camera: detections (px)")
         ax.invert_yaxis()
@@ -275,9 +310,10 @@ def fig_target(data: ReportData, plt) -> tuple[object, str] | None:
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
     for ax, col, ylabel in ((axes[0], "alpha", "α (rad)"), (axes[1], "distance", "z (m)")):
         if data.target_truth is not None:
-            ax.plot(data.target_truth["t"], data.target_truth[col], label="truth", **TRUTH_STYLE)
+            ax.plot(*_envelope(data.target_truth[col], data.target_truth["t"]), label="truth", **TRUTH_STYLE)
         for meth, cols in data.target.items():
-            ax.plot(cols["t"], cols[col], method_linestyle(meth), color=method_colour(meth), lw=1, label=meth)
+            ax.plot(*_envelope(cols[col], cols["t"]), method_linestyle(meth), color=method_colour(meth), lw=1,
+                    label=meth)
         ax.set(xlabel="t (s)", ylabel=ylabel, title=f"target {ylabel.split()[0]}")
         ax.grid(alpha=0.3)
     _legend(fig, axes)
@@ -302,7 +338,7 @@ def fig_consistency(data: ReportData, plt) -> tuple[object, str] | None:
                 continue
             with np.errstate(all="ignore"):
                 mean = np.convolve(np.where(ok, v, 0), np.ones(w), "same") / np.convolve(ok, np.ones(w), "same")
-            ax.semilogy(mean, method_linestyle(meth), color=method_colour(meth), lw=1, label=meth)
+            ax.semilogy(*_envelope(mean), method_linestyle(meth), color=method_colour(meth), lw=1, label=meth)
             per_frame.append(series[2])
         if per_frame:
             k = round(dof * w * float(np.median(per_frame)))  # χ² degrees of freedom in one moving mean
@@ -338,6 +374,8 @@ def render_figures(data: ReportData, progress: Callable[[int, int], None] | None
         buf = io.BytesIO()
         fig.savefig(buf, format="png", dpi=DPI)
         plt.close(fig)
+        del fig, made
+        gc.collect()  # a figure is a web of cycles: free its lines (every frame of every track) now
         out.append((name, caption, buf.getvalue()))
     if progress is not None:
         progress(len(FIGURES), len(FIGURES))

@@ -290,14 +290,12 @@ class Clip:
             self._rigs[units] = load_calibration(self.path, units)
         return self._rigs[units]
 
-    @cached_property
-    def _truth_table(self) -> dict[str, np.ndarray] | None:
+    def truth_table(self) -> dict[str, np.ndarray] | None:
+        """``truth.csv`` as columns (with the projected pixels and visibility), or None. Read on
+        each call, not kept: the detect stage's summary needs it once, and a long clip's table is
+        megabytes (:meth:`truth` keeps the positions the later stages use)."""
         path = self.folder / "truth.csv"
         return read_csv(path, TRUTH_COLUMNS) if self.path.is_dir() and path.is_file() else None
-
-    def truth_table(self) -> dict[str, np.ndarray] | None:
-        """``truth.csv`` as columns (with the projected pixels and visibility), or None."""
-        return self._truth_table
 
     def truth(self, n_frames: int | None = None) -> ClipTruth | None:
         """``truth.csv`` (loaded once per frame count), or None for real footage."""

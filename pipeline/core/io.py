@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import itertools
 import json
 import os
 import tempfile
@@ -168,11 +169,29 @@ def read_csv(path: str | Path, required: Sequence[str] = (), numeric: Sequence[s
     Text columns (:data:`TEXT_COLUMNS`) stay strings. Columns in ``numeric`` must hold numbers
     and those in ``finite`` finite numbers: a violation is one error naming the file, the row
     (as a text editor numbers it, the header being line 1) and the value. Other columns are
-    numeric where every value parses, text otherwise.
+    numeric where every value parses, text otherwise. Rows are parsed in blocks of
+    :data:`CSV_BLOCK`, so a long table never exists as one Python string per cell.
     """
     path = Path(path)
     if not path.is_file():
         raise StereotrackError("file not found", path)
+    text = set(TEXT_COLUMNS)
+    while True:  # once more with a column found to be text, which then keeps its strings from the first row
+        parts = _read_blocks(path, required, set(numeric) | set(finite), set(finite), text)
+        mixed = [name for name, p in parts.items() if any(a.dtype == object for a in p) and name not in text]
+        if not mixed:
+            return {name: np.concatenate(p) if p else np.zeros(0, dtype=object if name in text else float)
+                    for name, p in parts.items()}
+        text.update(mixed)
+
+
+#: rows parsed at a time by :func:`read_csv`
+CSV_BLOCK = 1024
+
+
+def _read_blocks(path: Path, required: Sequence[str], must: set[str], finite: set[str],
+                 text: set[str]) -> dict[str, list[np.ndarray]]:
+    """Each column of ``path`` as arrays of up to :data:`CSV_BLOCK` rows (see :func:`read_csv`)."""
     try:
         with open(path, newline="") as fh:
             reader = csv.reader(fh)
@@ -180,31 +199,41 @@ def read_csv(path: str | Path, required: Sequence[str] = (), numeric: Sequence[s
                 header = [h.strip() for h in next(reader)]
             except StopIteration:
                 raise StereotrackError("empty file (no header row)", path) from None
-            rows = [r for r in reader if r]
+            missing = [c for c in required if c not in header]
+            if missing:
+                raise StereotrackError(f"missing column(s) {', '.join(missing)}", path)
+            parts: dict[str, list[np.ndarray]] = {name: [] for name in header}
+            first = 0
+            for raw in iter(lambda: list(itertools.islice(reader, CSV_BLOCK)), []):
+                block = [r for r in raw if r]
+                for i, name in enumerate(header):
+                    values = [r[i].strip() if i < len(r) else "" for r in block]
+                    parts[name].append(_column(values, name, first, name in text, must, finite, path))
+                first += len(block)
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise StereotrackError(f"cannot read CSV ({getattr(exc, 'strerror', None) or exc})", path) from None
-    missing = [c for c in required if c not in header]
-    if missing:
-        raise StereotrackError(f"missing column(s) {', '.join(missing)}", path)
-    cols: dict[str, np.ndarray] = {}
-    must = set(numeric) | set(finite)
-    for i, name in enumerate(header):
-        values = [r[i].strip() if i < len(r) else "" for r in rows]
-        if name in TEXT_COLUMNS:
-            cols[name] = np.array(values, dtype=object)
-            continue
-        try:
-            cols[name] = np.array([float(v) if v != "" else np.nan for v in values], dtype=float)
-        except ValueError:
-            if name in must:
-                row = next(j for j, v in enumerate(values) if not _is_number(v))
-                raise StereotrackError(f"line {row + 2}: column '{name}' is not a number ({values[row]!r})", path) from None
-            cols[name] = np.array(values, dtype=object)
-        if name in finite and not np.all(np.isfinite(cols[name])):
-            row = int(np.flatnonzero(~np.isfinite(cols[name]))[0])
-            raise StereotrackError(f"line {row + 2}: column '{name}' is {values[row] or 'empty'!s}, not a finite number",
-                                   path)
-    return cols
+    return parts
+
+
+def _column(values: list[str], name: str, first: int, text: bool, must: set[str], finite: set[str],
+            path: Path) -> np.ndarray:
+    """One block of one column: numbers, or strings (``text``, or a value that is not a number in a
+    column not bound to be numeric); ``first``: the block's first row."""
+    if text:
+        return np.array(values, dtype=object)
+    try:
+        col = np.array([float(v) if v != "" else np.nan for v in values], dtype=float)
+    except ValueError:
+        if name in must:
+            row = next(j for j, v in enumerate(values) if not _is_number(v))
+            raise StereotrackError(f"line {first + row + 2}: column '{name}' is not a number ({values[row]!r})",
+                                   path) from None
+        return np.array(values, dtype=object)
+    if name in finite and not np.all(np.isfinite(col)):
+        row = int(np.flatnonzero(~np.isfinite(col))[0])
+        raise StereotrackError(f"line {first + row + 2}: column '{name}' is {values[row] or 'empty'!s}, not a finite "
+                               "number", path)
+    return col
 
 
 def _is_number(v: str) -> bool:
