@@ -153,6 +153,18 @@ class MarkerColor:
         return cv2.bitwise_or(a, b)
 
 
+def _quantile(a: np.ndarray, q: float) -> float:
+    """``np.quantile(a, q)`` (its default linear method, the same float), from a partial sort of
+    the two values around ``q·(n − 1)``: a tenth of the time on a blob's few hundred pixels."""
+    n = a.size
+    vi = q * (n - 1)
+    lo = int(vi)
+    hi = min(lo + 1, n - 1)
+    part = np.partition(a, [lo, hi] if hi != lo else lo)
+    x0, x1, t = part[lo], part[hi], vi - lo
+    return float(x0 + (x1 - x0) * t if t < 0.5 else x1 - (x1 - x0) * (1 - t))  # numpy's lerp, both halves
+
+
 #: a blob elongated up to this ratio (a ball smeared along its motion within one exposure) is
 #: still the marker if it fills its ellipse of inertia
 MAX_BLUR_ELONGATION = 4.0
@@ -334,10 +346,23 @@ class BlobDetector:
             found = [Detection(mk.name, kp.pt[0] + ox, kp.pt[1] + oy, np.pi * (kp.size / 2) ** 2, 1.0)
                      for kp in self._sbd.detect(mask)]
             return sorted(found, key=lambda d: -d.area)
+        labels, _, blobs = self.blobs(mask, ox, oy)
+        found = []
+        for i, (x, y, w, h, area), roundness in blobs:
+            u, v = self._refine(labels, i, bgr, hsv, x, y, w, h, mk)
+            found.append(Detection(mk.name, u + ox, v + oy, float(area), float(min(roundness, 1.0))))
+        found.sort(key=lambda d: (-d.score * d.area))
+        return found
+
+    def blobs(self, mask: np.ndarray, ox: int = 0, oy: int = 0) -> tuple[np.ndarray, np.ndarray, list[tuple]]:
+        """A marker's mask as connected components: (labels, stats, the components that pass the
+        area and roundness filters as ``(label, (x, y, w, h, area), roundness)``); ``ox, oy``: the
+        mask's offset in the frame (a component cut by a search window's edge is left to the
+        whole-frame search)."""
         # 16-bit labels where they cannot overflow (a search window): a third of the time of 32-bit ones
         ltype = cv2.CV_16U if mask.size <= 0xFFFF else cv2.CV_32S
         n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8, ltype=ltype)
-        found = []
+        kept = []
         H, W = mask.shape
         for i in range(1, n):
             x, y, w, h, area = stats[i]
@@ -351,10 +376,8 @@ class BlobDetector:
                 roundness = _blurred_roundness(labels[y : y + h, x : x + w] == i, area)
                 if roundness < self.min_roundness:
                     continue
-            u, v = self._refine(labels, i, bgr, hsv, x, y, w, h, mk)
-            found.append(Detection(mk.name, u + ox, v + oy, float(area), float(min(roundness, 1.0))))
-        found.sort(key=lambda d: (-d.score * d.area))
-        return found
+            kept.append((i, (x, y, w, h, area), roundness))
+        return labels, stats, kept
 
     @staticmethod
     def _refine(labels, i, bgr, hsv, x, y, w, h, mk: MarkerColor) -> tuple[float, float]:
@@ -378,7 +401,7 @@ class BlobDetector:
         hue_ok = (hue >= lo) & (hue <= hi) if lo <= hi else (hue >= lo) | (hue <= hi)
         floor = mk.s_min * mk.v_min / 255.0 * 0.5
         inside = c[comp.astype(bool)]
-        full = max(float(np.percentile(inside, 20)) - floor, 1.0) if inside.size else 1.0
+        full = max(_quantile(inside, 0.2) - floor, 1.0) if inside.size else 1.0
         wts = np.where(region & hue_ok, np.clip((c - floor) / full, 0.0, 1.0), 0.0)
         s = wts.sum()
         if s <= 0:

@@ -266,9 +266,8 @@ def _sample_colours(sampler: BlobDetector, img: np.ndarray, cam: str, skip: set[
             continue
         mask = mk.mask(hsv)
         mask_px = int(cv2.countNonZero(mask)) * scale
-        found = sampler.detect_marker(mk, small, hsv)
-        areas = [*sorted((d.area * scale for d in found), reverse=True), 0.0, 0.0]
-        stats = cv2.connectedComponentsWithStats(mask, connectivity=8)[2]
+        _, stats, blobs = sampler.blobs(mask)  # the blobs the detector would find: their areas, no centroids
+        areas = [*sorted((float(b[1][4]) * scale for b in blobs), reverse=True), 0.0, 0.0]
         one = float(stats[1:, cv2.CC_STAT_AREA].max()) * scale / mask_px if len(stats) > 1 and mask_px else 0.0
         samples.setdefault((mk.name, cam), []).append((mask_px / (img.shape[0] * img.shape[1]), mask_px, areas[0],
                                                       areas[1], one))

@@ -254,3 +254,16 @@ def test_bad_inputs(tmp_path, png_clip):
     # no marker colours for a clip without scenario
     with pytest.raises(StereotrackError, match="--markers"):
         detect_clip(BALL if BALL.is_file() else clip / "left")
+
+
+def test_blob_quantile_is_numpys():
+    """The centroid's chroma quantile from a partial sort is numpy's linear quantile, the same float:
+    on chroma values (whole numbers in float32, as the detector has them) and on arbitrary ones."""
+    from detectors.blob import _quantile
+
+    rng = np.random.default_rng(3)
+    for trial in range(3000):
+        n = int(rng.integers(1, 300))
+        a = rng.integers(0, 256, n).astype(np.float32) if trial % 2 else rng.normal(0, 50, n).astype(np.float32)
+        for q in (0.2, 0.5, 0.73):
+            assert _quantile(a, q) == float(np.quantile(a, q))
