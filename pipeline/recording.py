@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -49,6 +50,32 @@ def _series_tabs(kind: str, title: str, markers: list[str], hidden: list[str]):
                                 overrides=_hidden([f"/metrics/{kind}/{mk}/{m}" for m in hidden]) or None)
              for mk in markers]
     return rrb.Tabs(*views) if views else None
+
+
+@dataclass
+class _Batches:
+    """Points logged per frame, frame-major: the frames that have any, how many each has, the
+    points in order (each frame's in its tracks' order) and which track each came from."""
+
+    frames: np.ndarray
+    lengths: np.ndarray
+    points: np.ndarray
+    which: np.ndarray
+
+
+def _batches(tracks: list[np.ndarray], n: int, finite: bool = True) -> _Batches:
+    """Per frame ``k < n``, the rows ``k`` of the ``tracks`` (each frames × d) that exist there (and,
+    with ``finite``, hold no NaN), as arrays: a whole clip at once, no per-frame Python objects."""
+    d = tracks[0].shape[1] if tracks else 3
+    A = np.full((n, len(tracks), d), np.nan)
+    ok = np.zeros((n, len(tracks)), dtype=bool)
+    for j, t in enumerate(tracks):
+        m = min(n, len(t))
+        A[:m, j] = t[:m]
+        ok[:m, j] = np.isfinite(t[:m]).all(axis=1) if finite else True
+    k, j = np.nonzero(ok)  # row-major: frame by frame, tracks in order
+    frames, lengths = np.unique(k, return_counts=True)
+    return _Batches(frames.astype(np.int64), lengths, A[k, j], j)
 
 
 def blueprint(fps: float = 30.0, target: bool = False, info: bool = False, markers: list[str] | None = None,
@@ -154,24 +181,22 @@ class Recorder:
                                                    rr.TimeColumn("time", duration=frames * self.dt)],
                                   columns=columns)
 
-    def _points(self, entity: str, per_frame: list[np.ndarray], colours: list[list], labels: list[list] | None,
-                kind: str, radius: float, show_labels: bool = True) -> None:
+    def _points(self, entity: str, batches: _Batches, colours: np.ndarray, labels: list[str] | None, kind: str,
+                radius: float, show_labels: bool = True) -> None:
         """One batch of points per frame (frames with none are skipped), as partitioned columns;
-        labels not drawn when ``show_labels`` is False (still shown on hover and selection)."""
+        ``colours``: one RGB per point; labels not drawn when ``show_labels`` is False (still shown
+        on hover and selection)."""
         import rerun as rr
 
-        frames = np.array([k for k, p in enumerate(per_frame) if len(p)], dtype=np.int64)
-        if not len(frames):
+        if not len(batches.frames):
             return
-        lengths = [len(per_frame[k]) for k in frames]
-        pos = np.concatenate([per_frame[k] for k in frames])
-        col = np.concatenate([np.asarray(colours[k], dtype=np.uint8).reshape(-1, 3) for k in frames])
         arch = rr.Points3D if kind == "3d" else rr.Points2D
-        kw = {"labels": [x for k in frames for x in labels[k]]} if labels is not None else {}
+        kw = {"labels": labels} if labels is not None else {}
         if labels is not None and not show_labels:
             self.rec.log(entity, arch.from_fields(show_labels=False), static=True)
-        cols = arch.columns(positions=pos, colors=col, radii=np.full(len(pos), radius, np.float32), **kw)
-        self._columns(entity, frames, cols.partition(lengths))
+        cols = arch.columns(positions=batches.points, colors=np.asarray(colours, dtype=np.uint8).reshape(-1, 3),
+                            radii=np.full(len(batches.points), radius, np.float32), **kw)
+        self._columns(entity, batches.frames, cols.partition(batches.lengths.tolist()))
 
     def _scalars(self, entity: str, series: np.ndarray, name: str | None = None, rgb=None) -> None:
         """A scalar series as columns, named and coloured (static ``SeriesLines``) as the report draws it."""
@@ -246,34 +271,31 @@ class Recorder:
     def _detections(self, est: EstimateResult, colours: dict[str, list[int]], truth: dict | None, n: int) -> None:
         """Each camera's detections (marker colours, labelled) and truth projections; truth in 3-D."""
         obs, markers = est.observations, list(est.observations)
-        mcol = {m: list(marker_rgb(colours, m, i)) for i, m in enumerate(markers)}
-        there = [[m for m in markers if truth is not None and m in truth and k < len(truth[m])] for k in range(n)]
-        tp = [np.array([truth[m][k] for m in ms]).reshape(-1, 3) for k, ms in enumerate(there)] \
-            if truth is not None else None
+        mcol = np.array([marker_rgb(colours, m, i) for i, m in enumerate(markers)], dtype=np.uint8).reshape(-1, 3)
+        there = [m for m in markers if truth is not None and m in truth]
+        tp = _batches([truth[m] for m in there], n, finite=False) if truth is not None else None
         for c, name in enumerate(("left", "right")):
-            here = [[m for m in markers if k < len(obs[m]) and np.all(np.isfinite(obs[m][k, 2 * c:2 * c + 2]))]
-                    for k in range(n)]
-            pts = [np.array([obs[m][k, 2 * c:2 * c + 2] for m in ms]).reshape(-1, 2) for k, ms in enumerate(here)]
-            self._points(f"world/{name}/detections", pts, [[mcol[m] for m in ms] for ms in here], here, "2d", 3.0)
+            det = _batches([obs[m][:, 2 * c : 2 * c + 2] for m in markers], n)
+            self._points(f"world/{name}/detections", det, mcol[det.which], [markers[j] for j in det.which], "2d", 3.0)
             if tp is not None:
-                proj = [est.rig.cameras[c].project(p) if len(p) else p[:, :2] for p in tp]
-                self._points(f"world/{name}/truth", proj, [[TRUTH_RGB_VIEWER] * len(p) for p in proj], None, "2d", 2.0)
+                proj = _Batches(tp.frames, tp.lengths, est.rig.cameras[c].project(tp.points), tp.which)
+                self._points(f"world/{name}/truth", proj, np.tile(TRUTH_RGB_VIEWER, (len(proj.points), 1)), None, "2d", 2.0)
         if truth is not None and tp is not None:
-            self._points("world/truth/points", tp, [[TRUTH_RGB_VIEWER] * len(p) for p in tp], there, "3d", TRUTH_RADIUS)
+            self._points("world/truth/points", tp, np.tile(TRUTH_RGB_VIEWER, (len(tp.points), 1)),
+                         [there[j] for j in tp.which], "3d", TRUTH_RADIUS)
             self._paths("world/truth/path", [truth[m] for m in markers if m in truth], TRUTH_RGB_VIEWER)
 
     def _method(self, rig: StereoRig, meth: str, per_marker: dict, truth: dict | None, n: int) -> None:
         """A method's labelled points in 3-D and through each camera, its path, and its error
         series per marker (``/metrics/<kind>/<marker>/<method>``, named and coloured)."""
         rgb = list(method_rgb(meth))
-        here = [[m for m, t in per_marker.items() if k < len(t.position) and np.all(np.isfinite(t.position[k]))]
-                for k in range(n)]
-        cur = [np.array([per_marker[m].position[k] for m in ms]).reshape(-1, 3) for k, ms in enumerate(here)]
-        colours = [[rgb] * len(p) for p in cur]
-        self._points(f"world/estimates/{meth}/points", cur, colours, here, "3d", POINT_RADIUS, show_labels=False)
+        names = list(per_marker)
+        cur = _batches([per_marker[m].position for m in names], n)
+        colours, labels = np.tile(rgb, (len(cur.points), 1)), [names[j] for j in cur.which]
+        self._points(f"world/estimates/{meth}/points", cur, colours, labels, "3d", POINT_RADIUS, show_labels=False)
         for c, cam in enumerate(("left", "right")):  # the estimates seen through each camera
-            seen = [rig.cameras[c].project(p) if len(p) else p[:, :2] for p in cur]
-            self._points(f"world/{cam}/estimates/{meth}", seen, colours, here, "2d", 2.5, show_labels=False)
+            seen = _Batches(cur.frames, cur.lengths, rig.cameras[c].project(cur.points), cur.which)
+            self._points(f"world/{cam}/estimates/{meth}", seen, colours, labels, "2d", 2.5, show_labels=False)
         self._paths(f"world/estimates/{meth}/path", [t.position for t in per_marker.values()], rgb)
         for marker, t in per_marker.items():
             if truth is not None and marker in truth:
@@ -318,9 +340,9 @@ class Recorder:
                 self._columns("world/truth/plate", np.array(frames, dtype=np.int64), cols.partition([1] * len(frames)))
         for meth, tr in est.target_tracks.items():
             rgb = list(method_rgb(meth))
-            pts = [tr.position[k:k + 1][np.all(np.isfinite(tr.position[k:k + 1]), axis=1)] for k in range(len(tr.position))]
-            self._points(f"world/estimates/{meth}/points", pts, [[rgb] * len(p) for p in pts],
-                         [["centre"] * len(p) for p in pts], "3d", POINT_RADIUS, show_labels=False)
+            pts = _batches([tr.position], len(tr.position))
+            self._points(f"world/estimates/{meth}/points", pts, np.tile(rgb, (len(pts.points), 1)),
+                         ["centre"] * len(pts.points), "3d", POINT_RADIUS, show_labels=False)
             self._paths(f"world/estimates/{meth}/path", [tr.position], rgb)
             self._scalars(f"metrics/target/alpha/{meth}", tr.extra["alpha"], meth, rgb)
             self._scalars(f"metrics/target/distance/{meth}", tr.extra["distance"], meth, rgb)
