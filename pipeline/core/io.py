@@ -203,22 +203,26 @@ def _read_blocks(path: Path, required: Sequence[str], must: set[str], finite: se
             if missing:
                 raise StereotrackError(f"missing column(s) {', '.join(missing)}", path)
             parts: dict[str, list[np.ndarray]] = {name: [] for name in header}
-            first = 0
-            for raw in iter(lambda: list(itertools.islice(reader, CSV_BLOCK)), []):
-                block = [r for r in raw if r]
-                for i, name in enumerate(header):
-                    values = [r[i].strip() if i < len(r) else "" for r in block]
-                    parts[name].append(_column(values, name, first, name in text, must, finite, path))
-                first += len(block)
+            block: list[list[str]] = []
+            lines: list[int] = []  # each row's line in the file (blank lines and quoted line breaks counted)
+            for row in itertools.chain(reader, [None]):
+                if row:
+                    block.append(row)
+                    lines.append(reader.line_num)
+                if block and (row is None or len(block) == CSV_BLOCK):
+                    for i, name in enumerate(header):
+                        values = [r[i].strip() if i < len(r) else "" for r in block]
+                        parts[name].append(_column(values, name, lines, name in text, must, finite, path))
+                    block, lines = [], []
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
         raise StereotrackError(f"cannot read CSV ({getattr(exc, 'strerror', None) or exc})", path) from None
     return parts
 
 
-def _column(values: list[str], name: str, first: int, text: bool, must: set[str], finite: set[str],
+def _column(values: list[str], name: str, lines: list[int], text: bool, must: set[str], finite: set[str],
             path: Path) -> np.ndarray:
     """One block of one column: numbers, or strings (``text``, or a value that is not a number in a
-    column not bound to be numeric); ``first``: the block's first row."""
+    column not bound to be numeric); ``lines``: each value's line in the file, for errors."""
     if text:
         return np.array(values, dtype=object)
     try:
@@ -226,12 +230,12 @@ def _column(values: list[str], name: str, first: int, text: bool, must: set[str]
     except ValueError:
         if name in must:
             row = next(j for j, v in enumerate(values) if not _is_number(v))
-            raise StereotrackError(f"line {first + row + 2}: column '{name}' is not a number ({values[row]!r})",
+            raise StereotrackError(f"line {lines[row]}: column '{name}' is not a number ({values[row]!r})",
                                    path) from None
         return np.array(values, dtype=object)
     if name in finite and not np.all(np.isfinite(col)):
         row = int(np.flatnonzero(~np.isfinite(col))[0])
-        raise StereotrackError(f"line {first + row + 2}: column '{name}' is {values[row] or 'empty'!s}, not a finite "
+        raise StereotrackError(f"line {lines[row]}: column '{name}' is {values[row] or 'empty'!s}, not a finite "
                                "number", path)
     return col
 

@@ -198,3 +198,23 @@ def test_run_reads_each_input_once(tmp_path, monkeypatch):
     outputs = [p for p in calls["read_csv"] + calls["read_json"] if p is not None and res.out_dir in Path(p).parents]
     assert not outputs, outputs
     assert (res.out_dir / "report.html").is_file()
+
+
+def test_long_series_are_thinned_to_what_a_figure_shows():
+    """Past MAX_LINE_POINTS a per-frame series keeps each bucket's extremes in frame order (a
+    one-frame spike and a gap survive) and a path every k-th point and its end; shorter ones are
+    drawn whole."""
+    from pipeline.report import MAX_LINE_POINTS, _envelope, _thin
+
+    rng = np.random.default_rng(0)
+    y = rng.normal(10.0, 1.0, 7001)
+    y[4321], y[100:200] = 500.0, np.nan
+    x, v = _envelope(y)
+    assert len(v) <= MAX_LINE_POINTS and np.all(np.diff(x) > 0)
+    np.testing.assert_array_equal(v, y[x])
+    assert 4321 in x and np.nanmin(v) == np.nanmin(y) and np.isnan(v[(x >= 100) & (x < 200)]).all()
+    a, b = _thin(np.arange(7001.0), y)
+    np.testing.assert_array_equal(b, y[a.astype(int)])
+    assert len(a) <= MAX_LINE_POINTS + 1 and a[-1] == 7000 and np.all(np.diff(a) > 0)
+    short = np.arange(50.0)
+    assert _envelope(short)[1] is short and _thin(short)[0] is short
