@@ -246,21 +246,25 @@ class SPSAEstimator(Estimator):
 
     def _loop(self, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """As :meth:`_fast`, through :meth:`_iterate` in one interpreted loop (observations
-        normalized at once, no per-frame objects): the arithmetic of repeated :meth:`step`, for
-        clips too short for compiling to pay."""
+        normalized at once, states kept as plain lists until the end, no per-frame arrays): the
+        arithmetic of repeated :meth:`step`, for clips too short for compiling to pay."""
         self.reset()
-        n = len(Y)
-        states, pred = np.full((n, self.state_dim), np.nan), np.ones(n, dtype=bool)
+        n, d = len(Y), self.state_dim
         rows, okl, okr = normalized_rows(self.rig, Y)
+        states: list = [None] * n
+        pred = [True] * n
         start = self.initiator.first(Y)
         if start is not None:
             self._begin(start)
             k = start.frame
-            states[k], pred[k] = self.theta, False
+            states[k], pred[k] = list(self.theta), False
+            iterate = self._iterate
             for j in range(k + 1, n):
-                states[j], pred[j] = self._iterate(tuple(rows[j]), okl[j], okr[j])
+                states[j], pred[j] = iterate(tuple(rows[j]), okl[j], okr[j])
         self.frame = n
-        return states, pred
+        blank = [math.nan] * d
+        return (np.array([s if s is not None else blank for s in states], dtype=float).reshape(n, d),
+                np.array(pred, dtype=bool))
 
     def run(self, Y: np.ndarray) -> Track:
         """The clip through :meth:`_fast` (the kernels compiled or loaded before the timing starts),
