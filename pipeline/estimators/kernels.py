@@ -414,7 +414,8 @@ def ekf_batch(Y, begin, x0, P0, Pm, delta, dt, Q, R, threshold, restart_after, o
         if k0 >= n:
             continue
         _copy_state(x0[m], P0[m], x, P)
-        counters[:] = 0
+        for a in range(6):
+            counters[a] = 0
         for a in range(3):
             out[m, k0, a] = x[a]
         stopped[m] = ekf_frames(Y[m], k0 + 1, 0, Pm, delta, dt, Q, R, threshold, restart_after, x, P, counters, sx, sP,
