@@ -155,8 +155,7 @@ class EKFEstimator(GatedFilter, Estimator):
             return a
         x, P = s.state.copy(), s.covariance.copy()
         a["pos"][s.frame], a["vel"][s.frame], a["cov"][s.frame], a["pred"][s.frame] = x[:3], x[3:], P, False
-        cfg, Pm = self.config, np.stack([self.rig.left.P, self.rig.right.P])
-        threshold = self.gate_threshold() if cfg.gate > 0 else np.inf
+        cfg, (Pm, threshold) = self.config, self._kernel_model()
         counters, sx, sP = np.zeros(6, dtype=np.int64), np.zeros(6), np.zeros((6, 6))
         k, resume = s.frame + 1, 0
         while k < n:
@@ -170,6 +169,11 @@ class EKFEstimator(GatedFilter, Estimator):
                     x[:], P[:] = r.state, r.covariance
         self.frame = n
         return a
+
+    def _kernel_model(self) -> tuple[np.ndarray, float]:
+        """What the compiled cores take of the model: both cameras' 3 × 4 matrices and the gate's
+        threshold (inf: no gate)."""
+        return np.stack([self.rig.left.P, self.rig.right.P]), self.gate_threshold() if self.config.gate > 0 else np.inf
 
     def run_batch(self, Y: np.ndarray) -> np.ndarray:
         """The filter over M tracks (M × frames × 4 → M × frames × 3): the starts found for all
@@ -185,10 +189,9 @@ class EKFEstimator(GatedFilter, Estimator):
         begin = np.array([s.frame if s is not None else n for s in starts], dtype=np.int64)
         x0 = np.array([s.state if s is not None else np.zeros(6) for s in starts]).reshape(M, 6)
         P0 = np.array([s.covariance if s is not None else np.eye(6) for s in starts]).reshape(M, 6, 6)
-        cfg = self.config
-        threshold = self.gate_threshold() if cfg.gate > 0 else np.inf
-        stopped = kernels.ekf_batch(Y, begin, x0, P0, np.stack([self.rig.left.P, self.rig.right.P]),
-                                    self.model.time_offset, self.dt, self.Q, self.R, threshold, cfg.restart_after, out)
+        Pm, threshold = self._kernel_model()
+        stopped = kernels.ekf_batch(Y, begin, x0, P0, Pm, self.model.time_offset, self.dt, self.Q, self.R, threshold,
+                                    self.config.restart_after, out)
         for m in np.flatnonzero(stopped < n):
             out[m] = self._compiled(Y[m], starts[m])["pos"]
         return out
