@@ -245,7 +245,6 @@ class Recorder:
             self._method(est.rig, meth, per_marker, truth, n)
             if self._ellipsoids(meth, per_marker, n):
                 uncertain.append(meth)
-            self.rec.flush()  # written out method by method: what the SDK holds does not grow with the clip
         self._target(est, truth, n)
         if progress is not None:
             progress(len(est.tracks), len(est.tracks))  # the bar completes (it stopped at n − 1 of n)
