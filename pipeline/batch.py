@@ -120,7 +120,8 @@ def _process_one(clip: str, key: str, out_root: str, settings: dict[str, Any],
                          images_in_recording=settings.get("images", True), marker_specs=specs,
                          calib_units=settings.get("calib_units"), lock=False, configs=settings.get("configs"),
                          time_offset=settings.get("time_offset", "auto"), fps=settings.get("fps"),
-                         figures=settings.get("figures", False), stage=lambda name: _stage(key, name))
+                         figures=settings.get("figures", False), stage=lambda name: _stage(key, name),
+                         keep_tracks=False)
         (partial / ATTEMPT).unlink()
         write_manifest(partial, settings, inputs)
         if parent_pid is not None and not still_parented(parent_pid):

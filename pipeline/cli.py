@@ -385,7 +385,7 @@ def run_cmd(
         res = process_clip(clip, detector=detector, methods=_methods(methods), stage=stage,
                            progress=lambda d, t: bar.update(task, completed=d, total=t),
                            marker_specs=_specs(markers), calib_units=calib_units, configs=configs,
-                           time_offset=offset, fps=fps, force=force)
+                           time_offset=offset, fps=fps, force=force, keep_tracks=False)
     _print_learned(res.detect.learned)
     _print_time(res.estimate.metrics["time"]["fps"], res.estimate.metrics["time"]["source"])
     _print_sync(res.estimate.metrics)

@@ -33,7 +33,7 @@ from pipeline.estimators import Estimator, Track, create, registry
 from pipeline.estimators import methods as registered_methods
 from pipeline.estimators.base import is_builtin, origin
 from pipeline.manifest import stereotrack_version
-from pipeline.metrics import compute_metrics
+from pipeline.metrics import compute_metrics, method_metrics
 
 
 @dataclass
@@ -45,12 +45,17 @@ class EstimateResult:
     observations: dict[str, np.ndarray]
     #: method → marker → track; a track keeps its covariance's position block (frames × 3 × 3), all
     #: that metrics, report and recording use (the full state covariance of a run's tracks grew
-    #: the memory of long clips by a quarter)
+    #: the memory of long clips by a quarter); empty when the run did not keep them
+    #: (``keep_tracks=False``: `stereotrack run` and batches, which stream each method's tracks)
     tracks: dict[str, dict[str, Track]]
     truth: ClipTruth | None
     target: TargetInfo | None = None
     target_tracks: dict[str, Track] = field(default_factory=dict)
     metrics: dict[str, Any] = field(default_factory=dict)
+
+
+#: what :func:`estimate_clip` hands each point method's tracks to as the method finishes
+MethodSink = Callable[[EstimateResult, str, dict[str, Track]], None]
 
 
 def estimate_pixel_sigma(rig: StereoRig, observations: dict[str, np.ndarray]) -> float | None:
@@ -106,6 +111,8 @@ def estimate_clip(
     detections: tuple[dict[str, np.ndarray], FootageInfo] | None = None,
     time_offset: str | float | None = "auto",
     describe: Callable[[str], None] | None = None,
+    on_method: MethodSink | None = None,
+    keep_tracks: bool = True,
 ) -> EstimateResult:
     """Run every requested method on every marker of a clip and write estimates and metrics.
 
@@ -117,6 +124,9 @@ def estimate_clip(
     (left/right swapped, epipolar consistency, points behind a camera, track jumps, and the
     detect stage's colour and image-size checks) are warned about and written to
     ``metrics.json`` under ``checks``. ``describe`` is told once what ``progress`` counts.
+    ``on_method`` gets each point method's tracks as the method finishes (the result so far, the
+    method, marker → track); with ``keep_tracks`` False they are dropped after it, so a long clip's
+    run holds one method's tracks at a time, not all of them.
     """
     clip_ = Clip.open(clip)
     out_dir = Outputs.of(clip_.folder, out_dir).folder
@@ -137,9 +147,16 @@ def estimate_clip(
     configs = _with_pixel_noise(configs, methods, seen.sigma)
     resolved: dict[str, dict[str, Any]] = {}
     target_tracks = {m: _run_target(m, seen, configs.get(m, {}), out_dir, resolved, count) for m in target}
-    tracks = {m: _run_point(m, seen, configs.get(m), out_dir, resolved, count) for m in point}
-    result = EstimateResult(out_dir, seen.rig, seen.dt, seen.n, seen.obs, tracks, seen.truth, seen.target, target_tracks)
-    result.metrics = _metrics(result, seen, clip_, calib_units, resolved)
+    result = EstimateResult(out_dir, seen.rig, seen.dt, seen.n, seen.obs, {}, seen.truth, seen.target, target_tracks)
+    entries = {}
+    for m in point:
+        tracks = _run_point(m, seen, configs.get(m), out_dir, resolved, count)
+        entries[m] = method_metrics(result, m, tracks)
+        if on_method is not None:
+            on_method(result, m, tracks)
+        if keep_tracks:
+            result.tracks[m] = tracks
+    result.metrics = _metrics(result, seen, clip_, calib_units, resolved, entries)
     write_json(Outputs(out_dir).metrics, result.metrics)
     return result
 
@@ -245,9 +262,9 @@ def _run_point(m: str, seen: Observed, config: dict | None, out_dir: Path, resol
 
 
 def _metrics(result: EstimateResult, seen: Observed, clip: Clip, calib_units: str | None,
-             resolved: dict[str, dict[str, Any]]) -> dict[str, Any]:
+             resolved: dict[str, dict[str, Any]], point: dict[str, dict[str, Any]]) -> dict[str, Any]:
     """metrics.json: the metrics of every method, with the run's settings, checks and time."""
-    metrics = compute_metrics(result)
+    metrics = compute_metrics(result, point)
     metrics.update({"pixel_sigma_estimate": seen.sigma, "calibration_units": calib_units,
                     "checks": [c.as_dict() for c in seen.checks], "sync": seen.sync.as_dict(),
                     "time": {"fps": clip.fps, "dt_s": seen.dt, "source": clip.fps_source}})

@@ -77,49 +77,15 @@ def _note_too_short(entry: dict[str, Any], method: str, n_frames: int) -> None:
         entry["note"] = f"needs at least {need} frames; this clip has {n_frames}: no estimate"
 
 
-def compute_metrics(res: Estimates) -> dict[str, Any]:
+def compute_metrics(res: Estimates, point: dict[str, dict[str, Any]] | None = None) -> dict[str, Any]:
     """Per method: error statistics against truth (all markers pooled, and per marker),
     reprojection RMSE (px), time per step, and for filters the consistency of their covariance
-    (NEES on position against truth, NIS of their innovations; :mod:`pipeline.consistency`)."""
+    (NEES on position against truth, NIS of their innovations; :mod:`pipeline.consistency`).
+    ``point``: the point methods' entries already computed by :func:`method_metrics` as each
+    method finished (a run that does not keep every track); default: from ``res.tracks``."""
     out: dict[str, Any] = {"frames": res.n_frames, "dt": res.dt, "has_truth": res.truth is not None, "methods": {}}
-    for m, per_marker in res.tracks.items():
-        entry: dict[str, Any] = {}
-        reps = np.concatenate([t.reprojection_error for t in per_marker.values()])
-        positions = np.vstack([t.position for t in per_marker.values()])
-        fin = np.all(np.isfinite(positions), axis=1)
-        entry["behind_camera"] = int(np.any(res.rig.depths(positions[fin]) <= 0, axis=1).sum())
-        entry["reprojection_rmse_px"] = float(np.sqrt(np.nanmean(reps**2))) if np.isfinite(reps).any() else None
-        nis = [(t.nis, t.nis_dof) for t in per_marker.values() if t.nis is not None]
-        if nis:
-            entry["nis"] = consistency.summary(np.concatenate([a for a, _ in nis]), np.concatenate([d for _, d in nis]))
-        for key, name in (("gated", "gated"), ("restart", "restarts")):
-            counts = [np.nansum(t.extra[key]) for t in per_marker.values() if key in t.extra]
-            if counts:  # observations the outlier gate rejected (per camera), tracks restarted
-                entry[name] = int(sum(counts))
-        sps = [t.seconds_per_step for t in per_marker.values()]
-        entry["seconds_per_step"] = float(np.mean(sps))
-        entry["steps_per_second"] = float(1.0 / np.mean(sps)) if np.mean(sps) > 0 else None
-        if res.truth is not None:
-            est, tru, markers, nees = [], [], {}, []
-            for marker, t in per_marker.items():
-                if marker not in res.truth.positions:
-                    continue
-                T = res.truth.positions[marker][: len(t.position)]
-                P = t.position[: len(T)]
-                markers[marker] = error_stats(P, T)
-                est.append(P)
-                tru.append(T)
-                if t.covariance is not None:
-                    nees.append(consistency.nees(t, T))
-            if est:
-                entry.update(error_stats(np.vstack(est), np.vstack(tru)))
-                finals = [v["final"] for v in markers.values() if np.isfinite(v["final"])]
-                entry["final"] = float(np.mean(finals)) if finals else float("nan")
-                entry["markers"] = markers
-            if nees:
-                entry["nees_position"] = consistency.summary(np.concatenate(nees), 3)
-        _note_too_short(entry, m, res.n_frames)
-        out["methods"][m] = entry
+    entries = point if point is not None else {m: method_metrics(res, m, per) for m, per in res.tracks.items()}
+    out["methods"].update(entries)
     for m, t in res.target_tracks.items():
         entry = {"target": True, "seconds_per_step": t.seconds_per_step,
                  "steps_per_second": 1.0 / t.seconds_per_step if t.seconds_per_step > 0 else None,
@@ -132,3 +98,51 @@ def compute_metrics(res: Estimates) -> dict[str, Any]:
             entry["distance_rmse_m"] = rmse(t.extra["distance"], tg.distance)
         out["methods"][m] = entry
     return out
+
+
+def method_metrics(res: Estimates, m: str, per_marker: dict[str, Any]) -> dict[str, Any]:
+    """One point method's entry of :func:`compute_metrics` from its tracks (marker → track)."""
+    entry: dict[str, Any] = {}
+    reps = np.concatenate([t.reprojection_error for t in per_marker.values()])
+    positions = np.vstack([t.position for t in per_marker.values()])
+    fin = np.all(np.isfinite(positions), axis=1)
+    entry["behind_camera"] = int(np.any(res.rig.depths(positions[fin]) <= 0, axis=1).sum())
+    entry["reprojection_rmse_px"] = float(np.sqrt(np.nanmean(reps**2))) if np.isfinite(reps).any() else None
+    nis = [(t.nis, t.nis_dof) for t in per_marker.values() if t.nis is not None]
+    if nis:
+        entry["nis"] = consistency.summary(np.concatenate([a for a, _ in nis]), np.concatenate([d for _, d in nis]))
+    for key, name in (("gated", "gated"), ("restart", "restarts")):
+        counts = [np.nansum(t.extra[key]) for t in per_marker.values() if key in t.extra]
+        if counts:  # observations the outlier gate rejected (per camera), tracks restarted
+            entry[name] = int(sum(counts))
+    sps = [t.seconds_per_step for t in per_marker.values()]
+    entry["seconds_per_step"] = float(np.mean(sps))
+    entry["steps_per_second"] = float(1.0 / np.mean(sps)) if np.mean(sps) > 0 else None
+    if res.truth is not None:
+        entry.update(_against_truth(res.truth.positions, per_marker))
+    _note_too_short(entry, m, res.n_frames)
+    return entry
+
+
+def _against_truth(truth: dict[str, np.ndarray], per_marker: dict[str, Any]) -> dict[str, Any]:
+    """A method's errors against the truth, pooled and per marker, and its position NEES."""
+    entry: dict[str, Any] = {}
+    est, tru, markers, nees = [], [], {}, []
+    for marker, t in per_marker.items():
+        if marker not in truth:
+            continue
+        T = truth[marker][: len(t.position)]
+        P = t.position[: len(T)]
+        markers[marker] = error_stats(P, T)
+        est.append(P)
+        tru.append(T)
+        if t.covariance is not None:
+            nees.append(consistency.nees(t, T))
+    if est:
+        entry.update(error_stats(np.vstack(est), np.vstack(tru)))
+        finals = [v["final"] for v in markers.values() if np.isfinite(v["final"])]
+        entry["final"] = float(np.mean(finals)) if finals else float("nan")
+        entry["markers"] = markers
+    if nees:
+        entry["nees_position"] = consistency.summary(np.concatenate(nees), 3)
+    return entry

@@ -31,6 +31,7 @@ from pipeline.style import TRUTH_RGB_VIEWER, marker_rgb, method_rgb
 
 if TYPE_CHECKING:
     from pipeline.estimate import EstimateResult
+    from pipeline.estimators import Track
 
 #: 3-D sizes (m): truth small and light grey, each method's points larger in its colour, paths thin
 TRUTH_RADIUS, POINT_RADIUS, PATH_RADIUS = 0.005, 0.008, 0.002
@@ -124,6 +125,11 @@ def ellipsoid_columns(cov: np.ndarray, level: float = 0.95) -> tuple[np.ndarray,
     return half, Rotation.from_matrix(vecs).as_quat()
 
 
+def _frames(est: EstimateResult) -> int:
+    """The frames a run's series span: the clip's, or its longest observations'."""
+    return max([len(v) for v in est.observations.values()] + [est.n_frames])
+
+
 class Recorder:
     """Writes ``run.rrd`` atomically while a run goes: :meth:`log_frame` for each decoded frame
     pair (compressed at once, never kept), then :meth:`finish` with the calibration and every
@@ -146,6 +152,9 @@ class Recorder:
             self.abort()
             raise
         self.images = 0
+        self.logged: list[str] = []  # point methods logged so far (by :meth:`method`)
+        self.uncertain: list[str] = []  # those of them with covariance ellipsoids
+        self.markers: set[str] = set()
 
     def __enter__(self) -> Recorder:
         return self
@@ -222,12 +231,22 @@ class Recorder:
             self.rec.log(entity, rr.LineStrips3D(strips, colors=[list(rgb)] * len(strips),
                                                  radii=[PATH_RADIUS] * len(strips)), static=True)
 
+    def method(self, est: EstimateResult, meth: str, per_marker: dict[str, Track]) -> None:
+        """One point method's points, path, covariance ellipsoids and named, coloured series, as
+        soon as the method has run (its tracks need not be kept for :meth:`finish`)."""
+        n = _frames(est)
+        self._method(est.rig, meth, per_marker, est.truth.positions if est.truth else None, n)
+        if self._ellipsoids(meth, per_marker, n):
+            self.uncertain.append(meth)
+        self.logged.append(meth)
+        self.markers.update(per_marker)
+
     def finish(self, est: EstimateResult, marker_colours: dict[str, list[int]] | None = None,
                progress: Callable[[int, int], None] | None = None, info: str | None = None) -> Path:
-        """Log the calibration (static), detections, truth, every method's points, path,
-        covariance ellipsoids and named, coloured series, the target's plate and centres, the run's
-        description (``info``, Markdown) and the blueprint for this run, then move the file into
-        place; ``progress`` gets (methods done, methods)."""
+        """Log the calibration (static), detections, truth, each method of ``est.tracks`` not
+        logged yet by :meth:`method`, the target's plate and centres, the run's description
+        (``info``, Markdown) and the blueprint for this run, then move the file into place;
+        ``progress`` gets (methods done, methods)."""
         import rerun as rr
 
         if self.name:
@@ -235,22 +254,17 @@ class Recorder:
         if info:
             self.rec.log("run", rr.TextDocument(info, media_type=rr.MediaType.MARKDOWN), static=True)
         self._rig(est.rig)
-        truth = est.truth.positions if est.truth else None
-        n = max([len(v) for v in est.observations.values()] + [est.n_frames])
-        self._detections(est, marker_colours or {}, truth, n)
-        uncertain = []
-        for j, (meth, per_marker) in enumerate(est.tracks.items()):
+        self._detections(est, marker_colours or {}, est.truth.positions if est.truth else None, _frames(est))
+        todo = [m for m in est.tracks if m not in self.logged]
+        for j, meth in enumerate(todo):
             if progress is not None:
-                progress(j, len(est.tracks))
-            self._method(est.rig, meth, per_marker, truth, n)
-            if self._ellipsoids(meth, per_marker, n):
-                uncertain.append(meth)
-        self._target(est, truth, n)
+                progress(j, len(todo))
+            self.method(est, meth, est.tracks[meth])
+        self._target(est, est.truth.positions if est.truth else None, _frames(est))
         if progress is not None:
-            progress(len(est.tracks), len(est.tracks))  # the bar completes (it stopped at n − 1 of n)
-        markers = sorted({m for per in est.tracks.values() for m in per})
-        self.rec.send_blueprint(blueprint(1.0 / self.dt, bool(est.target_tracks), bool(info), markers,
-                                          runaways(est.metrics), uncertain), make_active=True, make_default=True)
+            progress(len(todo), len(todo))  # the bar completes (it stopped at n − 1 of n)
+        self.rec.send_blueprint(blueprint(1.0 / self.dt, bool(est.target_tracks), bool(info), sorted(self.markers),
+                                          runaways(est.metrics), self.uncertain), make_active=True, make_default=True)
         self.rec.flush()
         self.rec.disconnect()
         os.replace(self.tmp, self.path)

@@ -30,6 +30,7 @@ from pipeline.tables import Column, Table, inline, number, to_html, to_markdown
 
 if TYPE_CHECKING:
     from pipeline.estimate import EstimateResult
+    from pipeline.estimators import Track
 
 #: figure resolution: sharp on a laptop screen, cheap to encode
 DPI = 100
@@ -54,6 +55,15 @@ class ReportData:
     @property
     def runaways(self) -> list[str]:
         return runaways(self.metrics)
+
+    def add_method(self, est: EstimateResult, m: str, per: dict[str, Track]) -> None:
+        """A point method's positions (behind-camera points hidden, on a copy) and its filter
+        series, from its tracks in memory."""
+        truth = est.truth.positions if est.truth is not None else None
+        self.point[m] = {mk: t.position.copy() for mk, t in per.items()}
+        _hide_behind(est.rig, {m: self.point[m]})
+        if (s := _track_filter_series(per, truth)) is not None:
+            self.filters[m] = s
 
     def tracking(self) -> list[str]:
         """Point methods that are drawn to scale (not runaways)."""
@@ -128,23 +138,24 @@ def _track_filter_series(per: dict, truth: dict[str, np.ndarray] | None) -> tupl
                            "nis_dof": c[:, 1], "nees": c[:, 2]})
 
 
-def report_data(clip: Clip, est: EstimateResult, marker_colours: dict[str, list[int]], out_dir: Path) -> ReportData:
+def report_data(clip: Clip, est: EstimateResult, marker_colours: dict[str, list[int]], out_dir: Path,
+                data: ReportData | None = None) -> ReportData:
     """The report's data from a run's results in memory: what :func:`load_report_data` would read
-    back from the stage files, read from nothing (the calibration included)."""
-    truth = est.truth.positions if est.truth is not None else None
-    data = ReportData(clip.folder.name, out_dir, est.metrics, truth=truth, obs=dict(est.observations),
-                      marker_colours=dict(marker_colours))
+    back from the stage files, read from nothing (the calibration included). ``data``: what
+    :meth:`ReportData.add_method` already took of methods whose tracks were not kept."""
+    data = data or ReportData(clip.folder.name, out_dir, {})
+    data.name, data.out_dir, data.metrics = clip.folder.name, out_dir, est.metrics
+    data.truth = est.truth.positions if est.truth is not None else None
+    data.obs, data.marker_colours = dict(est.observations), dict(marker_colours)
     for m, per in est.tracks.items():
-        data.point[m] = {mk: t.position.copy() for mk, t in per.items()}
-        if (s := _track_filter_series(per, truth)) is not None:
-            data.filters[m] = s
+        if m not in data.point:
+            data.add_method(est, m, per)
     for m, t in est.target_tracks.items():
         data.target[m] = {"t": np.arange(len(t.position)) * est.dt, "alpha": t.extra["alpha"],
                           "distance": t.extra["distance"]}
     tg = est.target
     if tg is not None and tg.alpha is not None and tg.distance is not None and est.target_tracks:
         data.target_truth = {"t": np.arange(len(tg.alpha)) * est.dt, "alpha": tg.alpha, "distance": tg.distance}
-    _hide_behind(est.rig, data.point)
     return data
 
 

@@ -13,8 +13,9 @@ from pipeline.core.clip import Clip
 from pipeline.core.lifeline import OutputLock
 from pipeline.core.outputs import Outputs
 from pipeline.estimate import EstimateResult, estimate_clip
+from pipeline.estimators import Track
 from pipeline.recording import Recorder
-from pipeline.report import report_data, write_report
+from pipeline.report import ReportData, report_data, write_report
 
 DEFAULT_SCENARIO = "default"
 
@@ -47,6 +48,7 @@ def process_clip(
     fps: float | None = None,
     force: bool = False,
     figures: bool = True,
+    keep_tracks: bool = True,
 ) -> RunResult:
     """Detect, estimate, report and record one clip folder into ``out_dir`` (default CLIP/out).
 
@@ -54,18 +56,23 @@ def process_clip(
     clip's ``markers.yaml``, else its ``scenario.yaml``, gives the colours. ``fps`` (``--fps``)
     wins over every frame rate the clip states (see :attr:`pipeline.core.clip.Clip.fps`). ``figures``:
     whether the report draws its figures (a batch leaves them out unless ``--figures``).
+    ``keep_tracks``: whether the result keeps every method's tracks (``estimate.tracks``); either
+    way each method's tracks go to the report and the recording as the method finishes, so
+    without them a long clip's run holds one method's tracks at a time.
 
     With ``lock`` the output folder is locked for the run (a second run on it fails at once,
     naming the holder) and temporary files left there by a killed run are removed first."""
     out_dir = Outputs.of(Clip.open(clip).folder, out_dir).folder
     if not lock:
         return _process_clip(Clip.open(clip, fps), out_dir, detector, methods, marker_specs, recording,
-                             images_in_recording, stage, progress, calib_units, configs, time_offset, force, figures)
+                             images_in_recording, stage, progress, calib_units, configs, time_offset, force, figures,
+                             keep_tracks)
     with OutputLock(out_dir, f"stereotrack run {clip}"):
         for stale in list(out_dir.rglob(".*.partial-*")):
             stale.unlink(missing_ok=True) if stale.is_file() else shutil.rmtree(stale, ignore_errors=True)
         return _process_clip(Clip.open(clip, fps), out_dir, detector, methods, marker_specs, recording,
-                             images_in_recording, stage, progress, calib_units, configs, time_offset, force, figures)
+                             images_in_recording, stage, progress, calib_units, configs, time_offset, force, figures,
+                             keep_tracks)
 
 
 def run_description(clip: Path, detector: str, metrics: dict) -> str:
@@ -88,7 +95,7 @@ def _process_clip(clip_: Clip, out_dir: Path, detector: str, methods: list[str] 
                   recording: bool, images_in_recording: bool, stage: Callable[[str], None] | None,
                   progress: Callable[[int, int], None] | None, calib_units: str | None,
                   configs: dict[str, dict] | None = None, time_offset: str | float | None = "auto",
-                  force: bool = False, figures: bool = True) -> RunResult:
+                  force: bool = False, figures: bool = True, keep_tracks: bool = True) -> RunResult:
     t0 = time.perf_counter()
     say = stage or (lambda s: None)
     clip = clip_.path  # the clip is read once, handed to every stage
@@ -99,15 +106,23 @@ def _process_clip(clip_: Clip, out_dir: Path, detector: str, methods: list[str] 
         det = detect_clip(clip_, detector, marker_specs, out_dir=out_dir, progress=progress,  # type: ignore[arg-type]
                           calib_units=calib_units, frame_sink=sink, force=force)
         say("estimate")
+        data = ReportData(clip.name, out_dir, {})
+
+        def finished(est: EstimateResult, m: str, tracks: dict[str, Track]) -> None:
+            data.add_method(est, m, tracks)
+            if recorder is not None:
+                recorder.method(est, m, tracks)
+
         est = estimate_clip(clip_, methods, out_dir=out_dir, progress=progress, calib_units=calib_units,
                             configs=configs, detections=(det.observations, det.footage), time_offset=time_offset,
-                            describe=lambda what: say(f"estimate ({what})"))
+                            describe=lambda what: say(f"estimate ({what})"), on_method=finished,
+                            keep_tracks=keep_tracks)
         say("report (figures)" if figures else "report")
         report = write_report(clip_, out_dir, progress=progress, figures=figures,
-                              data=report_data(clip_, est, det.marker_colours, out_dir))
+                              data=report_data(clip_, est, det.marker_colours, out_dir, data))
         rrd = None
         if recorder is not None:
-            say("recording (methods)")
+            say("recording")
             rrd = recorder.finish(est, det.marker_colours, progress, run_description(clip, detector, est.metrics))
     except BaseException:
         if recorder is not None:

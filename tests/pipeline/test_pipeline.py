@@ -100,6 +100,32 @@ def read_recording(path) -> tuple[dict[str, dict[str, list]], set[str], object]:
     return cols, static, reader
 
 
+def _untimed(d):
+    """A metrics mapping without its timings (steps per second differ from run to run)."""
+    if isinstance(d, dict):
+        return {k: _untimed(v) for k, v in d.items() if k not in ("seconds_per_step", "steps_per_second")}
+    return [_untimed(v) for v in d] if isinstance(d, list) else d
+
+
+@pytest.mark.slow
+def test_streamed_run_writes_what_a_kept_run_writes(e2e_run, tmp_path):
+    """`stereotrack run` and batches hand each method's tracks to the report and the recording as
+    the method finishes and then drop them (``keep_tracks=False``: memory flat in clip length).
+    Metrics, estimates, figures and recording equal those of a run that keeps every track."""
+    res = process_clip(e2e_run.clip, tmp_path / "out", methods=METHODS, keep_tracks=False)
+    assert not res.estimate.tracks and set(e2e_run.estimate.tracks) == set(METHODS)
+    assert _untimed(res.estimate.metrics) == _untimed(e2e_run.estimate.metrics)
+    kept, streamed = e2e_run.out_dir, res.out_dir
+    for meth in METHODS:
+        assert (streamed / "estimates" / f"{meth}.csv").read_bytes() == (kept / "estimates" / f"{meth}.csv").read_bytes()
+    figures = sorted(p.name for p in (kept / "figures").iterdir())
+    assert figures == sorted(p.name for p in (streamed / "figures").iterdir()) and "trajectories.png" in figures
+    for name in figures:
+        assert (streamed / "figures" / name).read_bytes() == (kept / "figures" / name).read_bytes(), name
+    a, b = read_recording(e2e_run.recording)[0], read_recording(res.recording)[0]
+    assert a == b and all(f"/world/estimates/{meth}/points" in b for meth in METHODS)
+
+
 @pytest.mark.slow
 def test_recording_read_back(e2e_run):
     """Images (JPEG), cameras, every method's points, series and the blueprint, with values."""
