@@ -7,9 +7,10 @@ import queue
 import re
 import threading
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -133,7 +134,7 @@ class CameraReader:
 _DONE = object()
 
 
-def _prefetch(it: Iterator[np.ndarray], depth: int = 8) -> Iterator[np.ndarray]:
+def _prefetch(it: Iterator[Any], depth: int = 8) -> Iterator[Any]:
     """Decode ahead in a background thread (OpenCV releases the GIL while decoding), so decoding
     one camera overlaps with decoding the other and with detection. Errors are re-raised here."""
     q: queue.Queue = queue.Queue(maxsize=depth)
@@ -171,12 +172,25 @@ def _prefetch(it: Iterator[np.ndarray], depth: int = 8) -> Iterator[np.ndarray]:
 
 @dataclass
 class StereoFrame:
-    """One synchronized frame pair (``right`` is None for a single-camera clip)."""
+    """One synchronized frame pair (``right`` is None for a single-camera clip); ``found``: what
+    each camera's ``work`` returned for its frame (see :meth:`StereoFrameSource.frames`), None
+    for a camera whose frames have ended."""
 
     index: int
     t: float
     left: np.ndarray | None  # None: this camera's frame is missing (a gap in a frame folder)
     right: np.ndarray | None
+    found: tuple = ()
+
+
+#: per-camera work on each of its frames (None: a missing frame), in frame order
+Work = Callable[[np.ndarray | None], Any]
+
+
+def _worked(it: Iterator[np.ndarray | None], work: Work | None) -> Iterator[tuple[np.ndarray | None, Any]]:
+    """Each frame beside what ``work`` makes of it (None without work)."""
+    for img in it:
+        yield img, (work(img) if work is not None else None)
 
 
 class StereoFrameSource:
@@ -228,7 +242,16 @@ class StereoFrameSource:
         return self.count
 
     def __iter__(self) -> Iterator[StereoFrame]:
-        its = [_prefetch(iter(r)) for r in self.readers] if self.prefetch else [iter(r) for r in self.readers]
+        return self.frames()
+
+    def frames(self, work: list[Work] | None = None) -> Iterator[StereoFrame]:
+        """The pairs in order, each camera's frames first through its ``work`` (one callable per
+        camera, called on every frame of that camera in order) in the camera's decode thread:
+        per-camera work such as detection runs beside the other camera's, off the thread that
+        iterates. Results are in :attr:`StereoFrame.found`."""
+        work = list(work or [None] * len(self.readers))
+        its = [_worked(iter(r), w) for r, w in zip(self.readers, work, strict=True)]
+        its = [_prefetch(it) for it in its] if self.prefetch else its
         k = 0
         end = object()
         try:
@@ -243,8 +266,9 @@ class StereoFrameSource:
                     if not self.allow_unequal:
                         raise ClipError(f"left and right videos end at different frames (around frame {n_left})", self.clip)
                     break
-                imgs = [None if i is end else i for i in got]
-                yield StereoFrame(k, k / self.fps, imgs[0], imgs[1] if len(imgs) > 1 else None)  # type: ignore[arg-type]
+                imgs = [None if i is end else i[0] for i in got]
+                found = tuple(None if i is end else i[1] for i in got)
+                yield StereoFrame(k, k / self.fps, imgs[0], imgs[1] if len(imgs) > 1 else None, found)  # type: ignore[arg-type]
                 k += 1
         finally:
             for it in its:  # stop the decode-ahead threads before releasing their captures

@@ -267,3 +267,58 @@ def test_blob_quantile_is_numpys():
         a = rng.integers(0, 256, n).astype(np.float32) if trial % 2 else rng.normal(0, 50, n).astype(np.float32)
         for q in (0.2, 0.5, 0.73):
             assert _quantile(a, q) == float(np.quantile(a, q))
+
+
+def _gap_copy(png_clip, tmp_path):
+    """The three-marker PNG clip with left frame 10 missing."""
+    clip = tmp_path / "gap"
+    shutil.copytree(png_clip, clip, ignore=shutil.ignore_patterns("out"))
+    (clip / "left" / "000010.png").unlink()
+    return clip
+
+
+@pytest.mark.filterwarnings("ignore:.*frame number")
+def test_frames_work_runs_per_camera_in_frame_order_in_decode_threads(tmp_path, png_clip):
+    """``StereoFrameSource.frames(work)``: each camera's work sees every frame of that camera in
+    order (None for a gap), in a thread of its own, and each pair carries both results."""
+    import threading
+
+    calls: dict[int, list] = {0: [], 1: []}
+
+    def work(c: int):
+        def f(img):
+            calls[c].append((threading.get_ident(), img is None))
+            return len(calls[c]) - 1
+        return f
+
+    got = [(fr.index, fr.found) for fr in StereoFrameSource(_gap_copy(png_clip, tmp_path)).frames([work(0), work(1)])]
+    assert got == [(k, (k, k)) for k in range(24)]
+    assert [k for k, (_, gap) in enumerate(calls[0]) if gap] == [10] and not any(g for _, g in calls[1])
+    threads = [{t for t, _ in calls[c]} for c in (0, 1)]
+    assert all(len(t) == 1 for t in threads) and threads[0] != threads[1]
+    assert threading.get_ident() not in threads[0] | threads[1]
+
+
+@pytest.mark.filterwarnings("ignore:.*frame number", "ignore:.*colour range")
+@pytest.mark.parametrize("detector", ["blob", "camshift"])
+def test_detecting_in_decode_threads_equals_one_loop(tmp_path, png_clip, monkeypatch, detector):
+    """Each camera detects in its own decode thread: the detections, the colour checks and their
+    order equal one loop over the pairs on the calling thread (``prefetch=False``), a gap and a
+    colour range that matches the background included."""
+    import functools
+
+    import detectors.stage
+
+    clip = _gap_copy(png_clip, tmp_path)
+    specs = ["red:170-10:120:80", "green:50-70:120:60", "everything:0-179:0:0"]
+    threaded = detect_clip(clip, detector, specs, out_dir=tmp_path / "threaded")
+    monkeypatch.setattr(detectors.stage, "StereoFrameSource", functools.partial(StereoFrameSource, prefetch=False))
+    serial = detect_clip(clip, detector, specs, out_dir=tmp_path / "serial")
+    assert len(threaded.rows) > 40 and list(threaded.rows) == list(serial.rows)
+    failed = [c.message for c in threaded.checks if not c.ok]
+    assert failed == [c.message for c in serial.checks if not c.ok]
+    broad = [m for m in failed if "marker 'everything'" in m]
+    assert len(broad) == 2 and "left frame" in broad[0] and "right frame" in broad[1]  # left reported first
+    for name in ("detections.csv", "detect.json"):
+        a, b = ((tmp_path / o / name).read_text() for o in ("threaded", "serial"))
+        assert a.replace("threaded", "serial") == b, name
