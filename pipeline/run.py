@@ -63,16 +63,14 @@ def process_clip(
     With ``lock`` the output folder is locked for the run (a second run on it fails at once,
     naming the holder) and temporary files left there by a killed run are removed first."""
     out_dir = Outputs.of(Clip.open(clip).folder, out_dir).folder
+    args = (detector, methods, marker_specs, recording, images_in_recording, stage, progress, calib_units, configs,
+            time_offset, force, figures, keep_tracks)
     if not lock:
-        return _process_clip(Clip.open(clip, fps), out_dir, detector, methods, marker_specs, recording,
-                             images_in_recording, stage, progress, calib_units, configs, time_offset, force, figures,
-                             keep_tracks)
+        return _process_clip(Clip.open(clip, fps), out_dir, *args)
     with OutputLock(out_dir, f"stereotrack run {clip}"):
         for stale in list(out_dir.rglob(".*.partial-*")):
             stale.unlink(missing_ok=True) if stale.is_file() else shutil.rmtree(stale, ignore_errors=True)
-        return _process_clip(Clip.open(clip, fps), out_dir, detector, methods, marker_specs, recording,
-                             images_in_recording, stage, progress, calib_units, configs, time_offset, force, figures,
-                             keep_tracks)
+        return _process_clip(Clip.open(clip, fps), out_dir, *args)
 
 
 def run_description(clip: Path, detector: str, metrics: dict) -> str:
