@@ -108,11 +108,27 @@ def _untimed(d):
 
 
 @pytest.mark.slow
-def test_streamed_run_writes_what_a_kept_run_writes(e2e_run, tmp_path):
+def test_streamed_run_writes_what_a_kept_run_writes(e2e_run, tmp_path, monkeypatch):
     """`stereotrack run` and batches hand each method's tracks to the report and the recording as
     the method finishes and then drop them (``keep_tracks=False``: memory flat in clip length).
-    Metrics, estimates, figures and recording equal those of a run that keeps every track."""
+    Metrics, estimates, figures and recording equal those of a run that keeps every track, and
+    no track outlives the run."""
+    import gc
+    import weakref
+
+    import pipeline.report
+
+    seen: list[weakref.ref] = []
+    add = pipeline.report.ReportData.add_method
+
+    def spy(self, est, m, per):
+        seen.extend(weakref.ref(t) for t in per.values())
+        return add(self, est, m, per)
+
+    monkeypatch.setattr(pipeline.report.ReportData, "add_method", spy)
     res = process_clip(e2e_run.clip, tmp_path / "out", methods=METHODS, keep_tracks=False)
+    gc.collect()
+    assert len(seen) == len(METHODS) and not [r for r in seen if r() is not None]
     assert not res.estimate.tracks and set(e2e_run.estimate.tracks) == set(METHODS)
     assert _untimed(res.estimate.metrics) == _untimed(e2e_run.estimate.metrics)
     kept, streamed = e2e_run.out_dir, res.out_dir
