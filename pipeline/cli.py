@@ -379,8 +379,10 @@ def run_cmd(
     with progress_bar() as bar:
         task = bar.add_task("detect", total=None)
 
-        def stage(name: str) -> None:
-            bar.update(task, description=name, completed=0, total=None)
+        def stage(name: str) -> None:  # a fresh task: no count or clock carried over from the stage before
+            nonlocal task
+            bar.remove_task(task)
+            task = bar.add_task(name, total=None)
 
         res = process_clip(clip, detector=detector, methods=_methods(methods), stage=stage,
                            progress=lambda d, t: bar.update(task, completed=d, total=t),

@@ -256,6 +256,8 @@ class Recorder:
         self._rig(est.rig)
         self._detections(est, marker_colours or {}, est.truth.positions if est.truth else None, _frames(est))
         todo = [m for m in est.tracks if m not in self.logged]
+        if not todo:  # every method was logged as it finished: nothing to count here
+            progress = None
         for j, meth in enumerate(todo):
             if progress is not None:
                 progress(j, len(todo))
