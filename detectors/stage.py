@@ -230,9 +230,10 @@ class _CameraScan:
 
 def _scan(source: StereoFrameSource, finders: list, rig: StereoRig | None, markers: list[MarkerColor],
           unsampled: set[str], frame_sink: Callable | None, progress: Callable[[int, int], None] | None) -> _Scanned:
-    """Every frame through each camera's detector (undistorted, at the end, when there is a calibration), with
-    whole-frame colour samples from a few frames for the colour checks. Each camera detects in its
-    own decode thread (:meth:`StereoFrameSource.frames`), so the two cameras' detection overlaps."""
+    """Every frame through each camera's detector, with whole-frame colour samples from a few frames
+    for the colour checks; coordinates undistorted at the end when there is a calibration. Each
+    camera detects in its own decode thread (:meth:`StereoFrameSource.frames`), so the two cameras'
+    detection overlaps."""
     total = len(source)
     sample_at = set(np.linspace(0, max(total - 1, 0), min(CHECK_SAMPLES, max(total, 1))).astype(int).tolist())
     out = _Scanned(DetectionTable(), {}, 0, len(finders))

@@ -135,8 +135,9 @@ _DONE = object()
 
 
 def _prefetch(it: Iterator[Any], depth: int = 8) -> Iterator[Any]:
-    """Decode ahead in a background thread (OpenCV releases the GIL while decoding), so decoding
-    one camera overlaps with decoding the other and with detection. Errors are re-raised here."""
+    """Decode ahead in a background thread (OpenCV releases the GIL while decoding), together with
+    the camera's work on each frame (:meth:`StereoFrameSource.frames`), so one camera's decoding and
+    detection overlap the other's. Errors are re-raised here."""
     q: queue.Queue = queue.Queue(maxsize=depth)
     stop = threading.Event()
 
@@ -244,7 +245,7 @@ class StereoFrameSource:
     def __iter__(self) -> Iterator[StereoFrame]:
         return self.frames()
 
-    def frames(self, work: list[Work] | None = None) -> Iterator[StereoFrame]:
+    def frames(self, work: list[Work | None] | None = None) -> Iterator[StereoFrame]:
         """The pairs in order, each camera's frames first through its ``work`` (one callable per
         camera, called on every frame of that camera in order) in the camera's decode thread:
         per-camera work such as detection runs beside the other camera's, off the thread that
