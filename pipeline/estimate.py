@@ -53,6 +53,11 @@ class EstimateResult:
     target_tracks: dict[str, Track] = field(default_factory=dict)
     metrics: dict[str, Any] = field(default_factory=dict)
 
+    @property
+    def truth_positions(self) -> dict[str, np.ndarray] | None:
+        """Marker → true positions (frames × 3), or None for real footage."""
+        return self.truth.positions if self.truth is not None else None
+
 
 #: what :func:`estimate_clip` hands each point method's tracks to as the method finishes
 MethodSink = Callable[[EstimateResult, str, dict[str, Track]], None]

@@ -235,7 +235,7 @@ class Recorder:
         """One point method's points, path, covariance ellipsoids and named, coloured series, as
         soon as the method has run (its tracks need not be kept for :meth:`finish`)."""
         n = _frames(est)
-        self._method(est.rig, meth, per_marker, est.truth.positions if est.truth else None, n)
+        self._method(est.rig, meth, per_marker, est.truth_positions, n)
         if self._ellipsoids(meth, per_marker, n):
             self.uncertain.append(meth)
         self.logged.append(meth)
@@ -254,7 +254,7 @@ class Recorder:
         if info:
             self.rec.log("run", rr.TextDocument(info, media_type=rr.MediaType.MARKDOWN), static=True)
         self._rig(est.rig)
-        self._detections(est, marker_colours or {}, est.truth.positions if est.truth else None, _frames(est))
+        self._detections(est, marker_colours or {}, est.truth_positions, _frames(est))
         todo = [m for m in est.tracks if m not in self.logged]
         if not todo:  # every method was logged as it finished: nothing to count here
             progress = None
@@ -262,7 +262,7 @@ class Recorder:
             if progress is not None:
                 progress(j, len(todo))
             self.method(est, meth, est.tracks[meth])
-        self._target(est, est.truth.positions if est.truth else None, _frames(est))
+        self._target(est, est.truth_positions, _frames(est))
         if progress is not None:
             progress(len(todo), len(todo))  # the bar completes (it stopped at n − 1 of n)
         self.rec.send_blueprint(blueprint(1.0 / self.dt, bool(est.target_tracks), bool(info), sorted(self.markers),

@@ -59,7 +59,7 @@ class ReportData:
     def add_method(self, est: EstimateResult, m: str, per: dict[str, Track]) -> None:
         """A point method's positions (behind-camera points hidden, on a copy) and its filter
         series, from its tracks in memory."""
-        truth = est.truth.positions if est.truth is not None else None
+        truth = est.truth_positions
         self.point[m] = {mk: t.position.copy() for mk, t in per.items()}
         _hide_behind(est.rig, {m: self.point[m]})
         if (s := _track_filter_series(per, truth)) is not None:
@@ -145,7 +145,7 @@ def report_data(clip: Clip, est: EstimateResult, marker_colours: dict[str, list[
     :meth:`ReportData.add_method` already took of methods whose tracks were not kept."""
     data = data or ReportData(clip.folder.name, out_dir, {})
     data.name, data.out_dir, data.metrics = clip.folder.name, out_dir, est.metrics
-    data.truth = est.truth.positions if est.truth is not None else None
+    data.truth = est.truth_positions
     data.obs, data.marker_colours = dict(est.observations), dict(marker_colours)
     for m, per in est.tracks.items():
         if m not in data.point:

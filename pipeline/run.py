@@ -104,7 +104,7 @@ def _process_clip(clip_: Clip, out_dir: Path, detector: str, methods: list[str] 
         det = detect_clip(clip_, detector, marker_specs, out_dir=out_dir, progress=progress,  # type: ignore[arg-type]
                           calib_units=calib_units, frame_sink=sink, force=force)
         say("estimate")
-        data = ReportData(clip.name, out_dir, {})
+        data = ReportData(clip_.folder.name, out_dir, {})
 
         def finished(est: EstimateResult, m: str, tracks: dict[str, Track]) -> None:
             data.add_method(est, m, tracks)
