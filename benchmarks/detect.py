@@ -1,7 +1,10 @@
 """Detection throughput: frames per second per camera for blob, meanshift and CamShift at 640×480
 and 1280×720, next to the bare decode rate of the same videos (``cv2.VideoCapture.read`` with
-each frame discarded, as the stage's own reader does), measured in the same run. Clips are
-rendered first (one marker, the `receding` scene).
+each frame discarded, as the stage's own reader does), measured in the same run: one video after
+the other from one thread with FFmpeg's default threads, and the fastest plain decode here, both
+videos at once, a thread each with the stage's decoder threads. Clips are rendered first (one
+marker, the `receding` scene). The process's allocator is set as the CLI sets its own
+(:func:`pipeline.core.allocator.tune`), for the decodes and the stage alike.
 
     python benchmarks/detect.py [--frames 150] [--repeat 5] [--against REV]
 
@@ -14,9 +17,11 @@ from __future__ import annotations
 
 import argparse
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -29,6 +34,8 @@ from detectors.blob import BlobDetector, MarkerColor
 from detectors.blob_tracker import search_window
 from detectors.meanshift import MeanShiftTracker
 from detectors.stage import detect_clip
+from pipeline.core import allocator
+from pipeline.core.frames import decoder_threads
 from renderers.render import render_clip
 from renderers.scenario import load_scenario
 
@@ -61,30 +68,61 @@ def decode_all(path: Path) -> list:
     return frames
 
 
-def decode_seconds(path: Path) -> tuple[int, float]:
-    """(frames, seconds) of decoding a video with each frame dropped as soon as it is read."""
-    cap = cv2.VideoCapture(str(path))
+def decode_seconds(path: Path, threads: int | None = None) -> tuple[int, float]:
+    """(frames, seconds) of decoding a video with each frame dropped as soon as it is read, with
+    ``threads`` decoder threads (None: FFmpeg's default)."""
+    cap = (cv2.VideoCapture(str(path)) if threads is None
+           else cv2.VideoCapture(str(path), cv2.CAP_ANY, [cv2.CAP_PROP_N_THREADS, threads]))
     n, t0 = 0, time.perf_counter()
     while cap.read()[0]:
         n += 1
     return n, time.perf_counter() - t0
 
 
-def decode_and_stage(clip: Path, out: Path, repeat: int) -> tuple[float, float]:
-    """Frames/s per camera of the bare decode (both videos) and of the detect stage, each the
-    best of ``repeat`` runs, interleaved (the machine's load moves both alike)."""
-    decode, stage = [], []
-    for _ in range(repeat):
-        (n_l, t_l), (n_r, t_r) = decode_seconds(clip / "left.mp4"), decode_seconds(clip / "right.mp4")
-        decode.append((n_l + n_r) / (t_l + t_r))
-        t0 = time.perf_counter()
-        detect_clip(clip, "blob", out_dir=out)
-        stage.append((n_l + n_r) / (time.perf_counter() - t0))
-    return max(decode), max(stage)
+def decode_both_seconds(clip: Path) -> float:
+    """Seconds to decode both videos at once, a thread each, with the stage's decoder threads."""
+    threads = [threading.Thread(target=decode_seconds, args=(clip / f"{cam}.mp4", decoder_threads(2)))
+               for cam in ("left", "right")]
+    t0 = time.perf_counter()
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    return time.perf_counter() - t0
+
+
+class Rates:
+    """Frames/s per camera of each run of the bare decode (one video after the other), of both
+    videos decoded at once and of the detect stage, interleaved (the machine's load moves them
+    alike)."""
+
+    def __init__(self, clip: Path, out: Path, repeat: int) -> None:
+        self.decode: list[float] = []
+        self.both: list[float] = []
+        self.stage: list[float] = []
+        for _ in range(repeat):
+            (n_l, t_l), (n_r, t_r) = decode_seconds(clip / "left.mp4"), decode_seconds(clip / "right.mp4")
+            self.decode.append((n_l + n_r) / (t_l + t_r))
+            self.both.append((n_l + n_r) / decode_both_seconds(clip))
+            t0 = time.perf_counter()
+            detect_clip(clip, "blob", out_dir=out)
+            self.stage.append((n_l + n_r) / (time.perf_counter() - t0))
+
+    def cells(self) -> str:
+        """Table cells: the best of each, and the stage against each decode (best against best;
+        in brackets the median and range of the ratios within each run)."""
+        def ratio(base: list[float]) -> str:
+            pairs = sorted(s / b for s, b in zip(self.stage, base, strict=True))
+            return (f"{max(self.stage) / max(base):.2f} ({statistics.median(pairs):.2f}; "
+                    f"{pairs[0]:.2f}–{pairs[-1]:.2f})")
+
+        return (f"{max(self.decode):.0f} | {max(self.both):.0f} | {max(self.stage):.0f} | {ratio(self.decode)} "
+                f"| {ratio(self.both)}")
 
 
 #: one detect stage in a fresh interpreter with the code in argv[1] (a warm-up run first): seconds
 STAGE = ("import sys, time; sys.path.insert(0, sys.argv[1]); from detectors.stage import detect_clip; "
+         "exec('try:\\n from pipeline.core import allocator; allocator.tune()\\nexcept ImportError: pass'); "
          "detect_clip(sys.argv[2], out_dir=sys.argv[3]); t = time.perf_counter(); "
          "detect_clip(sys.argv[2], out_dir=sys.argv[3]); print(time.perf_counter() - t)")
 
@@ -105,20 +143,22 @@ def stage_against(tree: Path, clip: Path, out: Path, repeat: int) -> tuple[float
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=150)
-    ap.add_argument("--repeat", type=int, default=5, help="runs of the decode and of the stage, interleaved (best kept)")
+    ap.add_argument("--repeat", type=int, default=5, help="runs of the decodes and of the stage, interleaved")
     ap.add_argument("--against", default=None, help="a git revision whose detect stage to time beside today's")
     args = ap.parse_args()
+    allocator.tune()
     marker = MarkerColor.from_rgb("red", (230, 30, 30))
     print(f"# detection throughput, frames/s per camera ({args.frames} frames, one marker, {os.cpu_count()} cores)\n")
-    print("| resolution | bare decode | blob alone, whole frame (1 core) | blob alone, search window (1 core) "
-          "| meanshift alone | CamShift alone | detect stage, blob (decode + detect + CSV, both cameras) "
-          "| stage / bare decode |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| resolution | blob alone, whole frame (1 core) | blob alone, search window (1 core) "
+          "| meanshift alone | CamShift alone | bare decode | bare decode, both at once "
+          "| detect stage, blob (decode + detect + CSV, both cameras) | stage / bare decode "
+          "| stage / both at once |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
         for w, h in SIZES:
             clip = render(Path(tmp), w, h, args.frames)
             frames = decode_all(clip / "left.mp4")
-            decode_fps, stage_fps = decode_and_stage(clip, Path(tmp) / f"out{w}", args.repeat)
+            rates = Rates(clip, Path(tmp) / f"out{w}", args.repeat)
             cv2.setNumThreads(1)  # "alone on one core"
             blob = BlobDetector([marker])
             t0 = time.perf_counter()
@@ -131,21 +171,21 @@ def main() -> None:
                 found = blob.detect(f, rois=rois)
                 rois = {d.marker: search_window(d, f.shape) for d in found}
             blob_win_fps = len(frames) / (time.perf_counter() - t0)
-            rates = {}
+            alone = {}
             for mode in ("meanshift", "camshift"):
                 tr = MeanShiftTracker(marker, mode)
                 t0 = time.perf_counter()
                 for f in frames:
                     tr.update(f)
-                rates[mode] = len(frames) / (time.perf_counter() - t0)
+                alone[mode] = len(frames) / (time.perf_counter() - t0)
             cv2.setNumThreads(-1)
-            print(f"| {w}×{h} | {decode_fps:.0f} | {blob_fps:.0f} | {blob_win_fps:.0f} | {rates['meanshift']:.0f} "
-                  f"| {rates['camshift']:.0f} "
-                  f"| {stage_fps:.0f} | {stage_fps / decode_fps:.2f} |", flush=True)
+            print(f"| {w}×{h} | {blob_fps:.0f} | {blob_win_fps:.0f} | {alone['meanshift']:.0f} "
+                  f"| {alone['camshift']:.0f} | {rates.cells()} |", flush=True)
         many = render_default(Path(tmp), args.frames)
-        decode_fps, stage_fps = decode_and_stage(many, Path(tmp) / "out_default", args.repeat)
-        print("\n| clip | bare decode | detect stage, blob | stage / bare decode |\n|---|---|---|---|")
-        print(f"| {MANY} | {decode_fps:.0f} | {stage_fps:.0f} | {stage_fps / decode_fps:.2f} |", flush=True)
+        rates = Rates(many, Path(tmp) / "out_default", args.repeat)
+        print("\n| clip | bare decode | bare decode, both at once | detect stage, blob | stage / bare decode "
+              "| stage / both at once |\n|---|---|---|---|---|---|")
+        print(f"| {MANY} | {rates.cells()} |", flush=True)
         if args.against:
             print(f"\n| clip | stage, `{args.against}` (s) | stage, today (s) | today's speed / `{args.against}` |")
             print("|---|---:|---:|---:|")
@@ -154,11 +194,17 @@ def main() -> None:
             for name, clip in clips:
                 then, now = stage_against(tree, clip, Path(tmp) / "against", args.repeat)
                 print(f"| {name} | {then:.3f} | {now:.3f} | {then / now:.2f}× |", flush=True)
-    print("\nBare decode: both videos read one after the other from one Python thread; FFmpeg decodes each with "
-          "threads of its own, so the bare decode already keeps both cores busy part of the time. The stage decodes "
-          "and detects each camera in a thread of its own (OpenCV releases the GIL in both), while the calling "
-          "thread collects the detections; they share the cores with the decoder's threads. Both are "
-          f"the best of {args.repeat} runs, interleaved; the detectors alone, one run.")
+    print(f"\nBare decode: both videos read one after the other from one Python thread; FFmpeg decodes each "
+          "with threads of its own (its default), so it already keeps both cores busy part of the time. Both at "
+          f"once: a thread per video, {decoder_threads(2)} decoder thread(s) each (the cores shared out, as the "
+          "stage's reader does): the fastest plain decode of a stereo clip here. The stage decodes and detects "
+          "each camera in a thread of its own (OpenCV releases the GIL in both), while the calling thread "
+          f"collects the detections. Decodes and stage run {args.repeat} times, interleaved; each rate is the "
+          "best run, each ratio best against best, with the median and the range of the ratios within one run "
+          "in brackets (the bare decode with FFmpeg's threads varies most from run to run). The detectors "
+          "alone: one run. This process's allocator is set as the CLI sets its own (`pipeline.core.allocator`), "
+          "for the decodes and the stage alike; in the comparison with an earlier revision each stage runs as "
+          "that revision's CLI would.")
 
 
 if __name__ == "__main__":

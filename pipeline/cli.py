@@ -638,8 +638,10 @@ def main() -> None:
     SIGTERM one line and exit 130/143, with locks released and temporary files and workers gone."""
     import os
 
+    from pipeline.core import allocator
     from pipeline.core.lifeline import install_signal_handlers, received_signal
 
+    allocator.tune()  # frames churn through the allocator: keep their pages (see the module)
     warnings.showwarning = _show_warning
     install_signal_handlers()
     try:

@@ -33,9 +33,12 @@ CHILD_THREADS = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_T
 
 @contextlib.contextmanager
 def child_environment(extra: dict[str, str] | None = None):
-    """Within the block, child processes start with :data:`CHILD_THREADS` and ``extra`` in their
-    environment (a value the user set wins); this process's own settings are restored after."""
-    wanted = {**CHILD_THREADS, **(extra or {})}
+    """Within the block, child processes start with :data:`CHILD_THREADS`, the allocator settings
+    for frames (:mod:`pipeline.core.allocator`) and ``extra`` in their environment (a value the
+    user set wins); this process's own settings are restored after."""
+    from pipeline.core.allocator import ENV as allocator
+
+    wanted = {**CHILD_THREADS, **allocator, **(extra or {})}
     saved = {k: os.environ.get(k) for k in wanted}
     for k, v in wanted.items():
         os.environ.setdefault(k, v)

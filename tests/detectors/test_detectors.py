@@ -322,3 +322,81 @@ def test_detecting_in_decode_threads_equals_one_loop(tmp_path, png_clip, monkeyp
     for name in ("detections.csv", "detect.json"):
         a, b = ((tmp_path / o / name).read_text() for o in ("threaded", "serial"))
         assert a.replace("threaded", "serial") == b, name
+
+
+def _whole_mask(monkeypatch) -> None:
+    """Label connected components over the whole mask again (the reference for :func:`occupied`)."""
+    import detectors.blob
+
+    monkeypatch.setattr(detectors.blob, "occupied", lambda mask: (0, 0, mask.shape[1], mask.shape[0]))
+
+
+def _scattered_frames(rng, n: int = 60) -> list[np.ndarray]:
+    """Grey frames with red and green discs, rings and specks anywhere (edges and corners
+    included), some with none of a colour."""
+    frames = []
+    for _ in range(n):
+        img = np.full((240, 320, 3), 90, np.uint8)
+        img += rng.integers(0, 20, img.shape, dtype=np.uint8)
+        for _ in range(int(rng.integers(0, 6))):
+            colour = (30, 30, 230) if rng.random() < 0.6 else (30, 220, 40)
+            centre = (int(rng.integers(-5, 325)), int(rng.integers(-5, 245)))
+            radius = int(rng.integers(1, 30))
+            cv2.circle(img, centre, radius, colour, -1 if rng.random() < 0.8 else 2, cv2.LINE_AA)
+        frames.append(img)
+    return frames
+
+
+def test_labelling_where_the_colour_is_equals_labelling_the_whole_mask(monkeypatch):
+    """Components are labelled only inside the bounding box of the colour's pixels: the same count,
+    label numbers and stats as labelling the whole mask, and so the same detections (search
+    windows, the coarse whole-frame search) and colour-check samples, on frames with blobs at the
+    edges, rings, specks and no blob at all."""
+    from detectors import create_detector
+    from detectors.blob import _components
+    from detectors.stage import _sample_colours
+
+    rng = np.random.default_rng(11)
+    for trial in range(1000):  # a search window's mask, a whole frame's (labelled in parallel stripes)
+        mask = np.zeros((148, 148) if trial % 2 else (360, 640), np.uint8)
+        for _ in range(int(rng.integers(0, 8))):
+            cv2.circle(mask, (int(rng.integers(0, mask.shape[1])), int(rng.integers(0, mask.shape[0]))),
+                       int(rng.integers(1, 12)), 255, -1)
+        n, labels, stats = _components(mask)
+        n_, labels_, stats_, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+        assert n == n_ and np.array_equal(labels, labels_) and np.array_equal(stats[1:], stats_[1:]), trial
+    markers = [MarkerColor.from_rgb("red", (230, 30, 30)), MarkerColor.from_rgb("green", (40, 220, 30))]
+    frames = _scattered_frames(rng)
+
+    def run() -> tuple[list, list, dict]:
+        blob, sampler, samples = BlobDetector(markers), BlobDetector(markers, max_per_marker=2), {}
+        coarse = [blob._detect_coarse(mk, np.ascontiguousarray(np.tile(f, (2, 2, 1)))) for f in frames for mk in markers]
+        tracker = create_detector("blob", markers)
+        tracked = [tracker.detect(f) for f in frames for _ in range(2)]  # the second time in search windows
+        for f in frames:
+            _sample_colours(sampler, f, "left", set(), samples)
+        return coarse, tracked, samples
+
+    cropped = run()
+    _whole_mask(monkeypatch)
+    whole = run()
+    assert sum(len(c) for c in whole[0]) > 100 and cropped[0] == whole[0]
+    assert sum(len(c) for c in whole[1]) > 100 and cropped[1] == whole[1]
+    assert cropped[2] == whole[2]
+    sampled = [s for ss in whole[2].values() for s in ss]
+    assert any(s[1] == 0 for s in sampled) and any(s[2] > 0 for s in sampled)  # empty masks and blobs both seen
+
+
+def test_stage_decoders_share_the_cores(mp4_clip):
+    """The stage decodes both cameras at once, each decoder with its share of the cores
+    (:func:`decoder_threads`), and the frames are those of a decoder left to FFmpeg's default."""
+    from pipeline.core.frames import CameraReader, decoder_threads
+
+    source = StereoFrameSource(mp4_clip)
+    assert [r.cap.get(cv2.CAP_PROP_N_THREADS) for r in source.readers] == [decoder_threads(2)] * 2
+    default = CameraReader(mp4_clip / "left.mp4")
+    one = CameraReader(mp4_clip / "left.mp4", threads=1)
+    assert one.cap.get(cv2.CAP_PROP_N_THREADS) == 1
+    pairs = list(zip(default, one, strict=True))
+    assert len(pairs) == 24 and all(np.array_equal(a, b) for a, b in pairs)
+    source.readers[0].close(), source.readers[1].close(), default.close(), one.close()
