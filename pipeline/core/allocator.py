@@ -8,7 +8,9 @@ with the thresholds fixed (and the system time those faults cost). The peak memo
 same within a few MB (``benchmarks/memory.py`` measures it as the CLI runs).
 
 The CLI sets this in its own process (:func:`tune`) and every child it starts inherits it through
-the environment (:data:`ENV`); a value the user set wins. Elsewhere (musl, macOS) nothing changes.
+the environment (:data:`ENV`); a value the user set wins. A program that calls stereotrack's
+functions itself may call :func:`tune` first; importing stereotrack changes nothing. Elsewhere
+(musl, macOS) nothing changes.
 """
 
 from __future__ import annotations
