@@ -41,6 +41,7 @@ from renderers.scenario import load_scenario
 
 SIZES = [(640, 480), (1280, 720)]
 MANY = "640×480, default scenario (5 markers, four-point target)"
+STAGE_COLUMN = "detect stage, blob (decode + detect + CSV, both cameras)"
 
 
 def render(tmp: Path, w: int, h: int, frames: int) -> Path:
@@ -120,6 +121,34 @@ class Rates:
                 f"| {ratio(self.both)}")
 
 
+def detectors_alone(clip: Path, marker: MarkerColor) -> list[float]:
+    """Frames/s of each detector alone on one core over the left video's frames (decoded first):
+    blob over the whole frame, blob in search windows (as the stage runs it), meanshift, CamShift."""
+    frames = decode_all(clip / "left.mp4")
+    cv2.setNumThreads(1)
+    try:
+        blob = BlobDetector([marker])
+        t0 = time.perf_counter()
+        for f in frames:
+            blob.detect(f)
+        rates = [len(frames) / (time.perf_counter() - t0)]
+        rois: dict = {}
+        t0 = time.perf_counter()
+        for f in frames:  # search near the last detection first
+            found = blob.detect(f, rois=rois)
+            rois = {d.marker: search_window(d, f.shape) for d in found}
+        rates.append(len(frames) / (time.perf_counter() - t0))
+        for mode in ("meanshift", "camshift"):
+            tr = MeanShiftTracker(marker, mode)
+            t0 = time.perf_counter()
+            for f in frames:
+                tr.update(f)
+            rates.append(len(frames) / (time.perf_counter() - t0))
+        return rates
+    finally:
+        cv2.setNumThreads(-1)
+
+
 #: one detect stage in a fresh interpreter with the code in argv[1] (a warm-up run first): seconds
 STAGE = ("import sys, time; sys.path.insert(0, sys.argv[1]); from detectors.stage import detect_clip; "
          "exec('try:\\n from pipeline.core import allocator; allocator.tune()\\nexcept ImportError: pass'); "
@@ -149,43 +178,23 @@ def main() -> None:
     allocator.tune()
     marker = MarkerColor.from_rgb("red", (230, 30, 30))
     print(f"# detection throughput, frames/s per camera ({args.frames} frames, one marker, {os.cpu_count()} cores)\n")
-    print("| resolution | blob alone, whole frame (1 core) | blob alone, search window (1 core) "
-          "| meanshift alone | CamShift alone | bare decode | bare decode, both at once "
-          "| detect stage, blob (decode + detect + CSV, both cameras) | stage / bare decode "
-          "| stage / both at once |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print(f"| resolution | bare decode | bare decode, both at once | {STAGE_COLUMN} | stage / bare decode "
+          "| stage / both at once |\n|---|---|---|---|---|---|")
+    alone_rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for w, h in SIZES:
             clip = render(Path(tmp), w, h, args.frames)
-            frames = decode_all(clip / "left.mp4")
             rates = Rates(clip, Path(tmp) / f"out{w}", args.repeat)
-            cv2.setNumThreads(1)  # "alone on one core"
-            blob = BlobDetector([marker])
-            t0 = time.perf_counter()
-            for f in frames:
-                blob.detect(f)
-            blob_fps = len(frames) / (time.perf_counter() - t0)
-            rois: dict = {}
-            t0 = time.perf_counter()
-            for f in frames:  # as the detect stage runs it: search near the last detection first
-                found = blob.detect(f, rois=rois)
-                rois = {d.marker: search_window(d, f.shape) for d in found}
-            blob_win_fps = len(frames) / (time.perf_counter() - t0)
-            alone = {}
-            for mode in ("meanshift", "camshift"):
-                tr = MeanShiftTracker(marker, mode)
-                t0 = time.perf_counter()
-                for f in frames:
-                    tr.update(f)
-                alone[mode] = len(frames) / (time.perf_counter() - t0)
-            cv2.setNumThreads(-1)
-            print(f"| {w}×{h} | {blob_fps:.0f} | {blob_win_fps:.0f} | {alone['meanshift']:.0f} "
-                  f"| {alone['camshift']:.0f} | {rates.cells()} |", flush=True)
+            print(f"| {w}×{h} | {rates.cells()} |", flush=True)
+            alone_rows.append(f"| {w}×{h} | " + " | ".join(f"{r:.0f}" for r in detectors_alone(clip, marker)) + " |")
         many = render_default(Path(tmp), args.frames)
         rates = Rates(many, Path(tmp) / "out_default", args.repeat)
-        print("\n| clip | bare decode | bare decode, both at once | detect stage, blob | stage / bare decode "
+        print(f"\n| clip | bare decode | bare decode, both at once | {STAGE_COLUMN} | stage / bare decode "
               "| stage / both at once |\n|---|---|---|---|---|---|")
         print(f"| {MANY} | {rates.cells()} |", flush=True)
+        print("\n| resolution | blob alone, whole frame | blob alone, search window | meanshift alone "
+              "| CamShift alone |\n|---|---|---|---|---|")
+        print("\n".join(alone_rows), flush=True)
         if args.against:
             print(f"\n| clip | stage, `{args.against}` (s) | stage, today (s) | today's speed / `{args.against}` |")
             print("|---|---:|---:|---:|")
@@ -202,9 +211,9 @@ def main() -> None:
           f"collects the detections. Decodes and stage run {args.repeat} times, interleaved; each rate is the "
           "best run, each ratio best against best, with the median and the range of the ratios within one run "
           "in brackets (the bare decode with FFmpeg's threads varies most from run to run). The detectors "
-          "alone: one run. This process's allocator is set as the CLI sets its own (`pipeline.core.allocator`), "
-          "for the decodes and the stage alike; in the comparison with an earlier revision each stage runs as "
-          "that revision's CLI would.")
+          "alone: one run each, on one core. This process's allocator is set as the CLI sets its own "
+          "(`pipeline.core.allocator`), for the decodes and the stage alike; in the comparison with an earlier "
+          "revision each stage runs as that revision's CLI would.")
 
 
 if __name__ == "__main__":
