@@ -308,8 +308,10 @@ class Initiator:
             got[todo] = np.minimum(got[todo] + valid.sum(axis=1), need)
             todo, lo, chunk = todo[got[todo] < need], hi, 2 * chunk
         done = np.flatnonzero(got == need)
-        states, covs = self._fit_many(F[done], pts[done])
         out: list[Start | None] = [None] * M
+        if not len(done):  # no track starts (a clip shorter than the start needs: the warm-up's frames)
+            return out
+        states, covs = self._fit_many(F[done], pts[done])
         for j, m in enumerate(done):
             out[m] = Start(int(F[m, -1]), states[j], covs[j])
         return out
