@@ -27,7 +27,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 from _common import page, stack_tree
 
-from pipeline.batch import run_batch
+from pipeline.app.batch import run_batch
 from renderers.render import render_clips
 from renderers.scenario import load_scenario
 
@@ -56,7 +56,7 @@ def dask_processes(folder: Path, workers: int):
 def batch_at(tree: Path, inp: Path, out: Path, workers: int) -> float:
     """Seconds the batch takes with the code in ``tree`` (its own interpreter, its own imports)."""
     shutil.rmtree(out, ignore_errors=True)
-    code = ("import sys, time; sys.path.insert(0, sys.argv[1]); from pipeline.batch import run_batch; t = time.perf_counter(); "
+    code = ("import sys, time; sys.path.insert(0, sys.argv[1]); from pipeline.app.batch import run_batch; t = time.perf_counter(); "
             f"r = run_batch(sys.argv[2], sys.argv[3], workers={workers}, methods={METHODS!r}); "
             "assert all(o.status == 'ok' for o in r), [o.error for o in r]; print(time.perf_counter() - t)")
     env = {**os.environ, "PYTHONPATH": str(tree)}

@@ -27,7 +27,7 @@ from _common import page
 from renderers.render import render_clip
 from renderers.scenario import load_scenario
 
-CODE = ("import sys\nfrom pipeline.cli import main\nsys.argv = ['stereotrack', *sys.argv[1:]]\n"
+CODE = ("import sys\nfrom pipeline.app.cli import main\nsys.argv = ['stereotrack', *sys.argv[1:]]\n"
         "try:\n    main()\nexcept SystemExit as e:\n    assert not e.code, e.code\n"
         "print('PEAK', next(int(ln.split()[1]) for ln in open('/proc/self/status') if ln.startswith('VmHWM')))")
 
@@ -35,7 +35,7 @@ CODE = ("import sys\nfrom pipeline.cli import main\nsys.argv = ['stereotrack', *
 #: ``process_clip`` on argv[1] in a fresh process, keeping every track when argv[2] is "keep": the
 #: peak of each stage (VmHWM, reset as the stage starts) and the peak of the whole run, in kB
 STAGES = """import sys
-from pipeline.run import process_clip
+from pipeline.app.run import process_clip
 def kb(key):
     return next(int(ln.split()[1]) for ln in open('/proc/self/status') if ln.startswith(key))
 peaks, last = [], ['start']

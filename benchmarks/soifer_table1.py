@@ -20,7 +20,7 @@ import numpy as np
 from _common import LiveDoc, add_output_args, output_dir
 
 from pipeline.core.io import atomic_path, write_text
-from pipeline.soifer import (
+from pipeline.evaluation.soifer import (
     BEST_SETTINGS,
     EXACT_FORMULA_SETTINGS,
     NON_ORACLE_SETTINGS,

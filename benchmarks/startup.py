@@ -1,5 +1,5 @@
 """Start-up: wall time of commands that do little (``--help``, ``methods``, ``scenarios``) and of
-the imports a batch worker pays (``import pipeline.run``), each the median of several fresh
+the imports a batch worker pays (``import pipeline.app.run``), each the median of several fresh
 interpreters, run interleaved.
 
     python benchmarks/startup.py [--repeat 7]
@@ -16,10 +16,10 @@ import time
 from _common import page
 
 CASES = {
-    "stereotrack --help": [sys.executable, "-m", "pipeline.cli", "--help"],
-    "stereotrack methods": [sys.executable, "-m", "pipeline.cli", "methods"],
-    "stereotrack scenarios": [sys.executable, "-m", "pipeline.cli", "scenarios"],
-    "import pipeline.run (a batch worker's imports)": [sys.executable, "-c", "import pipeline.run"],
+    "stereotrack --help": [sys.executable, "-m", "pipeline.app.cli", "--help"],
+    "stereotrack methods": [sys.executable, "-m", "pipeline.app.cli", "methods"],
+    "stereotrack scenarios": [sys.executable, "-m", "pipeline.app.cli", "scenarios"],
+    "import pipeline.app.run (a batch worker's imports)": [sys.executable, "-c", "import pipeline.app.run"],
     "python alone": [sys.executable, "-c", "pass"],
 }
 

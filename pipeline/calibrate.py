@@ -20,12 +20,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pipeline.core.board import Board
 from pipeline.core.calibration import LENGTH_UNITS, save_calibration
 from pipeline.core.camera import UNDISTORT_CRITERIA, Camera, StereoRig
 from pipeline.core.errors import StereotrackError
 from pipeline.core.frames import IMAGE_EXTS, VIDEO_EXTS
 from pipeline.core.io import atomic_path, write_text
-from renderers.board import Board
 
 #: a calibration is poor (a warning names the cause) above this RMS (px), below this share of each
 #: image covered by the board, or with fewer usable pairs than this

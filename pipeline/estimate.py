@@ -11,7 +11,6 @@ from typing import Any
 
 import numpy as np
 
-from pipeline import consistency
 from pipeline.core.camera import StereoRig
 from pipeline.core.checks import Check, jump_checks, rig_for_frames, stereo_checks, warn_failed
 from pipeline.core.clip import (
@@ -29,11 +28,12 @@ from pipeline.core.errors import StereotrackError, first_line
 from pipeline.core.io import write_csv, write_json
 from pipeline.core.outputs import Outputs
 from pipeline.core.sync import SyncEstimate, grid_length, resolve_sync
+from pipeline.core.version import stereotrack_version
 from pipeline.estimators import Estimator, Track, create, registry
 from pipeline.estimators import methods as registered_methods
 from pipeline.estimators.base import is_builtin, origin
-from pipeline.manifest import stereotrack_version
-from pipeline.metrics import compute_metrics, method_metrics
+from pipeline.evaluation import consistency
+from pipeline.evaluation.metrics import compute_metrics, method_metrics
 
 
 @dataclass

@@ -27,7 +27,7 @@ def real_copy(dest: Path, with_truth: bool = False) -> Path:
 
 def cli(monkeypatch, capsys, *args: str) -> tuple[int, str, str]:
     """Run the ``stereotrack`` entry point in-process: (exit code, stdout, stderr)."""
-    from pipeline.cli import main
+    from pipeline.app.cli import main
 
     monkeypatch.setattr(sys, "argv", ["stereotrack", *map(str, args)])
     with pytest.raises(SystemExit) as exc:

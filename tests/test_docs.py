@@ -19,7 +19,7 @@ def test_file_formats_are_generated_from_the_schemas():
 
     from pipeline.core.clip import SCHEMAS
     from pipeline.core.outputs import Outputs
-    from pipeline.summary import METHODS_SUMMARY, SUMMARY
+    from pipeline.present.summary import METHODS_SUMMARY, SUMMARY
 
     spec = importlib.util.spec_from_file_location("docs_hooks", REPO / "tools" / "docs_hooks.py")
     hooks = importlib.util.module_from_spec(spec)

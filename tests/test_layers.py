@@ -12,18 +12,16 @@ from tests.conftest import REPO
 
 PACKAGES = ("pipeline", "detectors", "renderers")
 
-#: (layer, module prefixes), lowest first; a module may import its own group and lower layers only
+#: (layer, folder or module), lowest first: ``pipeline/``'s folders are its layers, with the two stages
+#: that stand alone (estimate, calibrate) at the top of ``pipeline/``; a module may import its own group
+#: and lower layers only
 LAYERS: list[tuple[int, tuple[str, ...]]] = [
     (0, ("pipeline.core",)),
     (1, ("renderers",)), (1, ("detectors",)), (1, ("pipeline.estimators",)),
-    (2, ("pipeline.consistency", "pipeline.settings", "pipeline.soifer", "pipeline.manifest", "pipeline.tables",
-         "pipeline.html", "pipeline.style")),
-    (3, ("pipeline.metrics",)),
-    (4, ("pipeline.estimate",)),
-    (5, ("pipeline.report", "pipeline.recording", "pipeline.export", "pipeline.calibrate", "pipeline.summary")),
-    (6, ("pipeline.run",)),
-    (7, ("pipeline.batch",)),
-    (8, ("pipeline.cli",)),
+    (2, ("pipeline.evaluation",)),
+    (3, ("pipeline.estimate",)), (3, ("pipeline.calibrate",)),
+    (4, ("pipeline.present",)),
+    (5, ("pipeline.app",)),
 ]
 
 
@@ -102,3 +100,42 @@ def test_functions_are_short():
                 if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.end_lineno - node.lineno >= 60:
                     long.append(f"{path.relative_to(REPO)}:{node.lineno} {node.name} ({node.end_lineno - node.lineno + 1})")
     assert not long, "\n".join(long)
+
+
+def test_pipeline_folders_are_its_layers():
+    """``pipeline/`` holds its layers as folders (each named in :data:`LAYERS`) and, flat, only the
+    stages that stand alone: a new module must go into a layer's folder or be named here."""
+    named = {p for _, prefixes in LAYERS for p in prefixes}
+    flat = {f"pipeline.{p.stem}" for p in (REPO / "pipeline").glob("*.py") if p.stem != "__init__"}
+    folders = {f"pipeline.{p.name}" for p in (REPO / "pipeline").iterdir() if (p / "__init__.py").is_file()}
+    assert flat <= named, f"flat modules in no layer: {sorted(flat - named)}"
+    assert folders <= named, f"folders in no layer: {sorted(folders - named)}"
+    assert len(folders) >= 4
+
+
+def test_modules_are_short():
+    """No module in the packages is over 500 lines."""
+    long = [f"{p.relative_to(REPO)} ({n})" for pkg in PACKAGES for p in sorted((REPO / pkg).rglob("*.py"))
+            if (n := len(p.read_text().splitlines())) > 500]
+    assert not long, "\n".join(long)
+
+
+def _parameters(node: ast.FunctionDef | ast.AsyncFunctionDef) -> int:
+    a = node.args
+    names = [*a.posonlyargs, *a.args, *a.kwonlyargs, *([a.vararg] if a.vararg else []), *([a.kwarg] if a.kwarg else [])]
+    return len([n for n in names if n.arg not in ("self", "cls")])
+
+
+def test_few_functions_take_ten_parameters():
+    """Settings travel as objects (:class:`pipeline.core.settings.RunSettings`, state records), not
+    as long parameter lists: at most two library functions take ten or more parameters. The
+    command-line functions are left out: typer takes each option as a parameter."""
+    many = []
+    for pkg in PACKAGES:
+        for path in sorted((REPO / pkg).rglob("*.py")):
+            if path.name == "cli.py":
+                continue
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and _parameters(node) >= 10:
+                    many.append(f"{path.relative_to(REPO)}:{node.lineno} {node.name} ({_parameters(node)})")
+    assert len(many) <= 2, "\n".join(many)

@@ -1,5 +1,5 @@
 """mkdocs hook: the file-format tables of the docs, generated from the schemas in the code
-(``pipeline.core.clip``, ``pipeline.core.outputs``, ``pipeline.summary``) so no column is
+(``pipeline.core.clip``, ``pipeline.core.outputs``, ``pipeline.present.summary``) so no column is
 described twice. A page asks for them with ``<!-- generated: file formats -->``."""
 
 from __future__ import annotations
@@ -53,7 +53,7 @@ def settings_markdown() -> str:
 def file_formats() -> str:
     """Every generated section, in the order a clip is made and read."""
     from pipeline.core.clip import SCHEMAS
-    from pipeline.summary import METHODS_SUMMARY, SUMMARY
+    from pipeline.present.summary import METHODS_SUMMARY, SUMMARY
 
     parts = ["## The output folder", outputs_markdown(), "## Tables", settings_markdown()]
     parts += [schema_markdown(s) for s in (*SCHEMAS, SUMMARY, METHODS_SUMMARY)]

@@ -93,7 +93,7 @@ def test_table1_reproduction():
     gives 0.34–0.42× the paper's errors here; docs/soifer.md shows the same gap) and is held below 0.5×. Both
     settings decrease with SNR and filter: the raw measurement's error is at least 2× the
     filtered one in every column (measured 2.2–3.5×; a filter that does nothing gives 1×)."""
-    from pipeline.soifer import BEST_SETTINGS, PAPER, PAPER_SETTINGS, table1
+    from pipeline.evaluation.soifer import BEST_SETTINGS, PAPER, PAPER_SETTINGS, table1
 
     ours = table1(BEST_SETTINGS, seeds=60)
     theirs = table1(PAPER_SETTINGS, seeds=60)
@@ -115,7 +115,7 @@ def test_table1_truth_and_priors():
     (the two-point start) loses to the oracle prior on the π/3 row, as docs/soifer.md reports."""
     from scipy.integrate import solve_ivp
 
-    from pipeline.soifer import A_CL, BEST_SETTINGS, DT, NON_ORACLE_SETTINGS, PAPER, T_END, table1, true_alpha
+    from pipeline.evaluation.soifer import A_CL, BEST_SETTINGS, DT, NON_ORACLE_SETTINGS, PAPER, T_END, table1, true_alpha
 
     t = np.arange(round(T_END / DT) + 1) * DT
     sol = solve_ivp(lambda _t, x: A_CL @ x, (0, T_END), [math.pi / 6, 0.0], t_eval=t, rtol=1e-11, atol=1e-12)

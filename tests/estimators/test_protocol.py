@@ -14,12 +14,12 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from pipeline.cli import app
-from pipeline.consistency import band, nees
+from pipeline.app.cli import app
 from pipeline.core.camera import StereoMeasurementModel, StereoRig, triangulate
 from pipeline.estimators import Initiator, create, methods, registry
 from pipeline.estimators.base import InitConfig, transition, white_noise_acceleration
 from pipeline.estimators.spsa import _cost, camera_tuples
+from pipeline.evaluation.consistency import band, nees
 from renderers.motion import target_points
 from tests.conftest import REPO
 from tests.helpers import cli
@@ -299,7 +299,7 @@ def test_plugin_estimator_through_the_cli(tmp_path):
     assert pip.returncode == 0, pip.stderr
     clip = _sample(tmp_path)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(target), str(REPO)])}
-    cli = [sys.executable, "-m", "pipeline.cli"]
+    cli = [sys.executable, "-m", "pipeline.app.cli"]
     listed = subprocess.run([*cli, "methods"], capture_output=True, text=True, env=env)
     assert listed.returncode == 0 and "smoothed_triangulation" in listed.stdout, listed.stderr
     r = subprocess.run([*cli, "run", str(clip), "--methods", "triangulation,smoothed_triangulation"],
@@ -324,7 +324,7 @@ def test_chi2_band_matches_scipy_stats():
     """The χ² band from the incomplete gamma function equals scipy.stats' quantiles."""
     from scipy.stats import chi2
 
-    from pipeline.consistency import band
+    from pipeline.evaluation.consistency import band
 
     dof = np.array([1, 2, 3, 4, 6, 60])
     lo, hi = band(dof, 0.95)

@@ -16,9 +16,9 @@ from pathlib import Path
 import psutil
 import pytest
 
-from pipeline.batch import ATTEMPT, run_batch
+from pipeline.app.batch import ATTEMPT, run_batch
+from pipeline.app.manifest import MANIFEST, verify_manifest
 from pipeline.core.io import read_csv
-from pipeline.manifest import MANIFEST, verify_manifest
 from tests.conftest import REPO
 
 SAMPLE = REPO / "data" / "clips" / "sample_small"
@@ -38,7 +38,7 @@ def make_input(root: Path, n: int = 3, corrupt: bool = False) -> Path:
 def batch_cmd(inp: Path, out: Path, *extra: str) -> list[str]:
     """The batch these tests kill and restart (recordings without frames: images are not what
     they test, and encoding them would only make the kill windows slower)."""
-    return [sys.executable, "-m", "pipeline.cli", "batch", str(inp), "-o", str(out), "--workers", "2",
+    return [sys.executable, "-m", "pipeline.app.cli", "batch", str(inp), "-o", str(out), "--workers", "2",
             "--methods", METHODS, "--no-images", *extra]
 
 

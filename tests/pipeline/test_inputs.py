@@ -21,7 +21,7 @@ from pipeline.core.errors import ClipError
 from pipeline.core.frames import StereoFrameSource
 from pipeline.core.io import read_csv
 from pipeline.estimate import estimate_clip
-from pipeline.report import write_report
+from pipeline.present.report import write_report
 from tests.conftest import BALL
 from tests.helpers import RED, SAMPLE, assert_one_line_error, cli, failed_checks, real_copy, snapshot
 

@@ -42,7 +42,7 @@ def synthetic_clip(folder: Path, frames: int, size: tuple[int, int] = (320, 240)
 def peak_rss_mb(*args: str) -> float:
     """Peak resident memory (MB, VmHWM) of the `stereotrack` entry point run in a fresh process
     (not getrusage's ru_maxrss, which Linux carries over from the parent, here pytest, across exec)."""
-    code = ("import sys\nfrom pipeline.cli import main\nsys.argv = ['stereotrack', *sys.argv[1:]]\n"
+    code = ("import sys\nfrom pipeline.app.cli import main\nsys.argv = ['stereotrack', *sys.argv[1:]]\n"
             "try:\n    main()\nexcept SystemExit as e:\n    assert not e.code, e.code\n"
             "print('PEAK', next(int(ln.split()[1]) for ln in open('/proc/self/status') if ln.startswith('VmHWM')))")
     proc = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, cwd=REPO)

@@ -21,10 +21,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pipeline.batch import run_batch
+from pipeline.app.batch import run_batch
+from pipeline.app.manifest import MANIFEST, verify_manifest
 from pipeline.core.errors import StereotrackError
 from pipeline.core.io import read_csv
-from pipeline.manifest import MANIFEST, verify_manifest
 from tests.conftest import REPO
 from tests.helpers import RED, assert_one_line_error, cli, real_copy, snapshot
 
@@ -336,7 +336,7 @@ METHOD_FIELDS = st.dictionaries(st.sampled_from(["process_noise", "pixel_sigma",
                                                max_size=3)),
        raw=st.none() | st.binary(max_size=80))
 def test_fuzz_method_config(tmp_path, data, raw):
-    from pipeline.settings import load_method_configs
+    from pipeline.estimators.configs import load_method_configs
 
     path = tmp_path / "cfg.yaml"
     _write_yaml_or_bytes(path, data, raw)
@@ -421,7 +421,7 @@ def test_fuzz_manifest(tmp_path, data, raw):
 @FUZZ
 @given(data=st.one_of(YAMLISH, st.fixed_dictionaries({"address": TEXT})), raw=st.none() | st.binary(max_size=80))
 def test_fuzz_scheduler_file(tmp_path, data, raw):
-    from pipeline.batch import _checked_scheduler_file
+    from pipeline.app.batch import _checked_scheduler_file
 
     path = tmp_path / "scheduler.json"
     path.write_bytes(raw if raw is not None else json.dumps(data).encode())
@@ -490,7 +490,7 @@ def _batch_input(t: Path) -> Path:
 def test_signal_ends_cleanly(command, sig, tmp_path):
     argv, watched = SIGNAL_CASES[command]
     args, out = argv(tmp_path), watched(tmp_path)
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.app.cli", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, cwd=tmp_path)
     busy = (lambda: bool(_partials(out))) if command != "run" else (lambda: (out / "detections.csv").exists()
                                                                         or bool(_partials(out)))
@@ -519,7 +519,7 @@ def test_signal_ends_cleanly(command, sig, tmp_path):
 def test_one_and_two_frame_clips_run_end_to_end(frames, fmt, tmp_path):
     clip = tmp_path / "edge"
     env = {**os.environ, "COLUMNS": "200"}
-    res = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", "default", "--frames", str(frames), "--format", fmt,
+    res = subprocess.run([sys.executable, "-m", "pipeline.app.cli", "run", "default", "--frames", str(frames), "--format", fmt,
                           "-o", str(clip)], capture_output=True, text=True, cwd=tmp_path, env=env, timeout=300)
     assert res.returncode == 0, res.stderr
     assert "warning" not in res.stderr.lower(), res.stderr  # no numpy noise ("Mean of empty slice")
@@ -536,7 +536,7 @@ def test_one_and_two_frame_clips_run_end_to_end(frames, fmt, tmp_path):
 
 
 def test_library_warnings_name_their_source(capsys):
-    from pipeline.cli import _show_warning
+    from pipeline.app.cli import _show_warning
 
     _show_warning(RuntimeWarning("Mean of empty slice"), RuntimeWarning, "/x/numpy/lib/_nanfunctions_impl.py", 1215)
     _show_warning(UserWarning("clip/calib.yaml: something"), UserWarning, str(REPO / "pipeline" / "camera.py"), 10)

@@ -169,7 +169,7 @@ def test_every_output_is_readable_like_the_others(tmp_path):
     """run.rrd used to be written 0600 (mkstemp) while every other output is 0666 less the umask."""
     import stat
 
-    from pipeline.run import process_clip
+    from pipeline.app.run import process_clip
 
     clip = real_copy(tmp_path / "clip")
     process_clip(clip, marker_specs=[RED], methods=["triangulation"])
@@ -209,7 +209,8 @@ def distortion_error(est, true, hulls) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def chessboard_pairs(tmp_path_factory) -> Path:
-    from renderers.board import Board, render_board_pairs
+    from pipeline.core.board import Board
+    from renderers.board import render_board_pairs
 
     out = tmp_path_factory.mktemp("boards") / "chessboard"
     render_board_pairs(board_rig(), Board("chessboard", 9, 6, 0.025), out, pairs=20, seed=3, depth=(0.4, 0.9))
@@ -220,7 +221,7 @@ def chessboard_pairs(tmp_path_factory) -> Path:
 def chessboard_calibration(chessboard_pairs):
     """(the pairs found, the calibration of them), computed once for the tests that inspect it."""
     from pipeline.calibrate import calibrate, find_pairs
-    from renderers.board import Board
+    from pipeline.core.board import Board
 
     pairs = find_pairs(chessboard_pairs)
     return pairs, calibrate(pairs, Board("chessboard", 9, 6, 0.025))
@@ -257,7 +258,7 @@ def test_calibrate_agrees_with_opencv_on_the_same_corners(chessboard_calibration
     """stereotrack's calibration against OpenCV's stereoCalibrate run directly, intrinsics and all,
     on the same corners: the same baseline to 0.1 %."""
     from pipeline.calibrate import find_corners
-    from renderers.board import Board
+    from pipeline.core.board import Board
 
     board = Board("chessboard", 9, 6, 0.025)
     pairs, cal = chessboard_calibration
@@ -292,7 +293,7 @@ def test_calibrate_says_which_pairs_it_left_out(chessboard_pairs, tmp_path):
     """A pair whose right image shows no board, and one whose right image is another pair's: the
     first is left out as 'not found', the second as a reprojection outlier, each named."""
     from pipeline.calibrate import calibrate, find_pairs
-    from renderers.board import Board
+    from pipeline.core.board import Board
 
     pairs = find_pairs(chessboard_pairs)
     blank = np.full_like(pairs[0][2], 110)
@@ -493,7 +494,7 @@ def test_colour_check_on_rendered_clips(tmp_path):
 def test_calibrate_from_two_videos(chessboard_pairs, tmp_path):
     """The same pairs as two videos left.avi/right.avi (frames sampled): the same rig to 0.5 %."""
     from pipeline.calibrate import calibrate_folder
-    from renderers.board import Board
+    from pipeline.core.board import Board
 
     folder = tmp_path / "videos"
     folder.mkdir()

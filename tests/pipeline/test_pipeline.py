@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from pipeline.batch import find_clips, run_batch
-from pipeline.cli import app
+from pipeline.app.batch import find_clips, run_batch
+from pipeline.app.cli import app
+from pipeline.app.run import process_clip
 from pipeline.core.io import read_csv
-from pipeline.run import process_clip
-from pipeline.style import TRUTH_RGB_VIEWER
+from pipeline.present.style import TRUTH_RGB_VIEWER
 from renderers.render import render_clip
 from renderers.scenario import parse_scenario
 from tests.conftest import REPO
@@ -116,16 +116,16 @@ def test_streamed_run_writes_what_a_kept_run_writes(e2e_run, tmp_path, monkeypat
     import gc
     import weakref
 
-    import pipeline.report
+    import pipeline.present.report
 
     seen: list[weakref.ref] = []
-    add = pipeline.report.ReportData.add_method
+    add = pipeline.present.report.ReportData.add_method
 
     def spy(self, est, m, per):
         seen.extend(weakref.ref(t) for t in per.values())
         return add(self, est, m, per)
 
-    monkeypatch.setattr(pipeline.report.ReportData, "add_method", spy)
+    monkeypatch.setattr(pipeline.present.report.ReportData, "add_method", spy)
     res = process_clip(e2e_run.clip, tmp_path / "out", methods=METHODS, keep_tracks=False)
     gc.collect()
     assert len(seen) == len(METHODS) and not [r for r in seen if r() is not None]
@@ -207,7 +207,7 @@ def test_run_cli_on_sample_clip(tmp_path):
 def test_cli_errors_are_one_line(tmp_path):
     env = {**os.environ, "COLUMNS": "200"}
     for args in (["detect", str(tmp_path / "nope")], ["estimate", str(tmp_path)], ["run", "no_such_scenario"]):
-        proc = subprocess.run([sys.executable, "-m", "pipeline.cli", *args], capture_output=True, text=True, env=env,
+        proc = subprocess.run([sys.executable, "-m", "pipeline.app.cli", *args], capture_output=True, text=True, env=env,
                               timeout=120)
         assert proc.returncode == 2, proc.stderr
         assert "Traceback" not in proc.stderr and "error:" in proc.stderr
@@ -284,7 +284,7 @@ def test_view_works_on_any_folder_with_a_recording(e2e_run, tmp_path, monkeypatc
 def test_view_web_runs_the_viewer_beside_python_and_passes_its_exit_code(e2e_run, tmp_path, monkeypatch):
     """`view --web` serves rerun's web viewer on 127.0.0.1, prints the URL, and the viewer's exit
     code is the command's (a fake viewer that exits 3 stands in for rerun)."""
-    import pipeline.cli as cli_module
+    import pipeline.app.cli as cli_module
 
     fake = tmp_path / "rerun"
     fake.write_text(f"#!/bin/sh\necho \"$@\" > {tmp_path / 'args'}\nexit 3\n")
@@ -307,7 +307,7 @@ def test_version_and_plain_flags():
 
 def test_every_method_has_its_own_colour():
     from pipeline.estimators import registry
-    from pipeline.style import method_colour, method_rgb
+    from pipeline.present.style import method_colour, method_rgb
 
     names = list(registry())
     assert len({method_rgb(m) for m in names}) == len(names)
@@ -348,7 +348,7 @@ def test_recording_shows_what_the_run_was(e2e_run):
     for a run without the four-point target and a text panel saying what the run was; every method
     has a 3-D path; every error series is named and coloured as the report draws it; the recording
     is named after the clip."""
-    from pipeline.style import method_rgb
+    from pipeline.present.style import method_rgb
 
     cols, static, reader = read_recording(e2e_run.recording)
     bp = blueprint_columns(reader)
@@ -390,7 +390,7 @@ def test_the_viewer_dies_with_view(e2e_run, tmp_path):
 
     import psutil
 
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "view", str(e2e_run.clip), "--web", "--port", "9390"],
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.app.cli", "view", str(e2e_run.clip), "--web", "--port", "9390"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 30
     children = []

@@ -210,7 +210,7 @@ def test_vertical_and_left_handed_rigs_through_run(layout, tmp_path):
     import subprocess
     import sys
 
-    res = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", layout, "--frames", "30", "-o", str(tmp_path / "c"),
+    res = subprocess.run([sys.executable, "-m", "pipeline.app.cli", "run", layout, "--frames", "30", "-o", str(tmp_path / "c"),
                           "--methods", "triangulation,ekf,kf3d"], capture_output=True, text=True, cwd=tmp_path, timeout=300)
     assert res.returncode == 0, res.stderr
     metrics = json.loads((tmp_path / "c" / "out" / "metrics.json").read_text())

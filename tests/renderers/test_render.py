@@ -93,7 +93,7 @@ def test_render_is_deterministic(png_clip, tmp_path):
 def test_no_gl_backend_is_one_clear_line(tmp_path):
     env = {**os.environ, "PYOPENGL_PLATFORM": "egl", "__EGL_VENDOR_LIBRARY_FILENAMES": str(tmp_path / "none.json")}
     proc = subprocess.run(
-        [sys.executable, "-m", "pipeline.cli", "render", "receding", "-o", str(tmp_path / "c"), "--frames", "2"],
+        [sys.executable, "-m", "pipeline.app.cli", "render", "receding", "-o", str(tmp_path / "c"), "--frames", "2"],
         capture_output=True, text=True, env=env, timeout=120,
     )
     assert proc.returncode == 2

@@ -8,10 +8,10 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from pipeline import consistency
 from pipeline.core.camera import StereoRig
 from pipeline.core.clip import ClipTruth, TargetInfo
 from pipeline.estimators.base import Track
+from pipeline.evaluation import consistency
 
 
 class Estimates(Protocol):
@@ -80,7 +80,7 @@ def _note_too_short(entry: dict[str, Any], method: str, n_frames: int) -> None:
 def compute_metrics(res: Estimates, point: dict[str, dict[str, Any]] | None = None) -> dict[str, Any]:
     """Per method: error statistics against truth (all markers pooled, and per marker),
     reprojection RMSE (px), time per step, and for filters the consistency of their covariance
-    (NEES on position against truth, NIS of their innovations; :mod:`pipeline.consistency`).
+    (NEES on position against truth, NIS of their innovations; :mod:`pipeline.evaluation.consistency`).
     ``point``: the point methods' entries already computed by :func:`method_metrics` as each
     method finished (a run that does not keep every track); default: from ``res.tracks``."""
     out: dict[str, Any] = {"frames": res.n_frames, "dt": res.dt, "has_truth": res.truth is not None, "methods": {}}

@@ -12,12 +12,12 @@ from typing import Any
 
 import numpy as np
 
-from pipeline import html as H
 from pipeline.core.io import Schema, write_csv, write_text
 from pipeline.core.outputs import REPORT_HTML, Outputs
-from pipeline.metrics import runaways
-from pipeline.style import method_hex
-from pipeline.tables import Column, Table, inline, number, to_html, to_markdown
+from pipeline.evaluation.metrics import runaways
+from pipeline.present import html as H
+from pipeline.present.style import method_hex
+from pipeline.present.tables import Column, Table, inline, number, to_html, to_markdown
 
 SUMMARY = Schema("OUT/summary.csv", "one clip and method (a clip with no method scored has one row)", "batch", {
     "clip": "the clip's folder name",
@@ -116,7 +116,7 @@ class MethodRow:
 
 def method_rows(outcomes: list[ClipOutcome]) -> list[dict[str, Any]]:
     """Per method (in order of first appearance): 3-D RMSE across the clips that scored it, the
-    clips where it ran away (over 10× that clip's median; see :func:`pipeline.metrics.runaways`),
+    clips where it ran away (over 10× that clip's median; see :func:`pipeline.evaluation.metrics.runaways`),
     the clips where it gave no score (no estimate, or the clip failed), its median speed."""
     rows: dict[str, MethodRow] = {}
     for o in outcomes:

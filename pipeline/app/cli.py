@@ -29,7 +29,7 @@ out = Console()
 
 def _version(value: bool) -> None:
     if value:
-        from pipeline.manifest import stereotrack_version
+        from pipeline.core.version import stereotrack_version
 
         out.print(f"stereotrack {stereotrack_version()}")
         raise typer.Exit()
@@ -172,7 +172,7 @@ ConfigOption = Annotated[Path | None, typer.Option(
 
 
 def _configs(path: Path | None) -> dict | None:
-    from pipeline.settings import load_method_configs
+    from pipeline.estimators.configs import load_method_configs
 
     return load_method_configs(path) if path is not None else None
 
@@ -325,7 +325,7 @@ def export_cmd(
                                                 "CLIP/out/export).")] = None,
 ) -> None:
     """Write each method's 3-D tracks as <method>.<format>: marker names, frame rate, metres."""
-    from pipeline.export import export_clip
+    from pipeline.present.export import export_clip
 
     for path in export_clip(clip, fmt.lower(), _methods(methods), output):
         out.print(f"wrote {path}")
@@ -338,7 +338,7 @@ def report_cmd(
                                                 "inputs are always read from CLIP/out.")] = None,
 ) -> None:
     """Write out/report.md with the metrics table and figures."""
-    from pipeline.report import write_report
+    from pipeline.present.report import write_report
 
     with progress_bar() as bar:
         task = bar.add_task("report", total=None)
@@ -369,8 +369,8 @@ def run_cmd(
 
     A clip folder of real footage needs two videos (or PNG folders), a calibration and its markers
     (--markers or a markers.yaml in the folder)."""
+    from pipeline.app.run import DEFAULT_SCENARIO, process_clip
     from pipeline.core.sync import parse_time_offset
-    from pipeline.run import DEFAULT_SCENARIO, process_clip
 
     t0 = __import__("time").perf_counter()
     configs = _configs(config)
@@ -515,7 +515,7 @@ def batch_cmd(
 
     Markers: --markers for every clip, else each clip's markers.yaml, else INPUT_DIR/markers.yaml,
     else the colours of a rendered clip (clip.json)."""
-    from pipeline.batch import run_batch
+    from pipeline.app.batch import run_batch
     from pipeline.core.sync import parse_time_offset
 
     configs = _configs(config)
@@ -553,7 +553,7 @@ class _ClipStages:
 
 def _print_batch(outcomes: list, output: Path) -> None:
     """The per-method leaderboard, the clips that failed or warned, and where the summary is."""
-    from pipeline.summary import clip_warnings, method_rows
+    from pipeline.present.summary import clip_warnings, method_rows
 
     rows = method_rows(outcomes)
     table = Table(title=f"{len(outcomes)} clips: 3-D RMSE (mm) of each method across clips",
@@ -561,7 +561,7 @@ def _print_batch(outcomes: list, output: Path) -> None:
     for col in ("method", "clips", "mean", "95 % CI", "median", "runaway", "failed", "steps/s"):
         table.add_column(col, justify="left" if col == "method" else "right", no_wrap=True)
     for r in rows:
-        from pipeline.summary import interval
+        from pipeline.present.summary import interval
 
         ci = interval(r["mean_ci_low_m"], r["mean_ci_high_m"])
         table.add_row(r["method"], str(r["clips"]), _fmt(r["mean_rmse_m"] and 1000 * r["mean_rmse_m"], ".2f"), ci,

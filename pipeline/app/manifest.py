@@ -17,19 +17,10 @@ from typing import Any
 
 from pipeline.core.io import write_json
 from pipeline.core.outputs import MANIFEST, METRICS
+from pipeline.core.version import stereotrack_version
 
 #: The output every complete clip has: a manifest that does not list it is not a complete record.
 REQUIRED_OUTPUT = METRICS
-
-
-def stereotrack_version() -> str:
-    """The installed stereotrack version (``0+unknown`` when run from a bare checkout)."""
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        return version("stereotrack")
-    except PackageNotFoundError:
-        return "0+unknown"
 
 
 def sha256(path: Path) -> str:

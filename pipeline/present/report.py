@@ -18,15 +18,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from pipeline import html as H
 from pipeline.core.camera import StereoRig
 from pipeline.core.clip import Clip, load_detections, positions_from_columns
 from pipeline.core.errors import StereotrackError
 from pipeline.core.io import check_frame_column, read_csv, read_json_mapping, write_bytes, write_text
 from pipeline.core.outputs import Outputs
-from pipeline.metrics import RUNAWAY, errors_per_frame, runaways
-from pipeline.style import TRUTH_STYLE, marker_rgb, method_colour, method_hex, method_linestyle
-from pipeline.tables import Column, Table, inline, number, to_html, to_markdown
+from pipeline.evaluation.metrics import RUNAWAY, errors_per_frame, runaways
+from pipeline.present import html as H
+from pipeline.present.style import TRUTH_STYLE, marker_rgb, method_colour, method_hex, method_linestyle
+from pipeline.present.tables import Column, Table, inline, number, to_html, to_markdown
 
 if TYPE_CHECKING:
     from pipeline.estimate import EstimateResult
@@ -333,7 +333,7 @@ def fig_target(data: ReportData, plt) -> tuple[object, str] | None:
 def fig_consistency(data: ReportData, plt) -> tuple[object, str] | None:
     """NEES/3 and NIS/dof of each filter (moving mean over :data:`CONSISTENCY_WINDOW` frames, all
     markers) against the 95 % band of that mean: the quantities of the consistency table."""
-    from pipeline.consistency import band
+    from pipeline.evaluation.consistency import band
 
     if not data.filters:
         return None

@@ -21,13 +21,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from pipeline.app.manifest import verify_manifest, write_manifest
 from pipeline.core.calibration import has_calibration
 from pipeline.core.errors import StereotrackError, first_line
 from pipeline.core.io import check_replaceable, ensure_dir, write_json
 from pipeline.core.lifeline import OutputLock, die_with_parent, ignore_sigint, still_parented
 from pipeline.core.outputs import DETECT_INFO, ESTIMATES, FIGURES, MANIFEST, OUT, Outputs
-from pipeline.manifest import verify_manifest, write_manifest
-from pipeline.summary import ClipOutcome, write_summary
+from pipeline.present.summary import ClipOutcome, write_summary
 
 
 def find_clips(input_dir: str | Path, skip: Path | None = None) -> list[Path]:
@@ -103,8 +103,8 @@ def _process_one(clip: str, key: str, out_root: str, settings: dict[str, Any],
     import warnings
 
     from detectors.markers import resolve_marker_specs
+    from pipeline.app.run import process_clip
     from pipeline.core.clip import input_files
-    from pipeline.run import process_clip
 
     clip_p, final = Path(clip), Path(out_root) / key
     partial = final.parent / f".{final.name}.partial-{uuid.uuid4().hex[:12]}"

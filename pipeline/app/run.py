@@ -14,8 +14,8 @@ from pipeline.core.lifeline import OutputLock
 from pipeline.core.outputs import Outputs
 from pipeline.estimate import EstimateResult, estimate_clip
 from pipeline.estimators import Track
-from pipeline.recording import Recorder
-from pipeline.report import ReportData, report_data, write_report
+from pipeline.present.recording import Recorder
+from pipeline.present.report import ReportData, report_data, write_report
 
 DEFAULT_SCENARIO = "default"
 

@@ -26,8 +26,8 @@ import numpy as np
 
 from pipeline.core.camera import StereoRig
 from pipeline.core.io import partial_beside
-from pipeline.metrics import errors_per_frame, runaways
-from pipeline.style import TRUTH_RGB_VIEWER, marker_rgb, method_rgb
+from pipeline.evaluation.metrics import errors_per_frame, runaways
+from pipeline.present.style import TRUTH_RGB_VIEWER, marker_rgb, method_rgb
 
 if TYPE_CHECKING:
     from pipeline.estimate import EstimateResult
