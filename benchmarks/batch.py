@@ -56,7 +56,10 @@ def dask_processes(folder: Path, workers: int):
 def batch_at(tree: Path, inp: Path, out: Path, workers: int) -> float:
     """Seconds the batch takes with the code in ``tree`` (its own interpreter, its own imports)."""
     shutil.rmtree(out, ignore_errors=True)
-    code = ("import sys, time; sys.path.insert(0, sys.argv[1]); from pipeline.app.batch import run_batch; t = time.perf_counter(); "
+    # pipeline.app.batch since the folders were layers; pipeline.batch in older trees
+    code = ("import sys, time, importlib, importlib.util; sys.path.insert(0, sys.argv[1]); "
+            "run_batch = getattr(importlib.import_module('pipeline.app.batch' if importlib.util.find_spec('pipeline.app') "
+            "else 'pipeline.batch'), 'run_batch'); t = time.perf_counter(); "
             f"r = run_batch(sys.argv[2], sys.argv[3], workers={workers}, methods={METHODS!r}); "
             "assert all(o.status == 'ok' for o in r), [o.error for o in r]; print(time.perf_counter() - t)")
     env = {**os.environ, "PYTHONPATH": str(tree)}

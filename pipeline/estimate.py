@@ -32,8 +32,9 @@ from pipeline.core.version import stereotrack_version
 from pipeline.estimators import Estimator, Track, create, registry
 from pipeline.estimators import methods as registered_methods
 from pipeline.estimators.base import is_builtin, origin
-from pipeline.evaluation import consistency
 from pipeline.evaluation.metrics import compute_metrics, method_metrics
+from pipeline.evaluation.noise import estimate_pixel_sigma
+from pipeline.evaluation.scores import FrameScores, score_track, score_tracks
 
 
 @dataclass
@@ -52,6 +53,8 @@ class EstimateResult:
     target: TargetInfo | None = None
     target_tracks: dict[str, Track] = field(default_factory=dict)
     metrics: dict[str, Any] = field(default_factory=dict)
+    #: method → marker → the track's per-frame scores (kept with the tracks)
+    scores: dict[str, dict[str, FrameScores]] = field(default_factory=dict)
 
     @property
     def truth_positions(self) -> dict[str, np.ndarray] | None:
@@ -60,29 +63,7 @@ class EstimateResult:
 
 
 #: what :func:`estimate_clip` hands each point method's tracks to as the method finishes
-MethodSink = Callable[[EstimateResult, str, dict[str, Track]], None]
-
-
-def estimate_pixel_sigma(rig: StereoRig, observations: dict[str, np.ndarray]) -> float | None:
-    """Detection noise (px) from the data: the DLT leaves one degree of freedom of the four
-    stereo coordinates, so the squared reprojection residual of a triangulated point is
-    ``σ² χ²(1)``; σ̂² is its mean over all frames and markers. None without stereo frames."""
-    from pipeline.core.camera import triangulate
-
-    sq = []
-    for Y in observations.values():
-        ok = np.all(np.isfinite(Y), axis=1)
-        if ok.any():
-            X = triangulate(rig, Y[ok])
-            good = np.all(np.isfinite(X), axis=1)
-            r = rig.project(X[good]) - Y[ok][good]
-            sq.append(np.sum(r**2, axis=1))
-    if not sq:
-        return None
-    allsq = np.concatenate(sq)
-    # a robust mean: drop the worst 2 % (mislabelled or occluded frames)
-    allsq = np.sort(allsq)[: max(1, int(0.98 * len(allsq)))]
-    return float(max(np.sqrt(np.mean(allsq)), 0.02))
+MethodSink = Callable[[EstimateResult, str, dict[str, Track], dict[str, FrameScores]], None]
 
 
 @dataclass
@@ -155,12 +136,12 @@ def estimate_clip(
     result = EstimateResult(out_dir, seen.rig, seen.dt, seen.n, seen.obs, {}, seen.truth, seen.target, target_tracks)
     entries = {}
     for m in point:
-        tracks = _run_point(m, seen, configs.get(m), out_dir, resolved, count)
-        entries[m] = method_metrics(result, m, tracks)
+        tracks, scores = _run_point(m, seen, configs.get(m), out_dir, resolved, count)
+        entries[m] = method_metrics(result, m, tracks, scores)
         if on_method is not None:
-            on_method(result, m, tracks)
+            on_method(result, m, tracks, scores)
         if keep_tracks:
-            result.tracks[m] = tracks
+            result.tracks[m], result.scores[m] = tracks, scores
     result.metrics = _metrics(result, seen, clip_, calib_units, resolved, entries)
     write_json(Outputs(out_dir).metrics, result.metrics)
     return result
@@ -249,7 +230,7 @@ def _run_target(m: str, seen: Observed, config: dict, out_dir: Path, resolved: d
 
 
 def _run_point(m: str, seen: Observed, config: dict | None, out_dir: Path, resolved: dict,
-               count: _Count) -> dict[str, Track]:
+               count: _Count) -> tuple[dict[str, Track], dict[str, FrameScores]]:
     """One point method on every marker; writes its estimates. Methods that model the time offset
     see the right camera at its own times, the others the right camera interpolated."""
     modelled = seen.sync.applied and seen.sync.source != "timestamps" and registry()[m].models_time_offset
@@ -259,11 +240,12 @@ def _run_point(m: str, seen: Observed, config: dict | None, out_dir: Path, resol
     for marker, Y in (seen.obs if modelled else seen.aligned).items():
         tracks[marker] = _run_method(est, Y, marker)
         count.tick()
-    _write_estimates(Outputs(out_dir).estimates(m), tracks, seen.dt, seen.truth)
+    scores = score_tracks(tracks, seen.truth.positions if seen.truth is not None else None)
+    _write_estimates(Outputs(out_dir).estimates(m), tracks, seen.dt, scores)
     for tr in tracks.values():  # what the later stages use of it: memory that does not grow 4× per frame
         if tr.covariance is not None and tr.covariance.shape[1] > 3:
             tr.covariance = np.ascontiguousarray(tr.covariance[:, :3, :3])
-    return tracks
+    return tracks, scores
 
 
 def _metrics(result: EstimateResult, seen: Observed, clip: Clip, calib_units: str | None,
@@ -314,23 +296,10 @@ def _run_method(est: Estimator, Y: np.ndarray, marker: str) -> Track:
                                f"(marker {marker!r}, frame {est.frame})") from None
 
 
-def consistency_columns(tr: Track, truth_position: np.ndarray | None) -> np.ndarray:
-    """frames × 3: NIS, its degrees of freedom, position NEES (NaN where not defined)."""
-    n = len(tr.position)
-    out = np.full((n, 3), np.nan)
-    if tr.nis is not None and tr.nis_dof is not None:
-        out[:, 0], out[:, 1] = tr.nis, np.where(tr.nis_dof > 0, tr.nis_dof, np.nan)
-    if truth_position is not None and tr.covariance is not None:
-        e = consistency.nees(tr, truth_position)
-        out[: len(e), 2] = e
-    return out
-
-
-def _write_estimates(path: Path, tracks: dict[str, Track], dt: float, truth: ClipTruth | None = None) -> None:
+def _write_estimates(path: Path, tracks: dict[str, Track], dt: float, scores: dict[str, FrameScores]) -> None:
     def rows():
         for marker, tr in tracks.items():
-            T = truth.positions.get(marker) if truth is not None else None
-            cons = consistency_columns(tr, T)
+            cons = scores[marker].columns()
             for k in range(len(tr.position)):
                 yield (k, k * dt, marker, *tr.position[k], *tr.velocity[k], *cons[k], int(tr.predicted[k]))
 
@@ -338,7 +307,7 @@ def _write_estimates(path: Path, tracks: dict[str, Track], dt: float, truth: Cli
 
 
 def _write_target_estimates(path: Path, name: str, tr: Track, dt: float) -> None:
-    cons = consistency_columns(tr, None)
+    cons = score_track(tr, None).columns()
 
     def rows():
         for k in range(len(tr.position)):

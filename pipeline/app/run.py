@@ -14,6 +14,7 @@ from pipeline.core.lifeline import OutputLock
 from pipeline.core.outputs import Outputs
 from pipeline.estimate import EstimateResult, estimate_clip
 from pipeline.estimators import Track
+from pipeline.evaluation.scores import FrameScores
 from pipeline.present.recording import Recorder
 from pipeline.present.report import ReportData, report_data, write_report
 
@@ -106,10 +107,10 @@ def _process_clip(clip_: Clip, out_dir: Path, detector: str, methods: list[str] 
         say("estimate")
         data = ReportData(clip_.folder.name, out_dir, {})
 
-        def finished(est: EstimateResult, m: str, tracks: dict[str, Track]) -> None:
-            data.add_method(est, m, tracks)
+        def finished(est: EstimateResult, m: str, tracks: dict[str, Track], scores: dict[str, FrameScores]) -> None:
+            data.add_method(est, m, tracks, scores)
             if recorder is not None:
-                recorder.method(est, m, tracks)
+                recorder.method(est, m, tracks, scores)
 
         est = estimate_clip(clip_, methods, out_dir=out_dir, progress=progress, calib_units=calib_units,
                             configs=configs, detections=(det.observations, det.footage), time_offset=time_offset,

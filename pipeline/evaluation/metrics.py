@@ -12,6 +12,7 @@ from pipeline.core.camera import StereoRig
 from pipeline.core.clip import ClipTruth, TargetInfo
 from pipeline.estimators.base import Track
 from pipeline.evaluation import consistency
+from pipeline.evaluation.scores import FrameScores, errors_per_frame, score_tracks
 
 
 class Estimates(Protocol):
@@ -26,22 +27,19 @@ class Estimates(Protocol):
     target_tracks: dict[str, Track]
 
 
-def errors_per_frame(est: np.ndarray, truth: np.ndarray) -> np.ndarray:
-    """3-D error (m) per frame over the frames both cover (NaN where either is missing)."""
-    n = min(len(est), len(truth))
-    return np.linalg.norm(np.asarray(est, float)[:n] - np.asarray(truth, float)[:n], axis=1)
-
-
 def error_stats(est: np.ndarray, truth: np.ndarray) -> dict[str, float]:
     """RMSE, mean, median and final 3-D error (m) over frames where both are finite."""
-    e = errors_per_frame(est, truth)
+    return stats_of_errors(errors_per_frame(est, truth))
+
+
+def stats_of_errors(e: np.ndarray) -> dict[str, float]:
+    """RMSE, mean, median and final of per-frame 3-D errors (m) over the finite ones."""
     ok = np.isfinite(e)
     if not ok.any():
         return {"rmse": float("nan"), "mean": float("nan"), "median": float("nan"), "final": float("nan"), "frames": 0}
     e = e[ok]
     return {"rmse": float(np.sqrt(np.mean(e**2))), "mean": float(e.mean()), "median": float(np.median(e)),
             "final": float(e[-1]), "frames": int(ok.sum())}
-
 
 
 def rmse(a: np.ndarray, b: np.ndarray) -> float | None:
@@ -100,8 +98,12 @@ def compute_metrics(res: Estimates, point: dict[str, dict[str, Any]] | None = No
     return out
 
 
-def method_metrics(res: Estimates, m: str, per_marker: dict[str, Any]) -> dict[str, Any]:
-    """One point method's entry of :func:`compute_metrics` from its tracks (marker → track)."""
+def method_metrics(res: Estimates, m: str, per_marker: dict[str, Track],
+                   scores: dict[str, FrameScores] | None = None) -> dict[str, Any]:
+    """One point method's entry of :func:`compute_metrics` from its tracks (marker → track) and
+    their per-frame scores (computed here when not given)."""
+    if scores is None:
+        scores = score_tracks(per_marker, res.truth.positions if res.truth is not None else None)
     entry: dict[str, Any] = {}
     reps = np.concatenate([t.reprojection_error for t in per_marker.values()])
     positions = np.vstack([t.position for t in per_marker.values()])
@@ -119,27 +121,19 @@ def method_metrics(res: Estimates, m: str, per_marker: dict[str, Any]) -> dict[s
     entry["seconds_per_step"] = float(np.mean(sps))
     entry["steps_per_second"] = float(1.0 / np.mean(sps)) if np.mean(sps) > 0 else None
     if res.truth is not None:
-        entry.update(_against_truth(res.truth.positions, per_marker))
+        entry.update(_against_truth(scores))
     _note_too_short(entry, m, res.n_frames)
     return entry
 
 
-def _against_truth(truth: dict[str, np.ndarray], per_marker: dict[str, Any]) -> dict[str, Any]:
+def _against_truth(scores: dict[str, FrameScores]) -> dict[str, Any]:
     """A method's errors against the truth, pooled and per marker, and its position NEES."""
     entry: dict[str, Any] = {}
-    est, tru, markers, nees = [], [], {}, []
-    for marker, t in per_marker.items():
-        if marker not in truth:
-            continue
-        T = truth[marker][: len(t.position)]
-        P = t.position[: len(T)]
-        markers[marker] = error_stats(P, T)
-        est.append(P)
-        tru.append(T)
-        if t.covariance is not None:
-            nees.append(consistency.nees(t, T))
-    if est:
-        entry.update(error_stats(np.vstack(est), np.vstack(tru)))
+    errors = {mk: s.error for mk, s in scores.items() if s.error is not None}
+    nees = [s.nees for s in scores.values() if s.error is not None and s.nees is not None]
+    if errors:
+        entry.update(stats_of_errors(np.concatenate(list(errors.values()))))
+        markers = {mk: stats_of_errors(e) for mk, e in errors.items()}
         finals = [v["final"] for v in markers.values() if np.isfinite(v["final"])]
         entry["final"] = float(np.mean(finals)) if finals else float("nan")
         entry["markers"] = markers

@@ -26,7 +26,8 @@ import numpy as np
 
 from pipeline.core.camera import StereoRig
 from pipeline.core.io import partial_beside
-from pipeline.evaluation.metrics import errors_per_frame, runaways
+from pipeline.evaluation.metrics import runaways
+from pipeline.evaluation.scores import FrameScores
 from pipeline.present.style import TRUTH_RGB_VIEWER, marker_rgb, method_rgb
 
 if TYPE_CHECKING:
@@ -231,11 +232,11 @@ class Recorder:
             self.rec.log(entity, rr.LineStrips3D(strips, colors=[list(rgb)] * len(strips),
                                                  radii=[PATH_RADIUS] * len(strips)), static=True)
 
-    def method(self, est: EstimateResult, meth: str, per_marker: dict[str, Track]) -> None:
+    def method(self, est: EstimateResult, meth: str, per_marker: dict[str, Track], scores: dict[str, FrameScores]) -> None:
         """One point method's points, path, covariance ellipsoids and named, coloured series, as
         soon as the method has run (its tracks need not be kept for :meth:`finish`)."""
         n = _frames(est)
-        self._method(est.rig, meth, per_marker, est.truth_positions, n)
+        self._method(est.rig, meth, per_marker, scores, n)
         if self._ellipsoids(meth, per_marker, n):
             self.uncertain.append(meth)
         self.logged.append(meth)
@@ -261,7 +262,7 @@ class Recorder:
         for j, meth in enumerate(todo):
             if progress is not None:
                 progress(j, len(todo))
-            self.method(est, meth, est.tracks[meth])
+            self.method(est, meth, est.tracks[meth], est.scores[meth])
         self._target(est, est.truth_positions, _frames(est))
         if progress is not None:
             progress(len(todo), len(todo))  # the bar completes (it stopped at n − 1 of n)
@@ -300,7 +301,7 @@ class Recorder:
                          [there[j] for j in tp.which], "3d", TRUTH_RADIUS)
             self._paths("world/truth/path", [truth[m] for m in markers if m in truth], TRUTH_RGB_VIEWER)
 
-    def _method(self, rig: StereoRig, meth: str, per_marker: dict, truth: dict | None, n: int) -> None:
+    def _method(self, rig: StereoRig, meth: str, per_marker: dict, scores: dict[str, FrameScores], n: int) -> None:
         """A method's labelled points in 3-D and through each camera, its path, and its error
         series per marker (``/metrics/<kind>/<marker>/<method>``, named and coloured)."""
         rgb = list(method_rgb(meth))
@@ -313,8 +314,8 @@ class Recorder:
             self._points(f"world/{cam}/estimates/{meth}", seen, colours, labels, "2d", 2.5, show_labels=False)
         self._paths(f"world/estimates/{meth}/path", [t.position for t in per_marker.values()], rgb)
         for marker, t in per_marker.items():
-            if truth is not None and marker in truth:
-                self._scalars(f"metrics/error/{marker}/{meth}", errors_per_frame(t.position, truth[marker]), meth, rgb)
+            if (error := scores[marker].error) is not None:
+                self._scalars(f"metrics/error/{marker}/{meth}", error, meth, rgb)
             self._scalars(f"metrics/reprojection/{marker}/{meth}", t.reprojection_error, meth, rgb)
 
     def _ellipsoids(self, meth: str, per_marker: dict, n: int) -> bool:

@@ -23,7 +23,8 @@ from pipeline.core.clip import Clip, load_detections, positions_from_columns
 from pipeline.core.errors import StereotrackError
 from pipeline.core.io import check_frame_column, read_csv, read_json_mapping, write_bytes, write_text
 from pipeline.core.outputs import Outputs
-from pipeline.evaluation.metrics import RUNAWAY, errors_per_frame, runaways
+from pipeline.evaluation.metrics import RUNAWAY, runaways
+from pipeline.evaluation.scores import FrameScores, errors_per_frame
 from pipeline.present import html as H
 from pipeline.present.style import TRUTH_STYLE, marker_rgb, method_colour, method_hex, method_linestyle
 from pipeline.present.tables import Column, Table, inline, number, to_html, to_markdown
@@ -56,13 +57,12 @@ class ReportData:
     def runaways(self) -> list[str]:
         return runaways(self.metrics)
 
-    def add_method(self, est: EstimateResult, m: str, per: dict[str, Track]) -> None:
+    def add_method(self, est: EstimateResult, m: str, per: dict[str, Track], scores: dict[str, FrameScores]) -> None:
         """A point method's positions (behind-camera points hidden, on a copy) and its filter
-        series, from its tracks in memory."""
-        truth = est.truth_positions
+        series, from its tracks and their scores in memory."""
         self.point[m] = {mk: t.position.copy() for mk, t in per.items()}
         _hide_behind(est.rig, {m: self.point[m]})
-        if (s := _track_filter_series(per, truth)) is not None:
+        if (s := _track_filter_series(scores)) is not None:
             self.filters[m] = s
 
     def tracking(self) -> list[str]:
@@ -127,12 +127,10 @@ def load_report_data(clip: Clip, src: Path, out_dir: Path) -> ReportData:
     return data
 
 
-def _track_filter_series(per: dict, truth: dict[str, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray, float] | None:
-    """A filter's NEES/3 and NIS/dof per frame from its tracks in memory: the columns its estimates
-    CSV holds (:func:`pipeline.estimate.consistency_columns`), through :func:`_filter_series`."""
-    from pipeline.estimate import consistency_columns
-
-    cols = [consistency_columns(t, truth.get(mk) if truth else None) for mk, t in per.items()]
+def _track_filter_series(scores: dict[str, FrameScores]) -> tuple[np.ndarray, np.ndarray, float] | None:
+    """A filter's NEES/3 and NIS/dof per frame from its tracks' scores in memory: the columns its
+    estimates CSV holds, through :func:`_filter_series`."""
+    cols = [s.columns() for s in scores.values()]
     c = np.vstack(cols)
     return _filter_series({"frame": np.concatenate([np.arange(len(x)) for x in cols]), "nis": c[:, 0],
                            "nis_dof": c[:, 1], "nees": c[:, 2]})
@@ -149,7 +147,7 @@ def report_data(clip: Clip, est: EstimateResult, marker_colours: dict[str, list[
     data.obs, data.marker_colours = dict(est.observations), dict(marker_colours)
     for m, per in est.tracks.items():
         if m not in data.point:
-            data.add_method(est, m, per)
+            data.add_method(est, m, per, est.scores[m])
     for m, t in est.target_tracks.items():
         data.target[m] = {"t": np.arange(len(t.position)) * est.dt, "alpha": t.extra["alpha"],
                           "distance": t.extra["distance"]}

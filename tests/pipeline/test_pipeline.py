@@ -121,9 +121,9 @@ def test_streamed_run_writes_what_a_kept_run_writes(e2e_run, tmp_path, monkeypat
     seen: list[weakref.ref] = []
     add = pipeline.present.report.ReportData.add_method
 
-    def spy(self, est, m, per):
+    def spy(self, est, m, per, scores):
         seen.extend(weakref.ref(t) for t in per.values())
-        return add(self, est, m, per)
+        return add(self, est, m, per, scores)
 
     monkeypatch.setattr(pipeline.present.report.ReportData, "add_method", spy)
     res = process_clip(e2e_run.clip, tmp_path / "out", methods=METHODS, keep_tracks=False)
