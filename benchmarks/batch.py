@@ -28,6 +28,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 from _common import page, stack_tree
 
 from pipeline.app.batch import run_batch
+from pipeline.core.settings import RunSettings
 from renderers.render import render_clips
 from renderers.scenario import load_scenario
 
@@ -103,8 +104,8 @@ def main() -> None:
             with contextlib.ExitStack() as stack:
                 sched_file = stack.enter_context(dask_processes(Path(tmp), workers)) if sched == "file" else None
                 t0 = time.perf_counter()
-                res = run_batch(inp, out, workers=workers, scheduler=None if sched == "file" else sched,
-                                scheduler_file=sched_file, methods=METHODS, figures=figures)
+                res = run_batch(inp, out, RunSettings(methods=METHODS, figures=figures), workers=workers,
+                                scheduler=Path(sched_file) if sched == "file" else sched)
                 dt = time.perf_counter() - t0
             assert all(o.status == "ok" for o in res), [o.error for o in res if o.status != "ok"]
             cpm = args.clips / dt * 60

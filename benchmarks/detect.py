@@ -36,6 +36,7 @@ from detectors.meanshift import MeanShiftTracker
 from detectors.stage import detect_clip
 from pipeline.core import allocator
 from pipeline.core.frames import decoder_threads
+from pipeline.core.settings import RunSettings
 from renderers.render import render_clip
 from renderers.scenario import load_scenario
 
@@ -106,7 +107,7 @@ class Rates:
             self.decode.append((n_l + n_r) / (t_l + t_r))
             self.both.append((n_l + n_r) / decode_both_seconds(clip))
             t0 = time.perf_counter()
-            detect_clip(clip, "blob", out_dir=out)
+            detect_clip(clip, RunSettings(detector="blob"), out_dir=out)
             self.stage.append((n_l + n_r) / (time.perf_counter() - t0))
 
     def cells(self) -> str:

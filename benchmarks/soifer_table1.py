@@ -20,6 +20,7 @@ import numpy as np
 from _common import LiveDoc, add_output_args, output_dir
 
 from pipeline.core.io import atomic_path, write_text
+from pipeline.core.settings import RunSettings
 from pipeline.evaluation.soifer import (
     BEST_SETTINGS,
     EXACT_FORMULA_SETTINGS,
@@ -172,7 +173,7 @@ def end_to_end() -> list[str]:
             clip = Path(tmp) / f"fp{seed}"
             render_clip(load_scenario("four_point").with_overrides(seed=seed), clip, fmt="mp4")
             detect_clip(clip)
-            res = estimate_clip(clip, ["four_point", "kalman_bucy", "pnp_kf"])
+            res = estimate_clip(clip, RunSettings(methods=["four_point", "kalman_bucy", "pnp_kf"]))
             for m, e in res.metrics["methods"].items():
                 lines.append(f"| {seed} | {m} | {e['alpha_rmse_rad']:.4f} | {e['distance_rmse_m']:.4f} |")
                 agg.setdefault(m, []).append((e["alpha_rmse_rad"], e["distance_rmse_m"]))

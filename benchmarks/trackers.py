@@ -28,6 +28,7 @@ import numpy as np
 from _common import LiveDoc, add_output_args, output_dir
 
 from pipeline.core.io import write_text
+from pipeline.core.settings import RunSettings
 from pipeline.core.sync import resolve_sync
 from pipeline.estimators import create, methods, registry
 from renderers.motion import simulate_truth
@@ -209,7 +210,7 @@ def imperfect_suite(frames: int, out_dir) -> None:
             clip = f"{tmp}/{n}"
             render_clip(scen, clip, fmt="png", workers=2)
             detect_clip(clip)
-            res = estimate_clip(clip, names)
+            res = estimate_clip(clip, RunSettings(methods=names))
             rmse[n] = {m: res.metrics["methods"][m].get("rmse") for m in names}
             tri = rmse[n]["triangulation"] or float("inf")
             cells = ["—" if v is None else f"{1000 * v:.1f}{'*' if v > 5 * tri else ''}" for v in rmse[n].values()]

@@ -4,21 +4,48 @@ detector and colour ranges (:mod:`detectors.blob`), the stateful detectors (``bl
 
 from __future__ import annotations
 
+import warnings
+
 from detectors import blob_tracker, meanshift  # noqa: F401  (the imports register blob, meanshift, camshift)
-from detectors.base import _REGISTRY, Detector
+from detectors.base import _REGISTRY, Detector, register
 from detectors.blob import MarkerColor
 from pipeline.core.errors import StereotrackError
 
+#: the entry-point group a plugin package registers its detectors under (as estimators use
+#: ``stereotrack.estimators``): ``[project.entry-points."stereotrack.detectors"] NAME = "module:Class"``
+ENTRY_POINT_GROUP = "stereotrack.detectors"
+_plugins_loaded = False
+
 
 def registry() -> dict[str, type[Detector]]:
-    """Every registered detector, the built-in ones first."""
+    """Every registered detector: the built-in ones, then plugins from the ``stereotrack.detectors``
+    entry points (loaded once; one that fails to load, or is no :class:`Detector`, is skipped with
+    a warning)."""
+    global _plugins_loaded
+    if not _plugins_loaded:
+        _plugins_loaded = True
+        from importlib.metadata import entry_points
+
+        for ep in entry_points(group=ENTRY_POINT_GROUP):
+            try:
+                obj = ep.load()
+                if not (isinstance(obj, type) and issubclass(obj, Detector)):
+                    raise TypeError(f"{ep.value} is not a detectors.base.Detector subclass")
+                register(obj)
+            except Exception as exc:
+                warnings.warn(f"detector plugin {ep.name!r} ({ep.value}) failed to load: {exc}", stacklevel=2)
     return dict(_REGISTRY)
+
+
+def check_detector(name: str) -> None:
+    """One error naming the known detectors when ``name`` is not one of them."""
+    reg = registry()
+    if name not in reg:
+        raise StereotrackError(f"unknown detector {name!r} ({', '.join(reg)})")
 
 
 def create_detector(name: str, markers: list[MarkerColor], groups: dict[str, list[str]] | None = None,
                     roi: tuple[int, int, int, int] | None = None) -> Detector:
     """A new detector of the registered kind ``name`` (one per camera)."""
-    reg = registry()
-    if name not in reg:
-        raise StereotrackError(f"unknown detector {name!r} ({', '.join(reg)})")
-    return reg[name](markers, groups, roi)
+    check_detector(name)
+    return registry()[name](markers, groups, roi)

@@ -11,7 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from detectors import create_detector
+from detectors import check_detector, create_detector
 from detectors.blob import BlobDetector, MarkerColor
 from detectors.markers import resolve_marker_specs
 from pipeline.core.camera import StereoRig
@@ -28,6 +28,7 @@ from pipeline.core.errors import StereotrackError
 from pipeline.core.frames import CameraReader, StereoFrameSource
 from pipeline.core.io import write_csv, write_json
 from pipeline.core.outputs import Outputs
+from pipeline.core.settings import RunHooks, RunSettings
 
 #: The detect stage's record beside detections.csv: frames, frame size, markers used, checks.
 #: A clip folder (or a batch's input root) may name its markers here, in ``--markers`` syntax.
@@ -107,46 +108,39 @@ def markers_for_clip(clip: Clip, specs: list[str] | None, left_frame: Callable[[
     return colors, groups
 
 
-def detect_clip(
-    clip: str | Path | Clip,
-    detector: str = "blob",
-    marker_specs: list[str] | None = None,
-    roi: tuple[int, int, int, int] | None = None,
-    allow_unequal: bool = False,
-    out_dir: str | Path | None = None,
-    progress: Callable[[int, int], None] | None = None,
-    calib_units: str | None = None,
-    frame_sink: Callable[[int, np.ndarray | None, np.ndarray | None], None] | None = None,
-    force: bool = False,
-) -> DetectResult:
+def detect_clip(clip: str | Path | Clip, settings: RunSettings | None = None, out_dir: str | Path | None = None,
+                hooks: RunHooks | None = None) -> DetectResult:
     """Detect every marker in every frame of both cameras and write ``detections.csv`` and
     ``detect.json`` (frames, frame size, the marker ranges used, the colour checks).
 
-    ``frame_sink(index, left, right)`` receives every decoded frame (``run`` records them as they
-    go by, so a clip is decoded once and never held in memory). ``force`` keeps a colour learned
-    from a window even when it selects far more than the marker.
+    ``settings`` name the detector, the markers (default: the clip's own), the first search window,
+    the calibration's units and the frame rate; ``hooks.frame(index, left, right)`` receives every
+    decoded frame (``run`` records them as they go by, so a clip is decoded once and never held
+    in memory), ``hooks.progress`` the frames done.
 
     Coordinates written are undistorted with the clip's calibration when it has one (real rigs
     have lens distortion; estimators need pinhole coordinates); a calibration for another image
     size is an error, or scaled with a warning when only the resolution differs.
     """
-    clip_ = Clip.open(clip)
-    source = StereoFrameSource(clip_.path, allow_unequal=allow_unequal, fps=clip_.fps)
+    settings, hooks = settings or RunSettings(), hooks or RunHooks()
+    check_detector(settings.detector)
+    clip_ = Clip.open(clip, settings.fps)
+    source = StereoFrameSource(clip_.path, allow_unequal=settings.allow_unequal, fps=clip_.fps)
     out_dir = Outputs.of(clip_.folder, out_dir).folder
     rig: StereoRig | None = None
     checks: list[Check] = []
     if clip_.has_calibration:
-        rig, size_check = rig_for_frames(clip_.rig(calib_units), source.size, clip_.path)
+        rig, size_check = rig_for_frames(clip_.rig(settings.calib_units), source.size, clip_.path)
         checks += [size_check] if size_check else []
     learned: dict[str, str] = {}
-    specs = resolve_marker_specs(clip_.path, marker_specs)
-    markers, groups = markers_for_clip(clip_, specs, lambda k: _left_frame(source, k), learned, force)
-    finders = [create_detector(detector, markers, groups, roi) for _ in range(2 if source.stereo else 1)]
+    specs = resolve_marker_specs(clip_.path, list(settings.markers) if settings.markers else None)
+    markers, groups = markers_for_clip(clip_, specs, lambda k: _left_frame(source, k), learned, settings.force_window)
+    finders = [create_detector(settings.detector, markers, groups, settings.roi) for _ in range(2 if source.stereo else 1)]
     scan = _scan(source, finders, rig, markers, {n for names in groups.values() for n in names} | set(groups),
-                 frame_sink, progress)
+                 hooks.frame, hooks.progress)
     checks += colour_checks(scan.samples)
     warn_failed(checks)
-    record = {"detector": detector, "markers": [m.spec() for m in markers], "learned": learned,
+    record = {"detector": settings.detector, "markers": [m.spec() for m in markers], "learned": learned,
               "marker_colours": {m.name: list(m.display_rgb()) for m in markers}}
     return _write_detections(out_dir, clip_, source, scan, checks, record)
 

@@ -27,6 +27,7 @@ from pipeline.core.clip import (
 from pipeline.core.errors import StereotrackError, first_line
 from pipeline.core.io import write_csv, write_json
 from pipeline.core.outputs import Outputs
+from pipeline.core.settings import RunHooks, RunSettings
 from pipeline.core.sync import SyncEstimate, grid_length, resolve_sync
 from pipeline.core.version import stereotrack_version
 from pipeline.estimators import Estimator, Track, create, registry
@@ -85,21 +86,10 @@ class Observed:
     sigma: float | None
 
 
-def estimate_clip(
-    clip: str | Path | Clip,
-    methods: list[str] | None = None,
-    out_dir: str | Path | None = None,
-    configs: dict[str, dict] | None = None,
-    progress: Callable[[int, int], None] | None = None,
-    target_radius: float | None = None,
-    calib_units: str | None = None,
-    in_dir: str | Path | None = None,
-    detections: tuple[dict[str, np.ndarray], FootageInfo] | None = None,
-    time_offset: str | float | None = "auto",
-    describe: Callable[[str], None] | None = None,
-    on_method: MethodSink | None = None,
-    keep_tracks: bool = True,
-) -> EstimateResult:
+def estimate_clip(clip: str | Path | Clip, settings: RunSettings | None = None, out_dir: str | Path | None = None,
+                  hooks: RunHooks | None = None, in_dir: str | Path | None = None,
+                  detections: tuple[dict[str, np.ndarray], FootageInfo] | None = None,
+                  keep_tracks: bool = True) -> EstimateResult:
     """Run every requested method on every marker of a clip and write estimates and metrics.
 
     Detections are read from ``in_dir`` (default ``out_dir``, itself default ``CLIP/out``), or
@@ -109,28 +99,30 @@ def estimate_clip(
     measurement, Kalman–Bucy, PnP + KF) run on its four labelled points too. Input checks
     (left/right swapped, epipolar consistency, points behind a camera, track jumps, and the
     detect stage's colour and image-size checks) are warned about and written to
-    ``metrics.json`` under ``checks``. ``describe`` is told once what ``progress`` counts.
-    ``on_method`` gets each point method's tracks as the method finishes (the result so far, the
-    method, marker → track); with ``keep_tracks`` False they are dropped after it, so a long clip's
-    run holds one method's tracks at a time, not all of them.
+    ``metrics.json`` under ``checks``. ``settings``: the methods, their configs, the calibration's
+    units, the time offset, the frame rate. ``hooks.stage`` is told once what ``hooks.progress``
+    counts; ``hooks.method`` gets each point method's tracks and scores as the method finishes;
+    with ``keep_tracks`` False they are dropped after it, so a long clip's run holds one method's
+    tracks at a time, not all of them.
     """
-    clip_ = Clip.open(clip)
+    settings, hooks = settings or RunSettings(), hooks or RunHooks()
+    methods = list(settings.methods) if settings.methods else None
+    clip_ = Clip.open(clip, settings.fps)
     out_dir = Outputs.of(clip_.folder, out_dir).folder
     reg = registry()
     for m in methods or []:
         if m not in reg:
             raise StereotrackError(f"unknown method {m!r} (known: {', '.join(reg)})")
-    seen = observe(clip_, Path(in_dir) if in_dir else out_dir, detections, calib_units, time_offset, target_radius)
+    seen = observe(clip_, Path(in_dir) if in_dir else out_dir, detections, settings)
     methods = methods or registered_methods("point") + (registered_methods("target") if seen.target else [])
     point = [m for m in methods if reg[m].kind == "point"]
     target = [m for m in methods if reg[m].kind == "target"]
     if target and seen.target is None:
         raise StereotrackError(f"method(s) {', '.join(target)} require a four-point target; this clip has none", clip_.path)
-    count = _Count(len(point) * len(seen.obs) + len(target), progress)
-    if describe is not None:
-        describe(f"{count.total} tracks: {len(point)} methods × {len(seen.obs)} markers"
-                 + (f" + {len(target)} target methods" if target else ""))
-    configs = _with_pixel_noise(configs, methods, seen.sigma)
+    count = _Count(len(point) * len(seen.obs) + len(target), hooks)
+    hooks.say(f"estimate ({count.total} tracks: {len(point)} methods × {len(seen.obs)} markers"
+                 + (f" + {len(target)} target methods" if target else "") + ")")
+    configs = _with_pixel_noise(settings.configs, methods, seen.sigma)
     resolved: dict[str, dict[str, Any]] = {}
     target_tracks = {m: _run_target(m, seen, configs.get(m, {}), out_dir, resolved, count) for m in target}
     result = EstimateResult(out_dir, seen.rig, seen.dt, seen.n, seen.obs, {}, seen.truth, seen.target, target_tracks)
@@ -138,11 +130,11 @@ def estimate_clip(
     for m in point:
         tracks, scores = _run_point(m, seen, configs.get(m), out_dir, resolved, count)
         entries[m] = method_metrics(result, m, tracks, scores)
-        if on_method is not None:
-            on_method(result, m, tracks, scores)
+        if hooks.method is not None:
+            hooks.method(result, m, tracks, scores)
         if keep_tracks:
             result.tracks[m], result.scores[m] = tracks, scores
-    result.metrics = _metrics(result, seen, clip_, calib_units, resolved, entries)
+    result.metrics = _metrics(result, seen, clip_, settings.calib_units, resolved, entries)
     write_json(Outputs(out_dir).metrics, result.metrics)
     return result
 
@@ -150,25 +142,24 @@ def estimate_clip(
 class _Count:
     """Tracks done, told to a progress callback."""
 
-    def __init__(self, total: int, progress: Callable[[int, int], None] | None) -> None:
-        self.done, self.total, self.progress = 0, total, progress
+    def __init__(self, total: int, hooks: RunHooks) -> None:
+        self.done, self.total, self.hooks = 0, total, hooks
 
     def tick(self) -> None:
         self.done += 1
-        if self.progress is not None:
-            self.progress(self.done, self.total)
+        self.hooks.tick(self.done, self.total)
 
 
 def observe(clip: Clip, in_dir: Path, detections: tuple[dict[str, np.ndarray], FootageInfo] | None,
-            calib_units: str | None, time_offset: str | float | None, target_radius: float | None) -> Observed:
+            settings: RunSettings) -> Observed:
     """The detections (in memory, else ``in_dir/detections.csv``) padded to the clip's frame grid,
     the rig as the frames need it, the time offset resolved and applied, and the input checks."""
     det_path = Outputs(in_dir).detections
     if detections is None and not det_path.is_file():
         raise StereotrackError("no detections.csv: run `stereotrack detect` first", det_path)
     footage = detections[1] if detections is not None else footage_info(clip.path, in_dir)
-    rig, checks = _rig_for_footage(clip, footage, calib_units, warn_sized=detections is None)
-    ts = _timestamps(clip, time_offset)
+    rig, checks = _rig_for_footage(clip, footage, settings.calib_units, warn_sized=detections is None)
+    ts = _timestamps(clip, settings.time_offset)
     grid = grid_length(ts, clip.fps) if ts is not None else None  # videos that dropped frames are shorter
     truth = clip.truth(max(footage.frames, grid) if footage.frames is not None and grid is not None else footage.frames)
     obs = detections[0] if detections is not None else load_detections(det_path, footage.frames)
@@ -176,11 +167,11 @@ def observe(clip: Clip, in_dir: Path, detections: tuple[dict[str, np.ndarray], F
         raise StereotrackError("no detections in this clip", det_path)
     n = max(max(len(v) for v in obs.values()), grid or 0, truth.n_frames if truth is not None else 0)
     obs = {k: np.vstack([v, np.full((n - len(v), 4), np.nan)]) for k, v in obs.items()}
-    sync, aligned = resolve_sync(time_offset, rig, obs, clip.fps, ts)
+    sync, aligned = resolve_sync(settings.time_offset, rig, obs, clip.fps, ts)
     new_checks = [_sync_check(sync), *stereo_checks(rig, aligned, clip.calibration_name),
                   *jump_checks(obs, rig.image_size[0] or 640)]
     warn_failed(new_checks)
-    return Observed(rig, 1.0 / clip.fps, n, obs, aligned, sync, truth, find_target(clip, target_radius, obs),
+    return Observed(rig, 1.0 / clip.fps, n, obs, aligned, sync, truth, find_target(clip, settings.target_radius, obs),
                     checks + new_checks, footage, estimate_pixel_sigma(rig, aligned))
 
 

@@ -15,6 +15,7 @@ from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
 
+from pipeline.core.settings import RunSettings  # noqa: E402
 from renderers.render import render_clip  # noqa: E402
 from renderers.scenario import load_scenario, parse_scenario  # noqa: E402
 
@@ -83,8 +84,8 @@ def detected_clip(tmp_path_factory) -> Path:
     from tests.helpers import RED, real_copy
 
     clip = real_copy(tmp_path_factory.mktemp("bad") / "clip")
-    detect_clip(clip, "blob", [RED])
-    estimate_clip(clip, ["triangulation"])
+    detect_clip(clip, RunSettings(detector="blob", markers=[RED]))
+    estimate_clip(clip, RunSettings(methods=["triangulation"]))
     return clip
 
 

@@ -12,12 +12,12 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import json
-import math
 import multiprocessing as mp
 import os
 import shutil
 import traceback
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +27,7 @@ from pipeline.core.errors import StereotrackError, first_line
 from pipeline.core.io import check_replaceable, ensure_dir, write_json
 from pipeline.core.lifeline import OutputLock, die_with_parent, ignore_sigint, still_parented
 from pipeline.core.outputs import DETECT_INFO, ESTIMATES, FIGURES, MANIFEST, OUT, Outputs
+from pipeline.core.settings import RunHooks, RunSettings
 from pipeline.present.summary import ClipOutcome, write_summary
 
 
@@ -94,8 +95,7 @@ def _attempt_info() -> dict[str, Any]:
     return info
 
 
-def _process_one(clip: str, key: str, out_root: str, settings: dict[str, Any],
-                 parent_pid: int | None = None) -> ClipOutcome:
+def _process_one(clip: str, key: str, out_root: str, job: BatchJob, parent_pid: int | None = None) -> ClipOutcome:
     """Process one clip into a temporary folder unique to this attempt, write its manifest last,
     and swap it into ``OUT/<key>``. Runs in a pool worker (``parent_pid``: the batch process; a
     worker whose batch has died never commits) or on a Dask worker."""
@@ -115,15 +115,12 @@ def _process_one(clip: str, key: str, out_root: str, settings: dict[str, Any],
         inputs = input_files(clip_p)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            specs = resolve_marker_specs(clip_p, settings.get("markers"), settings.get("root_markers"))
-            process_clip(clip_p, partial, detector=settings["detector"], methods=settings.get("methods"),
-                         images_in_recording=settings.get("images", True), marker_specs=specs,
-                         calib_units=settings.get("calib_units"), lock=False, configs=settings.get("configs"),
-                         time_offset=settings.get("time_offset", "auto"), fps=settings.get("fps"),
-                         figures=settings.get("figures", False), stage=lambda name: _stage(key, name),
+            specs = resolve_marker_specs(clip_p, _listed(job.settings.markers), job.root_markers)
+            settings = job.settings.model_copy(update={"markers": tuple(specs) if specs else None})
+            process_clip(clip_p, partial, settings, RunHooks(stage=lambda name: _stage(key, name)), lock=False,
                          keep_tracks=False)
         (partial / ATTEMPT).unlink()
-        write_manifest(partial, settings, inputs)
+        write_manifest(partial, job.record, inputs)
         if parent_pid is not None and not still_parented(parent_pid):
             shutil.rmtree(partial, ignore_errors=True)
             os._exit(1)  # the batch is gone: never commit for a batch that no longer exists
@@ -162,35 +159,32 @@ def _swap_in(partial: Path, final: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
-def run_batch(
-    input_dir: str | Path,
-    output_dir: str | Path,
-    workers: int = 2,
-    scheduler: str | None = None,
-    force: bool = False,
-    detector: str = "blob",
-    methods: list[str] | None = None,
-    progress: Callable[[int, int], None] | None = None,
-    marker_specs: list[str] | None = None,
-    calib_units: str | None = None,
-    scheduler_file: str | Path | None = None,
-    configs: dict[str, dict] | None = None,
-    images: bool = True,
-    time_offset: str | float | None = "auto",
-    fps: float | None = None,
-    figures: bool = False,
-    on_stage: Callable[[str, str], None] | None = None,
-) -> list[ClipOutcome]:
-    """Process every clip under ``input_dir``; write ``summary.csv`` and ``summary.md``.
+@dataclass(frozen=True)
+class BatchJob:
+    """What every clip of a batch runs with: the run's settings, the input folder's own
+    ``markers.yaml`` (for clips without markers of their own) and what the manifest records."""
+
+    settings: RunSettings
+    root_markers: list[str] | None
+    record: dict[str, Any]
+
+
+def run_batch(input_dir: str | Path, output_dir: str | Path, settings: RunSettings | None = None, workers: int = 2,
+              scheduler: str | Path | None = None, force: bool = False,
+              progress: Callable[[int, int], None] | None = None,
+              on_stage: Callable[[str, str], None] | None = None) -> list[ClipOutcome]:
+    """Process every clip under ``input_dir`` with ``settings``; write ``summary.csv`` and ``summary.md``.
 
     Each clip's outputs go to ``OUT/<its path under input_dir>`` (``in/a/clip`` → ``OUT/a/clip``).
+    A batch leaves the report's figures out unless ``settings.figures`` (``--figures``); the
+    summary's leaderboard is always written. Markers: ``settings.markers`` apply to every clip;
+    else a clip's own ``markers.yaml``; else ``INPUT/markers.yaml``; else a rendered clip's
+    description (clip.json).
 
-    ``scheduler``: None for a local process pool; ``"local"`` for a Dask ``LocalCluster`` of
-    ``workers`` processes; a ``tcp://host:port`` address (or ``scheduler_file``) for an existing
-    Dask scheduler, whose workers must see ``input_dir`` and ``output_dir`` at the same paths.
-
-    The settings are those of :func:`batch_settings`. ``on_stage`` gets (clip, stage) as local
-    workers go.
+    ``scheduler``: None for a local process pool of ``workers`` processes; ``"local"`` for a Dask
+    ``LocalCluster`` of ``workers`` processes; a ``tcp://host:port`` address (a string), or a Dask
+    scheduler file (a :class:`~pathlib.Path`), for an existing Dask scheduler, whose workers must see ``input_dir`` and
+    ``output_dir`` at the same paths. ``on_stage`` gets (clip, stage) as local workers go.
 
     The output folder is locked for the whole batch (a second batch on it fails at once, naming
     the holder). A clip counts as done only if its manifest verifies, was made with the same
@@ -198,8 +192,7 @@ def run_batch(
     redone, with a warning saying why when it had complete outputs.
     """
     input_dir, out_root = Path(input_dir), Path(output_dir)
-    settings = batch_settings(input_dir, detector, methods, marker_specs, calib_units, configs, images, time_offset,
-                              fps, figures)
+    job = batch_job(input_dir, settings or RunSettings(figures=False))
     clips = find_clips(input_dir, skip=out_root.resolve())
     if not clips:
         raise StereotrackError("no clip folders here (a clip holds left/right videos or frame folders and a calibration)",
@@ -208,14 +201,14 @@ def run_batch(
     ensure_dir(out_root)
     with OutputLock(out_root, f"stereotrack batch {input_dir}"):
         _remove_leftovers(out_root)
-        outcomes = {keys[c]: o for c in clips if not force and (o := _complete(keys[c], out_root / keys[c], settings, c))}
+        outcomes = {keys[c]: o for c in clips if not force and (o := _complete(keys[c], out_root / keys[c], job.record, c))}
         todo = [c for c in clips if keys[c] not in outcomes]
         record = _Counter(outcomes, len(clips), progress, on_stage).record
         try:
-            if todo and scheduler is None and scheduler_file is None:
-                _run_local(todo, keys, out_root, settings, workers, record, on_stage)
+            if todo and scheduler is None:
+                _run_local(todo, keys, out_root, job, workers, record, on_stage)
             elif todo:
-                _run_dask(todo, keys, out_root, settings, workers, scheduler, scheduler_file, record)
+                _run_dask(todo, keys, out_root, job, workers, scheduler, record)
         finally:
             dead = _remove_leftovers(out_root)  # attempts whose worker died, and anything an interrupt left
         _count_dead_attempts(outcomes, dead)
@@ -224,33 +217,21 @@ def run_batch(
     return ordered
 
 
-def batch_settings(input_dir: Path, detector: str, methods: list[str] | None, marker_specs: list[str] | None,
-                   calib_units: str | None, configs: dict | None, images: bool, time_offset: str | float | None,
-                   fps: float | None, figures: bool) -> dict[str, Any]:
-    """The settings every clip runs with, checked before any work starts; the manifest records
-    them, and a clip made with other settings is redone.
-
-    ``configs`` (``--config``) are the methods' settings. ``images``: whether each clip's
-    recording holds its frames (``--no-images`` leaves them out). ``figures``: whether each clip's
-    report draws its figures (``--figures``; the summary's leaderboard is always written).
-    Markers: ``marker_specs`` (``--markers``) apply to every clip; else a clip's own
-    ``markers.yaml``; else ``INPUT/markers.yaml``; else a rendered clip's description (clip.json)."""
-    from detectors import registry as detectors
+def batch_job(input_dir: Path, settings: RunSettings) -> BatchJob:
+    """What every clip runs with, checked before any work starts (the detector against the
+    registry, the input folder's ``markers.yaml`` read); the manifest records it, and a clip made
+    with other settings is redone."""
+    from detectors import check_detector
     from detectors.markers import read_markers_file
     from pipeline.core.clip import MARKERS_FILE
 
-    if fps is not None and not (math.isfinite(fps) and fps > 0):
-        raise StereotrackError(f"--fps must be a positive number of frames per second, not {fps:g}")
-    if detector not in detectors():
-        raise StereotrackError(f"unknown detector {detector!r} ({', '.join(detectors())})")
+    check_detector(settings.detector)
     root_markers = read_markers_file(input_dir / MARKERS_FILE) if (input_dir / MARKERS_FILE).is_file() else None
-    settings = {"detector": detector, "methods": methods, "markers": marker_specs, "root_markers": root_markers,
-                "calib_units": calib_units, "configs": configs, "images": images, "time_offset": time_offset}
-    if fps is not None:  # recorded only when given, so manifests of earlier batches stay valid
-        settings["fps"] = fps
-    if figures:
-        settings["figures"] = True
-    return settings
+    return BatchJob(settings, root_markers, settings.record(root_markers))
+
+
+def _listed(v: tuple[str, ...] | None) -> list[str] | None:
+    return list(v) if v else None
 
 
 def _count_dead_attempts(outcomes: dict[str, ClipOutcome], dead: list[tuple[str, str]]) -> None:
@@ -326,7 +307,7 @@ def _drain(stages: Any, on_stage: Callable[[str, str], None] | None) -> None:
             return
 
 
-def _run_local(todo: list[Path], keys: dict[Path, str], out_root: Path, settings: dict, workers: int,
+def _run_local(todo: list[Path], keys: dict[Path, str], out_root: Path, job: BatchJob, workers: int,
                record: Callable[[ClipOutcome], None], on_stage: Callable[[str, str], None] | None = None) -> None:
     """A spawn-context process pool whose workers die with this process, and are ended at once
     when the batch is interrupted (Ctrl-C, SIGTERM) instead of finishing their clips."""
@@ -340,7 +321,7 @@ def _run_local(todo: list[Path], keys: dict[Path, str], out_root: Path, settings
                                   initargs=(os.getpid(), workers > 1, stages))
     try:
         with signals_deferred(), child_environment():  # submitting spawns the workers
-            futs = {pool.submit(_process_one, str(c), keys[c], str(out_root), settings, os.getpid()): keys[c]
+            futs = {pool.submit(_process_one, str(c), keys[c], str(out_root), job, os.getpid()): keys[c]
                     for c in todo}
         pending = set(futs)
         while pending:
@@ -360,15 +341,16 @@ def _run_local(todo: list[Path], keys: dict[Path, str], out_root: Path, settings
         stages.close()
 
 
-def _run_dask(todo: list[Path], keys: dict[Path, str], out_root: Path, settings: dict, workers: int,
-              scheduler: str | None, scheduler_file: str | Path | None, record: Callable[[ClipOutcome], None]) -> None:
-    """On a Dask LocalCluster (``scheduler == "local"``) or an existing scheduler."""
+def _run_dask(todo: list[Path], keys: dict[Path, str], out_root: Path, job: BatchJob, workers: int,
+              scheduler: str | Path, record: Callable[[ClipOutcome], None]) -> None:
+    """On a Dask LocalCluster (``scheduler == "local"``) or an existing scheduler (an address or a
+    scheduler file)."""
     from dask.distributed import as_completed
 
-    cluster, client = _dask_client(workers, scheduler, scheduler_file)
+    cluster, client = _dask_client(workers, scheduler)
     try:
         with client:
-            futs = {client.submit(_process_one, str(c), keys[c], str(out_root), settings, pure=False): keys[c]
+            futs = {client.submit(_process_one, str(c), keys[c], str(out_root), job, pure=False): keys[c]
                     for c in todo}
             try:
                 for f in as_completed(futs):
@@ -386,7 +368,7 @@ def _run_dask(todo: list[Path], keys: dict[Path, str], out_root: Path, settings:
             cluster.close()
 
 
-def _dask_client(workers: int, scheduler: str | None, scheduler_file: str | Path | None):
+def _dask_client(workers: int, scheduler: str | Path):
     """(LocalCluster or None, Client); an unreachable or unreadable scheduler is one error."""
     import logging
 
@@ -397,14 +379,15 @@ def _dask_client(workers: int, scheduler: str | None, scheduler_file: str | Path
     with child_environment():
         cluster = LocalCluster(n_workers=max(1, workers), threads_per_worker=1, processes=True,
                                dashboard_address=None, silence_logs=logging.WARNING) if scheduler == "local" else None
-    where = scheduler_file if scheduler_file is not None else scheduler
+    scheduler_file = scheduler if isinstance(scheduler, Path) else None  # a path: a scheduler file
+    where = scheduler
     # Dask's own setting (DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT) wins; 10 s otherwise
     timeout = os.environ.get("DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT", "10s")
     try:
         if cluster is not None:
             return cluster, Client(cluster, timeout=timeout)
         if scheduler_file is not None:
-            return None, Client(scheduler_file=str(_checked_scheduler_file(Path(scheduler_file))), timeout=timeout)
+            return None, Client(scheduler_file=str(_checked_scheduler_file(scheduler_file)), timeout=timeout)
         return None, Client(scheduler, timeout=timeout)
     except (OSError, TimeoutError, ValueError) as exc:
         if cluster is not None:

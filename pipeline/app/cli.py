@@ -16,6 +16,7 @@ from rich.table import Table
 
 from pipeline.core.errors import StereotrackError, first_line
 from pipeline.core.outputs import RECORDING, Outputs
+from pipeline.core.settings import RunHooks, RunSettings
 
 app = typer.Typer(
     help="Track objects in stereo video: render synthetic clips, detect markers, estimate 3-D tracks.",
@@ -119,8 +120,7 @@ def render_cmd(
     from renderers.render import render_clip
     from renderers.scenario import load_scenario
 
-    if fmt not in ("mp4", "png"):
-        raise StereotrackError(f"--format must be mp4 or png, not {fmt!r}")
+    fmt = _clip_format(fmt)
     scen = load_scenario(scenario)
     try:
         scen = scen.with_overrides(frames=frames, seed=seed)
@@ -135,6 +135,13 @@ def render_cmd(
     for w in caught:
         console.print(f"[yellow]warning:[/] {w.message}")
     out.print(f"wrote {result.frames} stereo frames to {result.clip_dir}")
+
+
+def _clip_format(fmt: str) -> str:
+    """``--format`` of a rendered clip: mp4 or png (checked before anything is rendered)."""
+    if fmt not in ("mp4", "png"):
+        raise StereotrackError(f"--format must be mp4 or png, not {fmt!r}")
+    return fmt
 
 
 def _parse_roi(roi: str | None) -> tuple[int, int, int, int] | None:
@@ -197,13 +204,13 @@ def detect_cmd(
     from detectors.stage import detect_clip
     from pipeline.core.clip import Clip
 
-    clip_ = Clip(clip, fps)
-
+    settings = RunSettings.checked(detector=detector, markers=_specs(markers), roi=_parse_roi(roi), fps=fps,
+                                   allow_unequal=allow_unequal, calib_units=calib_units, force_window=force)
+    clip_ = Clip(clip, settings.fps)
     with progress_bar() as bar:
         task = bar.add_task(f"detect ({detector})", total=None)
-        result = detect_clip(clip_, detector, _specs(markers), _parse_roi(roi), allow_unequal, output,  # type: ignore[arg-type]
-                             progress=lambda done, total: bar.update(task, completed=done, total=total or None),
-                             calib_units=calib_units, force=force)
+        hooks = RunHooks(progress=lambda done, total: bar.update(task, completed=done, total=total or None))
+        result = detect_clip(clip_, settings, output, hooks)
     _print_learned(result.learned)
     _print_time(clip_.fps, clip_.fps_source)
     table = Table("camera", "frames", "detections", "misses", "false (hidden)", "px err median", "p95", "max",
@@ -230,7 +237,8 @@ def _print_learned(learned: dict[str, str]) -> None:
 
 
 def _methods(methods: str | None) -> list[str] | None:
-    return [m.strip() for m in methods.split(",") if m.strip()] if methods else None
+    """``--methods``: None when not given; an empty list (refused by the settings) when given empty."""
+    return None if methods is None else [m.strip() for m in methods.split(",") if m.strip()]
 
 
 def _print_time(fps: float, source: str) -> None:
@@ -274,16 +282,15 @@ def estimate_cmd(
 ) -> None:
     """Estimate 3-D tracks with each method; write estimates/<method>.csv and metrics.json."""
     from pipeline.core.clip import Clip
-    from pipeline.core.sync import parse_time_offset
     from pipeline.estimate import estimate_clip
 
-    configs = _configs(config)
-    offset = parse_time_offset(time_offset)
+    settings = RunSettings.checked(methods=_methods(methods), configs=_configs(config), calib_units=calib_units,
+                                   time_offset=time_offset, fps=fps)
     with progress_bar() as bar:
         task = bar.add_task("estimate", total=None)
-        res = estimate_clip(Clip(clip, fps), _methods(methods), output, configs=configs, in_dir=Outputs.of(clip).folder,
-                            progress=lambda d, t: bar.update(task, completed=d, total=t), calib_units=calib_units,
-                            time_offset=offset, describe=lambda w: bar.update(task, description=f"estimate ({w})"))
+        hooks = RunHooks(stage=lambda name: bar.update(task, description=name),
+                         progress=lambda d, t: bar.update(task, completed=d, total=t))
+        res = estimate_clip(Clip(clip, settings.fps), settings, output, hooks, in_dir=Outputs.of(clip).folder)
     _print_time(res.metrics["time"]["fps"], res.metrics["time"]["source"])
     _print_sync(res.metrics)
     out.print(_metrics_table(res.metrics, str(Outputs(res.out_dir).metrics)))
@@ -370,12 +377,12 @@ def run_cmd(
     A clip folder of real footage needs two videos (or PNG folders), a calibration and its markers
     (--markers or a markers.yaml in the folder)."""
     from pipeline.app.run import DEFAULT_SCENARIO, process_clip
-    from pipeline.core.sync import parse_time_offset
 
     t0 = __import__("time").perf_counter()
-    configs = _configs(config)
-    offset = parse_time_offset(time_offset)
-    clip = _clip_or_render(target or DEFAULT_SCENARIO, output, frames, seed, fmt)
+    settings = RunSettings.checked(detector=detector, methods=_methods(methods), markers=_specs(markers),
+                                   calib_units=calib_units, configs=_configs(config), time_offset=time_offset, fps=fps,
+                                   force_window=force)
+    clip = _clip_or_render(target or DEFAULT_SCENARIO, output, frames, seed, _clip_format(fmt))
     with progress_bar() as bar:
         task = bar.add_task("detect", total=None)
 
@@ -384,10 +391,8 @@ def run_cmd(
             bar.remove_task(task)
             task = bar.add_task(name, total=None)
 
-        res = process_clip(clip, detector=detector, methods=_methods(methods), stage=stage,
-                           progress=lambda d, t: bar.update(task, completed=d, total=t),
-                           marker_specs=_specs(markers), calib_units=calib_units, configs=configs,
-                           time_offset=offset, fps=fps, force=force, keep_tracks=False)
+        hooks = RunHooks(stage=stage, progress=lambda d, t: bar.update(task, completed=d, total=t))
+        res = process_clip(clip, settings=settings, hooks=hooks, keep_tracks=False)
     _print_learned(res.detect.learned)
     _print_time(res.estimate.metrics["time"]["fps"], res.estimate.metrics["time"]["source"])
     _print_sync(res.estimate.metrics)
@@ -516,20 +521,19 @@ def batch_cmd(
     Markers: --markers for every clip, else each clip's markers.yaml, else INPUT_DIR/markers.yaml,
     else the colours of a rendered clip (clip.json)."""
     from pipeline.app.batch import run_batch
-    from pipeline.core.sync import parse_time_offset
 
-    configs = _configs(config)
-    offset = parse_time_offset(time_offset)
-    sched = scheduler or (dask if dask else None)
+    settings = RunSettings.checked(detector=detector, methods=_methods(methods), markers=_specs(markers),
+                                   calib_units=calib_units, configs=_configs(config), images=not no_images,
+                                   time_offset=time_offset, fps=fps, figures=figures)
     if dask is not None and dask != "local":
         raise StereotrackError("--dask takes 'local'; use --scheduler tcp://host:port for a running cluster")
+    if workers < 1:
+        raise StereotrackError(f"--workers must be at least 1, not {workers}")
+    sched = scheduler or scheduler_file or dask
     with progress_bar() as bar:
         task = bar.add_task("clips", total=None)
-        outcomes = run_batch(input_dir, output, workers, sched, force, detector, _methods(methods),
-                             progress=lambda d, t: bar.update(task, completed=d, total=t),
-                             marker_specs=_specs(markers), calib_units=calib_units, scheduler_file=scheduler_file,
-                             configs=configs, images=not no_images, time_offset=offset, fps=fps, figures=figures,
-                             on_stage=_ClipStages(bar))
+        outcomes = run_batch(input_dir, output, settings, workers, sched, force,
+                             progress=lambda d, t: bar.update(task, completed=d, total=t), on_stage=_ClipStages(bar))
     _print_batch(outcomes, output)
     if any(o.status == "failed" for o in outcomes):
         raise typer.Exit(1)
@@ -600,8 +604,7 @@ def render_batch_cmd(
             seed_list = [int(s) for s in seeds.split(",")]
     except ValueError:
         raise StereotrackError(f"--seeds must be A..B or a comma list, not {seeds!r}") from None
-    if fmt not in ("mp4", "png"):
-        raise StereotrackError(f"--format must be mp4 or png, not {fmt!r}")
+    fmt = _clip_format(fmt)
     base = load_scenario(scenario)
     jobs = []
     for s in seed_list:

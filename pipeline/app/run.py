@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import shutil
 import time
-from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from detectors.stage import DetectResult, detect_clip
 from pipeline.core.clip import Clip
 from pipeline.core.lifeline import OutputLock
 from pipeline.core.outputs import Outputs
+from pipeline.core.settings import RunHooks, RunSettings
 from pipeline.estimate import EstimateResult, estimate_clip
 from pipeline.estimators import Track
 from pipeline.evaluation.scores import FrameScores
@@ -32,46 +32,29 @@ class RunResult:
     seconds: float
 
 
-def process_clip(
-    clip: str | Path,
-    out_dir: str | Path | None = None,
-    detector: str = "blob",
-    methods: list[str] | None = None,
-    marker_specs: list[str] | None = None,
-    recording: bool = True,
-    images_in_recording: bool = True,
-    stage: Callable[[str], None] | None = None,
-    progress: Callable[[int, int], None] | None = None,
-    calib_units: str | None = None,
-    lock: bool = True,
-    configs: dict[str, dict] | None = None,
-    time_offset: str | float | None = "auto",
-    fps: float | None = None,
-    force: bool = False,
-    figures: bool = True,
-    keep_tracks: bool = True,
-) -> RunResult:
+def process_clip(clip: str | Path, out_dir: str | Path | None = None, settings: RunSettings | None = None,
+                 hooks: RunHooks | None = None, lock: bool = True, keep_tracks: bool = True) -> RunResult:
     """Detect, estimate, report and record one clip folder into ``out_dir`` (default CLIP/out).
 
-    ``marker_specs`` (``--markers`` syntax) name the markers of real footage; without them the
-    clip's ``markers.yaml``, else its ``scenario.yaml``, gives the colours. ``fps`` (``--fps``)
-    wins over every frame rate the clip states (see :attr:`pipeline.core.clip.Clip.fps`). ``figures``:
-    whether the report draws its figures (a batch leaves them out unless ``--figures``).
+    ``settings`` (:class:`~pipeline.core.settings.RunSettings`) say what is computed: the detector
+    and markers (real footage names its markers there; without them the clip's ``markers.yaml``,
+    else its ``scenario.yaml``, gives the colours), the methods, the frame rate (winning over
+    every rate the clip states, see :attr:`pipeline.core.clip.Clip.fps`), whether the report
+    draws figures and whether the recording is written; ``hooks`` hear about stages and progress.
     ``keep_tracks``: whether the result keeps every method's tracks (``estimate.tracks``); either
     way each method's tracks go to the report and the recording as the method finishes, so
     without them a long clip's run holds one method's tracks at a time.
 
     With ``lock`` the output folder is locked for the run (a second run on it fails at once,
     naming the holder) and temporary files left there by a killed run are removed first."""
+    settings, hooks = settings or RunSettings(), hooks or RunHooks()
     out_dir = Outputs.of(Clip.open(clip).folder, out_dir).folder
-    args = (detector, methods, marker_specs, recording, images_in_recording, stage, progress, calib_units, configs,
-            time_offset, force, figures, keep_tracks)
     if not lock:
-        return _process_clip(Clip.open(clip, fps), out_dir, *args)
+        return _process_clip(Clip.open(clip, settings.fps), out_dir, settings, hooks, keep_tracks)
     with OutputLock(out_dir, f"stereotrack run {clip}"):
         for stale in list(out_dir.rglob(".*.partial-*")):
             stale.unlink(missing_ok=True) if stale.is_file() else shutil.rmtree(stale, ignore_errors=True)
-        return _process_clip(Clip.open(clip, fps), out_dir, *args)
+        return _process_clip(Clip.open(clip, settings.fps), out_dir, settings, hooks, keep_tracks)
 
 
 def run_description(clip: Path, detector: str, metrics: dict) -> str:
@@ -90,21 +73,16 @@ def run_description(clip: Path, detector: str, metrics: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _process_clip(clip_: Clip, out_dir: Path, detector: str, methods: list[str] | None, marker_specs: list[str] | None,
-                  recording: bool, images_in_recording: bool, stage: Callable[[str], None] | None,
-                  progress: Callable[[int, int], None] | None, calib_units: str | None,
-                  configs: dict[str, dict] | None = None, time_offset: str | float | None = "auto",
-                  force: bool = False, figures: bool = True, keep_tracks: bool = True) -> RunResult:
+def _process_clip(clip_: Clip, out_dir: Path, settings: RunSettings, hooks: RunHooks, keep_tracks: bool) -> RunResult:
     t0 = time.perf_counter()
-    say = stage or (lambda s: None)
     clip = clip_.path  # the clip is read once, handed to every stage
-    recorder = Recorder(Outputs(out_dir).recording, 1.0 / clip_.fps, name=f"stereotrack run {clip.name}") if recording else None
+    recorder = Recorder(Outputs(out_dir).recording, 1.0 / clip_.fps, name=f"stereotrack run {clip.name}") \
+        if settings.recording else None
     try:
-        say("detect (frame pairs)")
-        sink = recorder.log_frame if recorder is not None and images_in_recording else None
-        det = detect_clip(clip_, detector, marker_specs, out_dir=out_dir, progress=progress,  # type: ignore[arg-type]
-                          calib_units=calib_units, frame_sink=sink, force=force)
-        say("estimate")
+        hooks.say("detect (frame pairs)")
+        sink = recorder.log_frame if recorder is not None and settings.images else None
+        det = detect_clip(clip_, settings, out_dir, replace(hooks, frame=sink))
+        hooks.say("estimate")
         data = ReportData(clip_.folder.name, out_dir, {})
 
         def finished(est: EstimateResult, m: str, tracks: dict[str, Track], scores: dict[str, FrameScores]) -> None:
@@ -112,17 +90,16 @@ def _process_clip(clip_: Clip, out_dir: Path, detector: str, methods: list[str] 
             if recorder is not None:
                 recorder.method(est, m, tracks, scores)
 
-        est = estimate_clip(clip_, methods, out_dir=out_dir, progress=progress, calib_units=calib_units,
-                            configs=configs, detections=(det.observations, det.footage), time_offset=time_offset,
-                            describe=lambda what: say(f"estimate ({what})"), on_method=finished,
-                            keep_tracks=keep_tracks)
-        say("report (figures)" if figures else "report")
-        report = write_report(clip_, out_dir, progress=progress, figures=figures,
+        est = estimate_clip(clip_, settings, out_dir, replace(hooks, method=finished),
+                            detections=(det.observations, det.footage), keep_tracks=keep_tracks)
+        hooks.say("report (figures)" if settings.figures else "report")
+        report = write_report(clip_, out_dir, progress=hooks.progress, figures=settings.figures,
                               data=report_data(clip_, est, det.marker_colours, out_dir, data))
         rrd = None
         if recorder is not None:
-            say("recording")
-            rrd = recorder.finish(est, det.marker_colours, progress, run_description(clip, detector, est.metrics))
+            hooks.say("recording")
+            rrd = recorder.finish(est, det.marker_colours, hooks.progress,
+                                  run_description(clip, settings.detector, est.metrics))
     except BaseException:
         if recorder is not None:
             recorder.abort()

@@ -23,7 +23,6 @@ import numpy as np
 
 from pipeline.core.camera import StereoRig
 from pipeline.core.checks import EPIPOLAR_WARN_PX
-from pipeline.core.errors import StereotrackError
 
 #: the offsets searched, in frames either side of zero (fewer for short clips: a quarter of them)
 MAX_SHIFT_FRAMES = 10.0
@@ -174,19 +173,6 @@ def resolve_sync(setting: str | float | None, rig: StereoRig, obs: dict[str, np.
     if not est.applied:
         return est, obs
     return est, shift_right(obs, est.offset_s * fps)
-
-
-def parse_time_offset(value: str | None) -> str | float | None:
-    """``--time-offset``: ``auto``, ``off`` or a number of seconds; else one error."""
-    if value is None or value in ("auto", "off"):
-        return value
-    try:
-        v = float(value)
-    except ValueError:
-        raise StereotrackError(f"--time-offset takes auto, off or seconds (e.g. 0.0167), not {value!r}") from None
-    if not np.isfinite(v):
-        raise StereotrackError(f"--time-offset must be finite, not {value!r}")
-    return v
 
 
 # -- timestamps ----------------------------------------------------------------------------------

@@ -16,6 +16,7 @@ from pipeline.core.clip import load_detections
 from pipeline.core.errors import ClipError, StereotrackError
 from pipeline.core.frames import StereoFrameSource
 from pipeline.core.io import read_csv
+from pipeline.core.settings import RunSettings
 from renderers.render import render_clip
 from renderers.scenario import parse_scenario
 from tests.conftest import BALL, needs_ball, small_multi_marker
@@ -26,7 +27,7 @@ def _errors(result, clip):
 
 
 def test_blob_subpixel_on_lossless_clip(png_clip, tmp_path):
-    res = detect_clip(png_clip, "blob", out_dir=tmp_path)
+    res = detect_clip(png_clip, RunSettings(detector="blob"), out_dir=tmp_path)
     tr = read_csv(png_clip / "truth.csv")
     visible = int(tr["visible_left"].sum() + tr["visible_right"].sum())
     errs, found = [], 0
@@ -45,13 +46,13 @@ def test_blob_subpixel_on_lossless_clip(png_clip, tmp_path):
 
 @pytest.mark.slow
 def test_blob_on_mp4_clip(mp4_clip, tmp_path):
-    res = detect_clip(mp4_clip, "blob", out_dir=tmp_path)
+    res = detect_clip(mp4_clip, RunSettings(detector="blob"), out_dir=tmp_path)
     for s in res.summaries:
         assert s.err_median <= 0.5 and s.misses <= 0.01 * s.frames * 3
 
 
 def test_distractors_never_reported(png_clip, tmp_path):
-    detect_clip(png_clip, "blob", out_dir=tmp_path)
+    detect_clip(png_clip, RunSettings(detector="blob"), out_dir=tmp_path)
     cols = read_csv(tmp_path / "detections.csv")
     assert set(cols["marker"]) <= {"red", "green", "blue"}
     # the magenta cube's projection never hosts a detection
@@ -72,7 +73,7 @@ def test_no_detection_when_out_of_view(tmp_path):
     data["distractors"] = []
     clip = tmp_path / "clip"
     render_clip(parse_scenario(data), clip, fmt="png", workers=1)
-    res = detect_clip(clip, "blob", out_dir=tmp_path / "out")
+    res = detect_clip(clip, RunSettings(detector="blob"), out_dir=tmp_path / "out")
     tr = read_csv(clip / "truth.csv")
     det = load_detections(tmp_path / "out" / "detections.csv", 30)["red"]
     for c, cam in enumerate(("left", "right")):
@@ -85,7 +86,7 @@ def test_no_detection_when_out_of_view(tmp_path):
 
 @pytest.mark.parametrize("mode", ["meanshift", "camshift"])
 def test_meanshift_camshift_on_rendered_clip(png_clip, tmp_path, mode):
-    res = detect_clip(png_clip, mode, out_dir=tmp_path)
+    res = detect_clip(png_clip, RunSettings(detector=mode), out_dir=tmp_path)
     for s in res.summaries:
         assert s.err_median <= 2.0
 
@@ -106,7 +107,7 @@ def _leaving_clip(tmp_path, frames=60):
 @pytest.mark.parametrize("mode", ["meanshift", "camshift"])
 def test_tracker_reacquires_after_leaving_view(tmp_path, mode):
     clip = _leaving_clip(tmp_path)
-    detect_clip(clip, mode, out_dir=tmp_path / "out")
+    detect_clip(clip, RunSettings(detector=mode), out_dir=tmp_path / "out")
     tr = read_csv(clip / "truth.csv")
     vis = tr["visible_left"].astype(bool)
     det = load_detections(tmp_path / "out" / "detections.csv", 60)["red"][:, :2]
@@ -149,7 +150,7 @@ def test_four_point_labels_never_swap(tmp_path):
     data["rig"]["width"], data["rig"]["height"], data["rig"]["focal"] = 320, 240, 300
     clip = tmp_path / "fp"
     render_clip(parse_scenario(data), clip, fmt="png", workers=1)
-    detect_clip(clip, "blob", out_dir=tmp_path / "out")
+    detect_clip(clip, RunSettings(detector="blob"), out_dir=tmp_path / "out")
     tr = read_csv(clip / "truth.csv")
     det = load_detections(tmp_path / "out" / "detections.csv", 100)
     for j in range(1, 5):
@@ -176,7 +177,7 @@ def test_real_footage_blob_meanshift_camshift(tmp_path, ball_reference):
     assert len(ref) > 200
     for mode in ("blob", "meanshift", "camshift"):
         out = tmp_path / mode
-        detect_clip(BALL, mode, ["ball:30-60:60:60"], out_dir=out)
+        detect_clip(BALL, RunSettings(detector=mode, markers=["ball:30-60:60:60"]), out_dir=out)
         det = load_detections(out / "detections.csv", 1004)["ball"]
         err = [np.hypot(det[k, 0] - u, det[k, 1] - v) for k, (u, v) in ref.items() if np.isfinite(det[k, 0])]
         assert len(err) > 0.9 * len(ref), mode
@@ -206,7 +207,7 @@ def test_real_stereo_clip_with_distortion(tmp_path, png_clip):
         for f in sorted((png_clip / cam).glob("*.png")):
             w.write(cv2.imread(str(f)))
         w.release()
-    res = detect_clip(clip, "blob", ["red=#e61e1e"], out_dir=tmp_path / "out")
+    res = detect_clip(clip, RunSettings(detector="blob", markers=["red=#e61e1e"]), out_dir=tmp_path / "out")
     cols = read_csv(tmp_path / "out" / "detections.csv")
     assert len(cols["u"]) > 30 and res.summaries[0].err_median is None
     # detections are undistorted: compare with cv2.undistortPoints of the raw blob centroid
@@ -246,11 +247,11 @@ def test_bad_inputs(tmp_path, png_clip):
     with pytest.raises(ClipError, match="left has 24 frames, right has 23"):
         detect_clip(clip)
     with pytest.warns(UserWarning, match="truncating"):
-        res = detect_clip(clip, allow_unequal=True, out_dir=tmp_path / "o")
+        res = detect_clip(clip, RunSettings(allow_unequal=True), out_dir=tmp_path / "o")
     assert res.summaries[0].frames == 23
     # ROI outside the frame
     with pytest.raises(StereotrackError, match="outside"):
-        detect_clip(png_clip, "meanshift", roi=(400, 10, 20, 20), out_dir=tmp_path / "o2")
+        detect_clip(png_clip, RunSettings(detector="meanshift", roi=(400, 10, 20, 20)), out_dir=tmp_path / "o2")
     # no marker colours for a clip without scenario
     with pytest.raises(StereotrackError, match="--markers"):
         detect_clip(BALL if BALL.is_file() else clip / "left")
@@ -311,9 +312,9 @@ def test_detecting_in_decode_threads_equals_one_loop(tmp_path, png_clip, monkeyp
 
     clip = _gap_copy(png_clip, tmp_path)
     specs = ["red:170-10:120:80", "green:50-70:120:60", "everything:0-179:0:0"]
-    threaded = detect_clip(clip, detector, specs, out_dir=tmp_path / "threaded")
+    threaded = detect_clip(clip, RunSettings(detector=detector, markers=specs), out_dir=tmp_path / "threaded")
     monkeypatch.setattr(detectors.stage, "StereoFrameSource", functools.partial(StereoFrameSource, prefetch=False))
-    serial = detect_clip(clip, detector, specs, out_dir=tmp_path / "serial")
+    serial = detect_clip(clip, RunSettings(detector=detector, markers=specs), out_dir=tmp_path / "serial")
     assert len(threaded.rows) > 40 and list(threaded.rows) == list(serial.rows)
     failed = [c.message for c in threaded.checks if not c.ok]
     assert failed == [c.message for c in serial.checks if not c.ok]

@@ -12,6 +12,7 @@ from scipy.linalg import block_diag
 
 from pipeline.core.camera import StereoRig
 from pipeline.core.errors import StereotrackError
+from pipeline.core.settings import RunSettings
 from pipeline.estimators import create
 from pipeline.estimators.four_point import alpha_z_from_y, measure_camera, measure_stereo
 from pipeline.estimators.kalman_bucy import (
@@ -159,8 +160,8 @@ def test_end_to_end_on_rendered_target(target_clip, tmp_path):
     from detectors.stage import detect_clip
     from pipeline.estimate import estimate_clip
 
-    detect_clip(target_clip, "blob", out_dir=tmp_path)
-    res = estimate_clip(target_clip, ["four_point", "kalman_bucy", "pnp_kf"], out_dir=tmp_path)
+    detect_clip(target_clip, RunSettings(detector="blob"), out_dir=tmp_path)
+    res = estimate_clip(target_clip, RunSettings(methods=["four_point", "kalman_bucy", "pnp_kf"]), out_dir=tmp_path)
     metrics = json.loads((tmp_path / "metrics.json").read_text())["methods"]
     for m in ("four_point", "kalman_bucy", "pnp_kf"):
         assert metrics[m]["alpha_rmse_rad"] is not None and metrics[m]["distance_rmse_m"] is not None

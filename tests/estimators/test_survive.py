@@ -12,6 +12,7 @@ import shutil
 import numpy as np
 import pytest
 
+from pipeline.core.settings import RunSettings
 from pipeline.core.sync import estimate_offset, resolve_sync
 from pipeline.estimators import create
 from renderers.motion import simulate_truth
@@ -212,10 +213,11 @@ def test_rendered_offset_found_from_detections_and_from_timestamps(tmp_path):
     clip = tmp_path / "clip"
     render_clip(load_scenario("sync_offset").with_overrides(frames=90), clip, fmt="png", workers=1)
     detect_clip(clip)
-    stamped = estimate_clip(clip, ["triangulation", "ekf"], out_dir=tmp_path / "a", in_dir=clip / "out")
+    stamped = estimate_clip(clip, RunSettings(methods=["triangulation", "ekf"]), out_dir=tmp_path / "a", in_dir=clip / "out")
     (clip / "timestamps.csv").rename(tmp_path / "timestamps.csv")
-    found = estimate_clip(clip, ["triangulation", "ekf"], out_dir=tmp_path / "b", in_dir=clip / "out")
-    off = estimate_clip(clip, ["triangulation"], out_dir=tmp_path / "c", in_dir=clip / "out", time_offset="off")
+    found = estimate_clip(clip, RunSettings(methods=["triangulation", "ekf"]), out_dir=tmp_path / "b", in_dir=clip / "out")
+    off = estimate_clip(clip, RunSettings(methods=["triangulation"], time_offset="off"),
+                        out_dir=tmp_path / "c", in_dir=clip / "out")
     assert stamped.metrics["sync"]["source"] == "timestamps"
     sync = found.metrics["sync"]
     assert sync["source"] == "detections" and sync["applied"]
@@ -292,7 +294,7 @@ def test_target_filters_gate_a_corrupted_frame(target_clip, tmp_path):
     from detectors.stage import detect_clip
     from pipeline.estimate import estimate_clip
 
-    det = detect_clip(target_clip, "blob", out_dir=tmp_path / "clean")
+    det = detect_clip(target_clip, RunSettings(detector="blob"), out_dir=tmp_path / "clean")
     obs = {k: v.copy() for k, v in det.observations.items()}
     dirty = {k: v.copy() for k, v in obs.items()}
     for k in (15, 22, 29):
@@ -302,7 +304,7 @@ def test_target_filters_gate_a_corrupted_frame(target_clip, tmp_path):
     gate_off = {m: {"gate": 0.0, "pixel_sigma": 0.5} for m in ("kalman_bucy", "pnp_kf")}
     runs = {}
     for name, o, cfg in (("clean", obs, gate_on), ("gated", dirty, gate_on), ("ungated", dirty, gate_off)):
-        res = estimate_clip(target_clip, ["kalman_bucy", "pnp_kf"], out_dir=tmp_path / name, configs=cfg,
+        res = estimate_clip(target_clip, RunSettings(methods=["kalman_bucy", "pnp_kf"], configs=cfg), out_dir=tmp_path / name,
                             detections=(o, det.footage))
         runs[name] = res.metrics["methods"]
     for m in ("kalman_bucy", "pnp_kf"):
@@ -329,7 +331,7 @@ def test_videos_that_dropped_frames_are_paired_by_time(tmp_path):
         clip = tmp_path / fmt
         render_clip(scen, clip, fmt=fmt, workers=1)
         detect_clip(clip)
-        res = estimate_clip(clip, ["triangulation", "ekf"], in_dir=clip / "out")
+        res = estimate_clip(clip, RunSettings(methods=["triangulation", "ekf"]), in_dir=clip / "out")
         rmse_of[fmt] = {m: res.metrics["methods"][m]["rmse"] for m in ("triangulation", "ekf")}
         assert res.metrics["sync"]["source"] == "timestamps"
     import cv2

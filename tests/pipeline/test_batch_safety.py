@@ -19,6 +19,7 @@ import pytest
 from pipeline.app.batch import ATTEMPT, run_batch
 from pipeline.app.manifest import MANIFEST, verify_manifest
 from pipeline.core.io import read_csv
+from pipeline.core.settings import RunSettings
 from tests.conftest import REPO
 
 SAMPLE = REPO / "data" / "clips" / "sample_small"
@@ -158,7 +159,8 @@ def test_corrupted_output_is_redone(reference, tmp_path):
     shutil.copytree(ref_out, out)
     (out / "clip0" / "estimates" / "ekf.csv").write_text("frame\n")
     (out / "clip1" / MANIFEST).unlink()
-    outcomes = {o.clip: o.status for o in run_batch(inp, out, workers=1, methods=METHODS.split(","), images=False)}
+    settings = RunSettings(methods=METHODS.split(","), images=False, figures=False)
+    outcomes = {o.clip: o.status for o in run_batch(inp, out, settings, workers=1)}
     assert outcomes == {"clip0": "ok", "clip1": "ok", "clip2": "skipped"}
     for i in range(3):
         assert clip_outputs(out / f"clip{i}") == clip_outputs(ref_out / f"clip{i}")

@@ -20,6 +20,7 @@ from pipeline.core.clip import load_detections
 from pipeline.core.errors import ClipError
 from pipeline.core.frames import StereoFrameSource
 from pipeline.core.io import read_csv
+from pipeline.core.settings import RunSettings
 from pipeline.estimate import estimate_clip
 from pipeline.present.report import write_report
 from tests.conftest import BALL
@@ -81,7 +82,7 @@ def test_window_learned_marker_on_real_footage(tmp_path, ball_reference):
     """ball2.mp4: the range learned from a window on the ball (frame 100) tracks it within 3 px
     (median) of a strict-HSV reference."""
     ref = ball_reference
-    res = detect_clip(BALL, "blob", ["ball@465,95,36,36@100"], out_dir=tmp_path)
+    res = detect_clip(BALL, RunSettings(detector="blob", markers=["ball@465,95,36,36@100"]), out_dir=tmp_path)
     assert res.learned["ball"].startswith("ball:")
     det = load_detections(tmp_path / "detections.csv", 1004)["ball"]
     err = [np.hypot(det[k, 0] - u, det[k, 1] - v) for k, (u, v) in ref.items() if np.isfinite(det[k, 0])]
@@ -91,8 +92,8 @@ def test_window_learned_marker_on_real_footage(tmp_path, ball_reference):
 
 def test_marker_names_stay_strings(tmp_path):
     clip = real_copy(tmp_path / "rig")
-    detect_clip(clip, "blob", ["0:170-10:99:80"])
-    res = estimate_clip(clip, ["triangulation"])
+    detect_clip(clip, RunSettings(detector="blob", markers=["0:170-10:99:80"]))
+    res = estimate_clip(clip, RunSettings(methods=["triangulation"]))
     assert list(res.tracks["triangulation"]) == ["0"]
     assert set(read_csv(clip / "out" / "estimates" / "triangulation.csv")["marker"]) == {"0"}
 
@@ -116,7 +117,7 @@ def test_triangulation_is_unit_covariant():
 
 def test_calibration_in_millimetres(tmp_path):
     metre = real_copy(tmp_path / "m", with_truth=True)
-    detect_clip(metre, "blob", [RED, "blue=#2840e6"])
+    detect_clip(metre, RunSettings(detector="blob", markers=[RED, "blue=#2840e6"]))
     res_m = estimate_clip(metre)
     rig = load_calibration(metre)
     mm = tmp_path / "mm"
@@ -145,8 +146,8 @@ def test_calibration_in_millimetres(tmp_path):
 @pytest.mark.slow
 def test_checks_fire_on_bad_clips_and_stay_silent_on_clean(tmp_path, png_clip):
     clean = real_copy(tmp_path / "clean", with_truth=True)
-    detect_clip(clean, "blob", [RED])
-    estimate_clip(clean, ["triangulation"])
+    detect_clip(clean, RunSettings(detector="blob", markers=[RED]))
+    estimate_clip(clean, RunSettings(methods=["triangulation"]))
     assert failed_checks(clean / "out") == {}
     assert "All input checks passed." in write_report(clean).read_text()
 
@@ -155,9 +156,9 @@ def test_checks_fire_on_bad_clips_and_stay_silent_on_clean(tmp_path, png_clip):
     os.replace(swapped / "left.mp4", swapped / "tmp.mp4")
     os.replace(swapped / "right.mp4", swapped / "left.mp4")
     os.replace(swapped / "tmp.mp4", swapped / "right.mp4")
-    detect_clip(swapped, "blob", [RED])
+    detect_clip(swapped, RunSettings(detector="blob", markers=[RED]))
     with pytest.warns(UserWarning, match="look swapped"):
-        estimate_clip(swapped, ["triangulation"])
+        estimate_clip(swapped, RunSettings(methods=["triangulation"]))
     assert "left_right" in failed_checks(swapped / "out")
     report = write_report(swapped).read_text()
     assert report.index("## Checks") < report.index("## Metrics") and "look swapped" in report
@@ -166,32 +167,32 @@ def test_checks_fire_on_bad_clips_and_stay_silent_on_clean(tmp_path, png_clip):
     big = real_copy(tmp_path / "big", with_truth=True)
     save_calibration(load_calibration(SAMPLE).scaled_to((640, 480)), big / "calib.yaml")
     with pytest.warns(UserWarning, match="640×480 images but the frames are 320×240"):
-        detect_clip(big, "blob", [RED])
+        detect_clip(big, RunSettings(detector="blob", markers=[RED]))
     with pytest.warns(UserWarning, match="640×480 images but the frames are 320×240"):  # estimate says it too
-        res = estimate_clip(big, ["triangulation"])
+        res = estimate_clip(big, RunSettings(methods=["triangulation"]))
     assert "image_size" in failed_checks(big / "out")
     assert res.metrics["methods"]["triangulation"]["rmse"] < 0.02
 
     # a colour range that matches the background
     wall = real_copy(tmp_path / "wall")
     with pytest.warns(UserWarning, match="matches the background"):
-        detect_clip(wall, "blob", ["wall:0-179:0:0"])
+        detect_clip(wall, RunSettings(detector="blob", markers=["wall:0-179:0:0"]))
 
     # a distractor of the marker's colour: a range wide enough to take the magenta cube for red
     with pytest.warns(UserWarning, match="two or more blobs of its colour"):
-        res = detect_clip(png_clip, "blob", ["red:140-10:80:60"], out_dir=tmp_path / "distractor")
+        res = detect_clip(png_clip, RunSettings(detector="blob", markers=["red:140-10:80:60"]), out_dir=tmp_path / "distractor")
     assert any(c.name == "colour_range" and not c.ok for c in res.checks)
 
     # detections that do not correspond between the cameras (right camera shifted 25 px down)
     epi = real_copy(tmp_path / "epi")
-    detect_clip(epi, "blob", [RED])
+    detect_clip(epi, RunSettings(detector="blob", markers=[RED]))
     path = epi / "out" / "detections.csv"
     lines = path.read_text().splitlines()
     fixed = [lines[0]] + [",".join([*f[:4], str(float(f[4]) + 25), *f[5:]]) if f[1] == "right" else line
                           for line in lines[1:] for f in [line.split(",")]]
     path.write_text("\n".join(fixed) + "\n")
     with pytest.warns(UserWarning, match="median epipolar distance"):
-        estimate_clip(epi, ["triangulation"])
+        estimate_clip(epi, RunSettings(methods=["triangulation"]))
 
 
 @pytest.mark.filterwarnings("ignore:.*frame number")  # the later error cases still have the gap
@@ -217,11 +218,11 @@ def test_png_gap_is_a_missing_frame_not_a_shift(tmp_path, png_clip):
 
 def test_truth_shorter_than_clip_is_a_warning(tmp_path):
     clip = real_copy(tmp_path / "short", with_truth=True)
-    detect_clip(clip, "blob", [RED])
+    detect_clip(clip, RunSettings(detector="blob", markers=[RED]))
     lines = (clip / "truth.csv").read_text().splitlines()
     (clip / "truth.csv").write_text("\n".join(lines[: 1 + 2 * 10]) + "\n")
     with pytest.warns(UserWarning, match="truth covers 10 of the clip's 40 frames"):
-        res = estimate_clip(clip, ["triangulation"])
+        res = estimate_clip(clip, RunSettings(methods=["triangulation"]))
     assert res.metrics["methods"]["triangulation"]["frames"] == 10
 
 

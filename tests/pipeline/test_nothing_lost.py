@@ -25,6 +25,7 @@ from pipeline.app.batch import run_batch
 from pipeline.app.manifest import MANIFEST, verify_manifest
 from pipeline.core.errors import StereotrackError
 from pipeline.core.io import read_csv
+from pipeline.core.settings import RunSettings
 from tests.conftest import REPO
 from tests.helpers import RED, assert_one_line_error, cli, real_copy, snapshot
 
@@ -33,10 +34,11 @@ FUZZ = settings(max_examples=200, deadline=None, derandomize=True,
                 suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 
 
-def _quiet_batch(*args, **kw):
+def _quiet_batch(*args, markers=None, **kw):
+    settings = RunSettings(methods=["triangulation"], images=False, figures=False, markers=markers)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        res = run_batch(*args, workers=1, methods=["triangulation"], images=False, **kw)
+        res = run_batch(*args, settings, workers=1, **kw)
     return {o.clip: o.status for o in res}, [str(w.message) for w in caught] + [w for o in res for w in o.warnings]
 
 
@@ -166,7 +168,7 @@ def test_markers_precedence_in_a_batch(tmp_path):
     assert set(read_csv(out / "rooted" / "detections.csv")["marker"]) == {"red"}
     # --markers beats both, with a warning naming the clip's own file and both values
     ball = RED.replace("red", "ball")
-    _status, said = _quiet_batch(inp, tmp_path / "out2", marker_specs=[ball])
+    _status, said = _quiet_batch(inp, tmp_path / "out2", markers=[ball])
     for name in ("own", "rooted"):
         assert set(read_csv(tmp_path / "out2" / name / "detections.csv")["marker"]) == {"ball"}
     assert any(f"own/markers.yaml: --markers {ball} used instead of this file's blue=#2840e6" in w for w in said), said

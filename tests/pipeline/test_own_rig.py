@@ -14,6 +14,7 @@ import pytest
 
 from detectors.stage import detect_clip
 from pipeline.core.clip import Clip
+from pipeline.core.settings import RunSettings
 from pipeline.estimate import estimate_clip
 from tests.conftest import BALL
 from tests.helpers import RED, assert_one_line_error, cli, real_copy
@@ -39,14 +40,15 @@ def test_frame_rate_from_every_source_recorded_and_used(tmp_path):
     """The video header; clip.yaml over it; --fps over both. The dt follows: the same detections
     give the same positions and velocities scaled by the frame rate."""
     clip = real_copy(tmp_path / "clip")
-    detect_clip(clip, "blob", [RED])
-    header = estimate_clip(clip, ["triangulation", "ekf"], out_dir=tmp_path / "a", in_dir=clip / "out")
+    detect_clip(clip, RunSettings(detector="blob", markers=[RED]))
+    header = estimate_clip(clip, RunSettings(methods=["triangulation", "ekf"]), out_dir=tmp_path / "a", in_dir=clip / "out")
     assert header.metrics["time"]["source"] == "video header"
     fps0 = header.metrics["time"]["fps"]
     (clip / "clip.yaml").write_text(f"fps: {2 * fps0}\n")
-    doubled = estimate_clip(clip, ["triangulation", "ekf"], out_dir=tmp_path / "b", in_dir=clip / "out")
+    doubled = estimate_clip(clip, RunSettings(methods=["triangulation", "ekf"]), out_dir=tmp_path / "b", in_dir=clip / "out")
     assert doubled.metrics["time"] == {"fps": 2 * fps0, "dt_s": 1 / (2 * fps0), "source": "clip.yaml"}
-    given = estimate_clip(Clip(clip, fps=3 * fps0), ["triangulation"], out_dir=tmp_path / "c", in_dir=clip / "out")
+    given = estimate_clip(Clip(clip, fps=3 * fps0), RunSettings(methods=["triangulation"]), out_dir=tmp_path / "c",
+                          in_dir=clip / "out")
     assert given.metrics["time"]["source"] == "--fps" and given.metrics["time"]["fps"] == 3 * fps0
     written = json.loads((tmp_path / "b" / "metrics.json").read_text())["time"]
     assert written["source"] == "clip.yaml"
@@ -99,8 +101,8 @@ def read_trc(path: Path) -> tuple[dict, list[str], np.ndarray]:
 def estimated(tmp_path_factory) -> Path:
     clip = real_copy(tmp_path_factory.mktemp("export") / "clip", with_truth=True)
     (clip / "clip.yaml").write_text("fps: 25\n")
-    detect_clip(clip, "blob", [RED])
-    estimate_clip(clip, ["triangulation", "ekf"])
+    detect_clip(clip, RunSettings(detector="blob", markers=[RED]))
+    estimate_clip(clip, RunSettings(methods=["triangulation", "ekf"]))
     return clip
 
 
@@ -143,7 +145,7 @@ def test_estimates_say_which_frames_were_held(estimated, tmp_path):
     gone = {f"{k}" for k in range(10, 15)}
     kept = [ln for ln in det if not (ln.split(",")[0] in gone and ln.split(",")[1] == "left")]
     (clip / "out" / "detections.csv").write_text("\n".join(kept) + "\n")
-    estimate_clip(clip, ["triangulation"], time_offset="off")
+    estimate_clip(clip, RunSettings(methods=["triangulation"], time_offset="off"))
     cols = read_csv(clip / "out" / "estimates" / "triangulation.csv", ["frame", "predicted", "x"])
     held = np.flatnonzero(cols["predicted"] == 1)
     assert list(held) == list(range(10, 15)), held
@@ -172,7 +174,7 @@ def test_every_output_is_readable_like_the_others(tmp_path):
     from pipeline.app.run import process_clip
 
     clip = real_copy(tmp_path / "clip")
-    process_clip(clip, marker_specs=[RED], methods=["triangulation"])
+    process_clip(clip, settings=RunSettings(markers=[RED], methods=["triangulation"]))
     modes = {p.name: stat.S_IMODE(p.stat().st_mode) for p in (clip / "out").rglob("*") if p.is_file()}
     assert len(set(modes.values())) == 1, modes
 
@@ -344,7 +346,7 @@ def test_loose_window_on_real_footage(tmp_path, ball_reference, scale):
 
     u, v = ball_reference[100]
     spec = f"ball@{window_around(u, v, 20.6, scale)}@100"  # the ball's radius at frame 100: 20.6 px
-    detect_clip(BALL, "blob", [spec], out_dir=tmp_path)
+    detect_clip(BALL, RunSettings(detector="blob", markers=[spec]), out_dir=tmp_path)
     det = load_detections(tmp_path / "detections.csv", 1004)["ball"]
     err = [np.hypot(det[k, 0] - a, det[k, 1] - b) for k, (a, b) in ball_reference.items() if np.isfinite(det[k, 0])]
     assert len(err) >= 0.9 * len(ball_reference) and np.median(err) <= 3.0, (len(err), np.median(err))
@@ -373,7 +375,7 @@ def test_loose_window_on_an_orange_ball_before_a_brown_wall(skin_wall, tmp_path)
     truth = read_csv(skin_wall / "truth.csv")
     u, v, z = truth["u_left"][0], truth["v_left"][0], truth["z"][0]
     spec = f"ball@{window_around(u, v, 600 * 0.045 / z, 1.0)}"
-    res = detect_clip(skin_wall, "blob", [spec], out_dir=tmp_path)
+    res = detect_clip(skin_wall, RunSettings(detector="blob", markers=[spec]), out_dir=tmp_path)
     det = load_detections(tmp_path / "detections.csv", len(truth["u_left"]))["ball"]
     vis = np.flatnonzero(truth["visible_left"] > 0)
     err = np.hypot(det[vis, 0] - truth["u_left_pinhole"][vis], det[vis, 1] - truth["v_left_pinhole"][vis])
@@ -446,8 +448,8 @@ def test_unsized_calibration_made_at_another_size_is_named(tmp_path, factor, nam
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        detect_clip(clip, "blob", [RED])
-        estimate_clip(clip, ["triangulation"])
+        detect_clip(clip, RunSettings(detector="blob", markers=[RED]))
+        estimate_clip(clip, RunSettings(methods=["triangulation"]))
     said = [str(w.message) for w in caught if "centre of a" in str(w.message)]
     checks = failed_checks(clip / "out")
     if named is None:
@@ -487,7 +489,7 @@ def test_colour_check_on_rendered_clips(tmp_path):
         big = detect_clip(tmp_path / "clip", out_dir=tmp_path / "a")
     assert not [c for c in big.checks if c.name == "colour_range"], [str(w.message) for w in caught]
     with pytest.warns(UserWarning, match="matches the background"):
-        detect_clip(tmp_path / "clip", "blob", ["sky:0-179:0:0"], out_dir=tmp_path / "b")
+        detect_clip(tmp_path / "clip", RunSettings(detector="blob", markers=["sky:0-179:0:0"]), out_dir=tmp_path / "b")
 
 
 @pytest.mark.slow

@@ -17,6 +17,7 @@ from pipeline.app.batch import find_clips, run_batch
 from pipeline.app.cli import app
 from pipeline.app.run import process_clip
 from pipeline.core.io import read_csv
+from pipeline.core.settings import RunSettings
 from pipeline.present.style import TRUTH_RGB_VIEWER
 from renderers.render import render_clip
 from renderers.scenario import parse_scenario
@@ -38,7 +39,7 @@ def noisy_receding(seed: int = 1) -> dict:
 def e2e_run(tmp_path_factory):
     clip = tmp_path_factory.mktemp("e2e") / "clip"
     render_clip(parse_scenario(noisy_receding()), clip, fmt="mp4", workers=1)
-    return process_clip(clip, methods=METHODS)
+    return process_clip(clip, settings=RunSettings(methods=METHODS))
 
 
 @pytest.mark.slow
@@ -126,7 +127,7 @@ def test_streamed_run_writes_what_a_kept_run_writes(e2e_run, tmp_path, monkeypat
         return add(self, est, m, per, scores)
 
     monkeypatch.setattr(pipeline.present.report.ReportData, "add_method", spy)
-    res = process_clip(e2e_run.clip, tmp_path / "out", methods=METHODS, keep_tracks=False)
+    res = process_clip(e2e_run.clip, settings=RunSettings(methods=METHODS), out_dir=tmp_path / "out", keep_tracks=False)
     gc.collect()
     assert len(seen) == len(METHODS) and not [r for r in seen if r() is not None]
     assert not res.estimate.tracks and set(e2e_run.estimate.tracks) == set(METHODS)
@@ -248,12 +249,12 @@ def test_batch_local_then_rerun_then_dask(tmp_path):
     assert "summary" in (out / "summary.md").read_text()
     # a second run redoes nothing that is complete
     mtime = (out / "a" / "metrics.json").stat().st_mtime_ns
-    again = run_batch(inp, out, workers=1, methods=["triangulation", "ekf"])
+    again = run_batch(inp, out, RunSettings(methods=["triangulation", "ekf"], figures=False), workers=1)
     assert {o.clip: o.status for o in again} == {"a": "skipped", "b": "skipped", "c_corrupt": "failed"}
     assert (out / "a" / "metrics.json").stat().st_mtime_ns == mtime
     # the same batch on a Dask LocalCluster gives the same summary
     out2 = tmp_path / "out_dask"
-    dask = run_batch(inp, out2, workers=2, scheduler="local", methods=["triangulation", "ekf"])
+    dask = run_batch(inp, out2, RunSettings(methods=["triangulation", "ekf"], figures=False), workers=2, scheduler="local")
     assert {o.clip: o.status for o in dask} == {"a": "ok", "b": "ok", "c_corrupt": "failed"}
     assert _summary(out2) == _summary(out)
     ours, theirs = read_csv(out / "summary.csv"), read_csv(out2 / "summary.csv")

@@ -12,6 +12,7 @@ import pytest
 
 from pipeline.core.clip import Clip
 from pipeline.core.io import read_csv
+from pipeline.core.settings import RunSettings
 from pipeline.present.report import FIGURES, load_report_data, write_report
 from pipeline.present.style import PALETTE, TRUTH_RGB, delta_e, method_rgb
 from tests.pipeline.test_pipeline import e2e_run  # noqa: F401  (the module's end-to-end run)
@@ -129,7 +130,7 @@ def test_batch_summary_html(tmp_path):
     for name in ("a", "b", "c"):
         shutil.copytree(REPO / "data" / "clips" / "sample_small", inp / name)
     out = tmp_path / "out"
-    run_batch(inp, out, workers=1, methods=["triangulation", "ekf"], images=False)
+    run_batch(inp, out, RunSettings(methods=["triangulation", "ekf"], images=False, figures=False), workers=1)
     page = parse(out / "summary.html")
     assert page.rows[:2] == ["triangulation", "ekf"] and {"a", "b", "c"} <= set(page.rows)
     links = [v for k, v in page.attrs if k == "href"]
@@ -193,7 +194,7 @@ def test_run_reads_each_input_once(tmp_path, monkeypatch):
     spy(pipeline.core.clip, "read_json_mapping", "read_json")
     spy(pipeline.present.report, "read_csv", "read_csv")
     spy(pipeline.present.report, "read_json_mapping", "read_json")
-    res = process_clip(clip, methods=["triangulation", "ekf"], images_in_recording=False)
+    res = process_clip(clip, settings=RunSettings(methods=["triangulation", "ekf"], images=False))
     assert len(calls["calibration"]) == 1 and len(calls["markers"]) == 1, calls
     outputs = [p for p in calls["read_csv"] + calls["read_json"] if p is not None and res.out_dir in Path(p).parents]
     assert not outputs, outputs
