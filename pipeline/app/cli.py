@@ -16,7 +16,6 @@ from rich.table import Table
 
 from pipeline.core.errors import StereotrackError, first_line
 from pipeline.core.outputs import RECORDING, Outputs
-from pipeline.core.settings import RunHooks, RunSettings
 
 app = typer.Typer(
     help="Track objects in stereo video: render synthetic clips, detect markers, estimate 3-D tracks.",
@@ -203,6 +202,7 @@ def detect_cmd(
     """Find the markers in every frame; write detections.csv and print a per-camera summary."""
     from detectors.stage import detect_clip
     from pipeline.core.clip import Clip
+    from pipeline.core.settings import RunHooks, RunSettings
 
     settings = RunSettings.checked(detector=detector, markers=_specs(markers), roi=_parse_roi(roi), fps=fps,
                                    allow_unequal=allow_unequal, calib_units=calib_units, force_window=force)
@@ -282,6 +282,7 @@ def estimate_cmd(
 ) -> None:
     """Estimate 3-D tracks with each method; write estimates/<method>.csv and metrics.json."""
     from pipeline.core.clip import Clip
+    from pipeline.core.settings import RunHooks, RunSettings
     from pipeline.estimate import estimate_clip
 
     settings = RunSettings.checked(methods=_methods(methods), configs=_configs(config), calib_units=calib_units,
@@ -377,6 +378,7 @@ def run_cmd(
     A clip folder of real footage needs two videos (or PNG folders), a calibration and its markers
     (--markers or a markers.yaml in the folder)."""
     from pipeline.app.run import DEFAULT_SCENARIO, process_clip
+    from pipeline.core.settings import RunHooks, RunSettings
 
     t0 = __import__("time").perf_counter()
     settings = RunSettings.checked(detector=detector, methods=_methods(methods), markers=_specs(markers),
@@ -521,6 +523,7 @@ def batch_cmd(
     Markers: --markers for every clip, else each clip's markers.yaml, else INPUT_DIR/markers.yaml,
     else the colours of a rendered clip (clip.json)."""
     from pipeline.app.batch import run_batch
+    from pipeline.core.settings import RunSettings
 
     settings = RunSettings.checked(detector=detector, methods=_methods(methods), markers=_specs(markers),
                                    calib_units=calib_units, configs=_configs(config), images=not no_images,

@@ -41,7 +41,7 @@ class RunSettings(BaseModel):
     #: meanshift/CamShift's first search window ``x, y, w, h`` (px)
     roi: tuple[int, int, int, int] | None = None
     #: length unit of the calibration's ``T`` (``m``, ``cm``, ``mm``); None: what the file declares, else metres
-    calib_units: Literal["m", "cm", "mm"] | None = None
+    calib_units: str | None = None
     #: method → its settings (``--config``), as written: the pipeline still fills in data-driven defaults
     configs: dict[str, dict[str, Any]] | None = None
     #: the right camera's delay: ``auto`` (estimated, applied when significant), ``off``, or seconds
@@ -65,6 +65,15 @@ class RunSettings(BaseModel):
     def _some_methods(cls, v: tuple[str, ...] | None) -> tuple[str, ...] | None:
         if v is not None and not v:
             raise ValueError("needs at least one method name (leave it out for every method)")
+        return v
+
+    @field_validator("calib_units")
+    @classmethod
+    def _unit(cls, v: str | None) -> str | None:
+        from pipeline.core.calibration import LENGTH_UNITS  # (OpenCV's import: only when a unit is given)
+
+        if v is not None and v not in LENGTH_UNITS:
+            raise ValueError(f"names an unknown length unit {v!r} (known: {', '.join(LENGTH_UNITS)})")
         return v
 
     @field_validator("fps", "target_radius")

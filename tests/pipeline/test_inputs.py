@@ -298,7 +298,7 @@ BAD_INPUTS = {
                             "detect", "000007.png is 10×10"),
     "bad markers.yaml": (lambda c: (c / "markers.yaml").write_text("markers: red\n"), [], "run", "markers.yaml"),
     "window outside the frame": (None, ["--markers", "red@300,200,50,50"], "detect", "outside the 320×240 frame"),
-    "bad --calib-units": (None, ["--calib-units", "inch"], "estimate", "unknown length unit 'inch'"),
+    "bad --calib-units": (None, ["--calib-units", "inch"], "estimate", "--calib-units names an unknown length unit 'inch'"),
     "no clips under a batch input": (lambda c: (c / "empty").mkdir(), [], "batch-empty", "no clip folders"),
     "unreachable Dask scheduler": (None, ["--scheduler", "tcp://127.0.0.1:9"], "batch", "cannot reach the Dask scheduler"),
 }
