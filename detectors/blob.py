@@ -56,15 +56,16 @@ class MarkerColor:
         """``NAME:HLO-HHI[:SMIN[:VMIN]]`` (OpenCV HSV units) or ``NAME=#RRGGBB``."""
         m = re.fullmatch(r"([\w\-]+)=#?([0-9a-fA-F]{6})", spec.strip())
         if m:
-            rgb = tuple(int(m.group(2)[i : i + 2], 16) for i in (0, 2, 4))
-            return cls.from_rgb(m.group(1), rgb)  # type: ignore[arg-type]
+            r, g, b = (int(m.group(2)[i : i + 2], 16) for i in (0, 2, 4))
+            return cls.from_rgb(m.group(1), (r, g, b))
         m = re.fullmatch(r"([\w\-]+):(\d+)-(\d+)(?::(\d+))?(?::(\d+))?", spec.strip())
         if not m:
             raise StereotrackError(f"bad marker spec {spec!r}: use NAME:HLO-HHI[:SMIN[:VMIN]] or NAME=#RRGGBB")
-        vals = [int(g) if g is not None else None for g in m.groups()[1:]]
-        if not (0 <= vals[0] <= 179 and 0 <= vals[1] <= 179):  # type: ignore[operator]
+        lo, hi = int(m.group(2)), int(m.group(3))
+        if not (0 <= lo <= 179 and 0 <= hi <= 179):
             raise StereotrackError(f"bad marker spec {spec!r}: hue must lie in 0..179")
-        return cls(m.group(1), vals[0], vals[1], vals[2] if vals[2] is not None else 80, vals[3] if vals[3] is not None else 60)  # type: ignore[arg-type]
+        smin, vmin = (int(g) if g is not None else default for g, default in ((m.group(4), 80), (m.group(5), 60)))
+        return cls(m.group(1), lo, hi, smin, vmin)
 
     @classmethod
     def learn(cls, name: str, bgr: np.ndarray, roi: tuple[int, int, int, int], source: str = "",
@@ -298,12 +299,12 @@ class BlobDetector:
         self.coarse = coarse  # half-resolution whole-frame search on frames ≥ 640 px wide
         self._small: np.ndarray | None = None
         if backend == "simpleblob":
-            p = cv2.SimpleBlobDetector_Params()
+            p = cv2.SimpleBlobDetector.Params()
             p.filterByColor, p.blobColor = True, 255
             p.filterByArea, p.minArea, p.maxArea = True, min_area, max_area
             p.filterByCircularity, p.minCircularity = True, min_roundness
             p.filterByConvexity = p.filterByInertia = False
-            self._sbd = cv2.SimpleBlobDetector_create(p)
+            self._sbd = cv2.SimpleBlobDetector.create(p)
 
     def detect(self, bgr: np.ndarray, hsv: np.ndarray | None = None,
                rois: dict[str, tuple[int, int, int, int]] | None = None,
@@ -319,9 +320,10 @@ class BlobDetector:
         full: list[np.ndarray | None] = [hsv]
 
         def whole() -> np.ndarray:
-            if full[0] is None:
-                full[0] = cv2.cvtColor(bgr, cv2.COLOR_BGR2HSV)
-            return full[0]
+            converted = full[0]
+            if converted is None:
+                converted = full[0] = cv2.cvtColor(bgr, cv2.COLOR_BGR2HSV)
+            return converted
 
         out: list[Detection] = []
         for mk in self.markers:
@@ -393,6 +395,7 @@ class BlobDetector:
         mask's offset in the frame (a component cut by a search window's edge is left to the
         whole-frame search)."""
         n, labels, stats = _components(mask)
+        assert labels is not None  # asked for
         kept = []
         H, W = mask.shape
         for i in range(1, n):

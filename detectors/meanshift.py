@@ -58,9 +58,8 @@ class MeanShiftTracker:
         colour model for good)."""
         x, y, w, h = win
         roi, mask = hsv[y : y + h, x : x + w], self._mask(hsv[y : y + h, x : x + w])
-        hist = cv2.calcHist([roi], [0], mask, [36], [0, 180])
-        h = hist.ravel()
-        hist = np.convolve(np.r_[h[-1:], h, h[:1]], [0.25, 0.5, 0.25], "valid")
+        counts = cv2.calcHist([roi], [0], mask, [36], [0, 180]).ravel()
+        hist: np.ndarray = np.convolve(np.r_[counts[-1:], counts, counts[:1]], [0.25, 0.5, 0.25], "valid")
         hist = hist.astype(np.float32).reshape(-1, 1)  # smoothed over neighbouring hue bins (hue is circular)
         if hist.sum() <= 0:
             if self.hist is None:
@@ -114,14 +113,15 @@ class MeanShiftTracker:
         _, _, w, h = self.window
         win = self._clip(pred[0], pred[1], w, h, bgr.shape)
         if self.mode == "camshift":
-            rot, win = cv2.CamShift(bp, win, CRITERIA)
-            if win[2] <= 0 or win[3] <= 0:
+            rot, found = cv2.CamShift(bp, win, CRITERIA)
+            if found[2] <= 0 or found[3] <= 0:
                 self.lost = True
                 return None
-            side = max(rot[1]) * 1.2 if max(rot[1]) > 0 else max(win[2], win[3])
-            win = self._clip(win[0] + win[2] / 2, win[1] + win[3] / 2, side, side, bgr.shape)
+            side = max(rot[1]) * 1.2 if max(rot[1]) > 0 else max(found[2], found[3])
+            win = self._clip(found[0] + found[2] / 2, found[1] + found[3] / 2, side, side, bgr.shape)
         else:
-            _, win = cv2.meanShift(bp, win, CRITERIA)
+            _, found = cv2.meanShift(bp, win, CRITERIA)
+            win = (int(found[0]), int(found[1]), int(found[2]), int(found[3]))
         x, y, w, h = win
         sub = bp[y : y + h, x : x + w].astype(np.float32)
         mass = float(sub.sum()) / (255.0 * max(w * h, 1))
@@ -164,7 +164,8 @@ class MeanShiftDetector(Detector):
     def __init__(self, markers: list[MarkerColor], groups: dict[str, list[str]] | None = None,
                  roi: tuple[int, int, int, int] | None = None) -> None:
         super().__init__(markers, groups, roi)
-        self.trackers = [MeanShiftTracker(m, self.name, roi) for m in markers]  # type: ignore[arg-type]
+        mode: Literal["meanshift", "camshift"] = "camshift" if self.name == "camshift" else "meanshift"
+        self.trackers = [MeanShiftTracker(m, mode, roi) for m in markers]
 
     def detect(self, frame: np.ndarray) -> list[Detection]:
         return [d for t in self.trackers if (d := t.update(frame)) is not None]

@@ -71,8 +71,8 @@ def markers_for_clip(clip: Clip, specs: list[str] | None, left_frame: Callable[[
     chosen go into ``learned``; ``force`` keeps a learned range that selects far more than the
     marker (see :meth:`MarkerColor.learn`). ``specs`` are resolved already (see
     :func:`detectors.markers.resolve_marker_specs`)."""
+    colors: list[MarkerColor] = []
     if specs:
-        colors = []
         for spec in specs:
             win = MarkerColor.parse_window(spec)
             if win is None:
@@ -97,14 +97,14 @@ def markers_for_clip(clip: Clip, specs: list[str] | None, left_frame: Callable[[
         raise StereotrackError(f"no marker colours: give --markers NAME:HLO-HHI, NAME=#RRGGBB or NAME@x,y,w,h, "
                                f"or put them in {MARKERS_FILE} (no {CLIP_INFO} or scenario.yaml to take them from)",
                                clip.path)
-    colors: list[MarkerColor] = []
+    colors = []
     groups: dict[str, list[str]] = {}
-    for mk in clip.markers:
-        if mk.group is None:
-            colors.append(MarkerColor.from_rgb(mk.name, mk.rgb))
-        elif mk.group not in groups:
-            colors.append(MarkerColor.from_rgb(mk.group, mk.rgb))
-            groups[mk.group] = [m.name for m in clip.markers if m.group == mk.group]
+    for info in clip.markers:
+        if info.group is None:
+            colors.append(MarkerColor.from_rgb(info.name, info.rgb))
+        elif info.group not in groups:
+            colors.append(MarkerColor.from_rgb(info.group, info.rgb))
+            groups[info.group] = [m.name for m in clip.markers if m.group == info.group]
     return colors, groups
 
 

@@ -114,11 +114,11 @@ def _video_pairs(left: Path, right: Path) -> list[tuple[str, np.ndarray, np.ndar
         if n <= 0:
             raise StereotrackError("cannot read frames from these videos", left.parent)
         keep = set(np.linspace(0, n - 1, min(VIDEO_SAMPLES, n)).astype(int).tolist())
-        out = []
+        out: list[tuple[str, np.ndarray, np.ndarray]] = []
         for k in range(n):
-            frames = [c.read()[1] for c in caps]
-            if k in keep and all(f is not None for f in frames):
-                out.append((f"frame {k}", *[cv2.cvtColor(f, cv2.COLOR_BGR2GRAY) for f in frames]))
+            a, b = (c.read()[1] for c in caps)
+            if k in keep and a is not None and b is not None:
+                out.append((f"frame {k}", cv2.cvtColor(a, cv2.COLOR_BGR2GRAY), cv2.cvtColor(b, cv2.COLOR_BGR2GRAY)))
         return out
     finally:
         for c in caps:
@@ -236,9 +236,12 @@ def _solve(found: dict, size: tuple[int, int]) -> Calibration:
     il = [found[n][1].astype(np.float32) for n in names]
     ir = [found[n][2].astype(np.float32) for n in names]
     flags = cv2.CALIB_FIX_K3  # k1 k2 p1 p2, as OpenCV's stereo_calib sample: k3 over-fits without full coverage
-    rms_l, K1, D1, *_ = cv2.calibrateCameraExtended(obj, il, size, None, None, flags=flags)
-    rms_r, K2, D2, *_ = cv2.calibrateCameraExtended(obj, ir, size, None, None, flags=flags)
-    out = cv2.stereoCalibrateExtended(obj, il, ir, K1, D1, K2, D2, size, None, None, flags=cv2.CALIB_FIX_INTRINSIC)
+    # OpenCV's type stubs have no None for the outputs the functions allocate (cameraMatrix, R, T):
+    # the documented way to ask for them, hence the three ignores
+    rms_l, K1, D1, *_ = cv2.calibrateCameraExtended(obj, il, size, None, None, flags=flags)  # type: ignore[call-overload]
+    rms_r, K2, D2, *_ = cv2.calibrateCameraExtended(obj, ir, size, None, None, flags=flags)  # type: ignore[call-overload]
+    out = cv2.stereoCalibrateExtended(obj, il, ir, K1, D1, K2, D2, size, None, None,  # type: ignore[call-overload]
+                                      flags=cv2.CALIB_FIX_INTRINSIC)
     rms, R, T, per_view = out[0], out[5], out[6], out[-1]
     left = Camera(K1, np.eye(3), np.zeros(3), D1.ravel())
     right = Camera(K2, R, T.ravel(), D2.ravel())

@@ -7,7 +7,7 @@ and seed give identical truth, bit for bit, whether or not anything is rendered.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -123,8 +123,8 @@ class Truth:
     normals: np.ndarray
     targets: list[TargetTruth]
     #: per marker: a PointPath, or (TargetPath, point index 0..3)
-    paths: list = None  # type: ignore[assignment]
-    target_paths: list = None  # type: ignore[assignment]
+    paths: list = field(default_factory=list)
+    target_paths: list = field(default_factory=list)
 
     @property
     def n_frames(self) -> int:
@@ -221,9 +221,9 @@ def simulate_truth(scenario: Scenario) -> Truth:
         rng = np.random.default_rng([scenario.seed, idx])
         m = obj.motion
         if isinstance(m, FourPointTarget):
-            al = _second_order(np.array(m.alpha_matrix, float), [m.alpha0, m.alpha_rate0], m.alpha_noise, n, dt, rng)
+            al = _second_order(np.array(m.alpha_matrix, float), np.array([m.alpha0, m.alpha_rate0]), m.alpha_noise, n, dt, rng)
             Az = np.array([[0.0, 1.0], [0.0, m.a_z]])
-            zz = _second_order(Az, [m.distance0, m.distance_rate0], m.distance_noise, n, dt, rng)
+            zz = _second_order(Az, np.array([m.distance0, m.distance_rate0]), m.distance_noise, n, dt, rng)
             center = np.column_stack([np.full(n, m.center_offset[0]), np.full(n, m.center_offset[1]), zz[:, 0]])
             phi = math.radians(m.axis_angle_deg)
             pts, normal = target_points(center, al[:, 0], m.radius, phi)

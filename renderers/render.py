@@ -14,7 +14,7 @@ import queue
 import shutil
 import threading
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -63,7 +63,7 @@ class SensorNoise:
             self.bank = np.empty((bank, h + self.MARGIN, w + self.MARGIN, c), np.int16)
             for i in range(bank):  # OpenCV's generator is several times faster than numpy's here
                 cv2.setRNGSeed(int(np.random.SeedSequence([seed, 30_000 + camera, i]).generate_state(1)[0]) & 0x7FFFFFFF)
-                cv2.randn(self.bank[i], (0.0,) * c, (float(sigma),) * c)  # per channel
+                cv2.randn(self.bank[i], np.zeros(c), np.full(c, float(sigma)))  # per channel
 
     def apply(self, img: np.ndarray, frame: int) -> np.ndarray:
         if self.sigma <= 0:
@@ -93,7 +93,7 @@ class FrameWriter:
             shutil.rmtree(self.tmp)
         self.count = 0
         if fmt == "mp4":
-            self.writer = cv2.VideoWriter(str(self.tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, size)
+            self.writer = cv2.VideoWriter(str(self.tmp), cv2.VideoWriter.fourcc(*"mp4v"), fps, size)
             if not self.writer.isOpened():
                 raise ClipError("OpenCV cannot open an MP4 writer (mp4v); use --format png", self.final)
         else:
@@ -219,7 +219,7 @@ def render_camera(
     scene = StereoScene(scenario, rig, truth)
     own = renderer is None
     if own:
-        renderer = create_offscreen_renderer(*scene.views[cam_index].size)  # type: ignore[misc]
+        renderer = create_offscreen_renderer(*scene.views[cam_index].size)
     set_multisample(renderer, scenario.render.multisample)
     counts = np.zeros((scenario.frames, len(truth.names)), dtype=np.int64) if scenario.distractors else None
     try:
@@ -269,14 +269,13 @@ def _render_frame(scene, renderer, cam_index: int, k: int, t0: float) -> np.ndar
         scene.set_frame(k)
         return view.finish(scene.render(renderer, cam_index))
     offsets = exposure_offsets(scenario)
-    acc = None
+    acc = np.zeros((), np.float32)
     for dt in offsets:
         scene.set_time(cam_index, t0 + dt)
-        img = scene.render(renderer, cam_index)
-        acc = img.astype(np.float32) if acc is None else acc + img
+        acc = acc + scene.render(renderer, cam_index).astype(np.float32)
     if len(offsets) > 1:
         scene.set_time(cam_index, t0)
-    img = np.clip(acc / len(offsets) + 0.5, 0, 255).astype(np.uint8)  # type: ignore[operator]
+    img = np.clip(acc / len(offsets) + 0.5, 0, 255).astype(np.uint8)
     return view.finish(img)
 
 
@@ -436,7 +435,7 @@ def _finish_clip(scenario: Scenario, staging: Path, clip_dir: Path, fmt: Format,
 
 
 def render_clips(
-    jobs: list[tuple[Scenario, str | Path]],
+    jobs: Sequence[tuple[Scenario, str | Path]],
     fmt: Format = "mp4",
     workers: int = 2,
     progress: Callable[[int, int], None] | None = None,
@@ -469,7 +468,7 @@ def render_clips(
         raise
 
 
-def _render_here(jobs: list[tuple[Scenario, str | Path]], stagings: list[Path], dirs: list[Path], fmt: Format,
+def _render_here(jobs: Sequence[tuple[Scenario, str | Path]], stagings: list[Path], dirs: list[Path], fmt: Format,
                  progress: Callable[[int, int], None] | None) -> list[RenderResult]:
     """Every camera of every clip in this process, with one renderer."""
     from renderers.scene import create_offscreen_renderer
@@ -495,7 +494,7 @@ def _render_here(jobs: list[tuple[Scenario, str | Path]], stagings: list[Path], 
     return results
 
 
-def _render_pool(jobs: list[tuple[Scenario, str | Path]], stagings: list[Path], dirs: list[Path], fmt: Format,
+def _render_pool(jobs: Sequence[tuple[Scenario, str | Path]], stagings: list[Path], dirs: list[Path], fmt: Format,
                  workers: int, progress: Callable[[int, int], None] | None) -> list[RenderResult]:
     """Every camera of every clip as a job of a pool of persistent render workers (one llvmpipe
     thread each, a user's own LP_NUM_THREADS aside); a clip is finished when both its cameras are."""
@@ -537,7 +536,7 @@ def _render_pool(jobs: list[tuple[Scenario, str | Path]], stagings: list[Path], 
         end_pool(pool)
         raise
     pool.shutdown()
-    return results  # type: ignore[return-value]
+    return [r for r in results if r is not None]  # every clip finished (a failure raised above)
 
 
 def _drain(q: mp.Queue, frames_done: dict[tuple[int, int], int]) -> None:

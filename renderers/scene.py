@@ -155,7 +155,7 @@ def _distorted_view(cam: Camera, image_size: tuple[int, int]) -> RenderView:
     K[:2, 2] = c - np.floor(lo_s)
     maps = tuple((c[i] + s * (und[..., i] - c[i]) - np.floor(lo_s[i])).astype(np.float32) for i in range(2))
     size = (int(np.ceil(hi_s[0]) - np.floor(lo_s[0])) + 1, int(np.ceil(hi_s[1]) - np.floor(lo_s[1])) + 1)
-    return RenderView(K, size, maps)  # type: ignore[arg-type]
+    return RenderView(K, size, (maps[0], maps[1]))
 
 
 def _frame_from_normal(n: np.ndarray, b: np.ndarray | None = None) -> np.ndarray:

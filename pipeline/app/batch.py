@@ -205,10 +205,10 @@ def run_batch(input_dir: str | Path, output_dir: str | Path, settings: RunSettin
         todo = [c for c in clips if keys[c] not in outcomes]
         record = _Counter(outcomes, len(clips), progress, on_stage).record
         try:
-            if todo and scheduler is None:
-                _run_local(todo, keys, out_root, job, workers, record, on_stage)
-            elif todo:
+            if todo and scheduler is not None:
                 _run_dask(todo, keys, out_root, job, workers, scheduler, record)
+            elif todo:
+                _run_local(todo, keys, out_root, job, workers, record, on_stage)
         finally:
             dead = _remove_leftovers(out_root)  # attempts whose worker died, and anything an interrupt left
         _count_dead_attempts(outcomes, dead)

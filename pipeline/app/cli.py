@@ -6,12 +6,20 @@ from __future__ import annotations
 import sys
 import warnings
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import typer
 from rich.console import Console
 from rich.markup import escape
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TaskID,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
 from rich.table import Table
 
 from pipeline.core.errors import StereotrackError, first_line
@@ -129,18 +137,20 @@ def render_cmd(
         warnings.simplefilter("always")
         with progress_bar() as bar:
             task = bar.add_task(f"render {scen.name}", total=scen.frames)
-            result = render_clip(scen, output, fmt=fmt, workers=workers,  # type: ignore[arg-type]
+            result = render_clip(scen, output, fmt=fmt, workers=workers,
                                  progress=lambda done, total: bar.update(task, completed=done))
     for w in caught:
         console.print(f"[yellow]warning:[/] {w.message}")
     out.print(f"wrote {result.frames} stereo frames to {result.clip_dir}")
 
 
-def _clip_format(fmt: str) -> str:
+def _clip_format(fmt: str) -> Literal["mp4", "png"]:
     """``--format`` of a rendered clip: mp4 or png (checked before anything is rendered)."""
-    if fmt not in ("mp4", "png"):
-        raise StereotrackError(f"--format must be mp4 or png, not {fmt!r}")
-    return fmt
+    if fmt == "mp4":
+        return "mp4"
+    if fmt == "png":
+        return "png"
+    raise StereotrackError(f"--format must be mp4 or png, not {fmt!r}")
 
 
 def _parse_roi(roi: str | None) -> tuple[int, int, int, int] | None:
@@ -403,7 +413,7 @@ def run_cmd(
     out.print(f"replay: stereotrack view {clip}    ({__import__('time').perf_counter() - t0:.1f} s)")
 
 
-def _clip_or_render(target: str, output: Path | None, frames: int | None, seed: int | None, fmt: str) -> Path:
+def _clip_or_render(target: str, output: Path | None, frames: int | None, seed: int | None, fmt: Literal["mp4", "png"]) -> Path:
     """The clip folder ``run`` works on: ``target`` itself, or the scenario ``target`` rendered."""
     clip = Path(target)
     if clip.is_file() and clip.suffix.lower() not in (".yaml", ".yml"):
@@ -422,7 +432,7 @@ def _clip_or_render(target: str, output: Path | None, frames: int | None, seed: 
     clip = output or Path("runs") / scen.name
     with progress_bar() as bar:
         task = bar.add_task(f"render {scen.name}", total=scen.frames)
-        render_clip(scen, clip, fmt=fmt, progress=lambda d, t: bar.update(task, completed=d))  # type: ignore[arg-type]
+        render_clip(scen, clip, fmt=fmt, progress=lambda d, t: bar.update(task, completed=d))
     return clip
 
 
@@ -546,7 +556,8 @@ class _ClipStages:
     """One progress line per clip in flight, saying its stage; removed when the clip is done."""
 
     def __init__(self, bar: Progress) -> None:
-        self.bar, self.tasks = bar, {}
+        self.bar = bar
+        self.tasks: dict[str, TaskID] = {}
 
     def __call__(self, clip: str, stage: str) -> None:
         if stage == "done":
@@ -615,7 +626,7 @@ def render_batch_cmd(
         jobs.append((scen, output / f"{scen.name}_seed{s}"))
     with progress_bar() as bar:
         task = bar.add_task(f"render {len(jobs)} clips", total=sum(j[0].frames for j in jobs))
-        render_clips(jobs, fmt, max(1, workers), lambda d, t: bar.update(task, completed=d))  # type: ignore[arg-type]
+        render_clips(jobs, fmt, max(1, workers), lambda d, t: bar.update(task, completed=d))
     out.print(f"wrote {len(seed_list)} clips to {output}")
 
 

@@ -90,6 +90,7 @@ def _process_clip(clip_: Clip, out_dir: Path, settings: RunSettings, hooks: RunH
             if recorder is not None:
                 recorder.method(est, m, tracks, scores)
 
+        assert det.footage is not None  # the detect stage always says what it saw
         est = estimate_clip(clip_, settings, out_dir, replace(hooks, method=finished),
                             detections=(det.observations, det.footage), keep_tracks=keep_tracks)
         hooks.say("report (figures)" if settings.figures else "report")

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import warnings
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -53,7 +54,9 @@ class _Matrix:
 def _yaml_loader():
     import yaml
 
-    class Loader(getattr(yaml, "CSafeLoader", yaml.SafeLoader)):  # libyaml's parser where PyYAML has it: 10× faster
+    base: Any = getattr(yaml, "CSafeLoader", yaml.SafeLoader)  # libyaml's parser where PyYAML has it: 10× faster
+
+    class Loader(base):
         """PyYAML with OpenCV's ``!!opencv-matrix`` tag."""
 
     def matrix(loader, node):
@@ -140,8 +143,8 @@ def _first_line(exc: BaseException) -> str:
     in the exception chain: the binding wraps cv2.error in a SystemError that says nothing."""
     import re
 
-    while isinstance(exc, SystemError) and (exc.__cause__ or exc.__context__) is not None:
-        exc = exc.__cause__ or exc.__context__  # type: ignore[assignment]
+    while isinstance(exc, SystemError) and (inner := exc.__cause__ or exc.__context__) is not None:
+        exc = inner
     text = str(exc).strip()
     m = re.search(r"\((-?\d+):([^)]*)\).*?'[^']*\((\d+)\): ([^']*)'", text)
     if m:
@@ -164,12 +167,15 @@ def _read_mat(fs: dict, key: str, path: Path, shape: tuple[int, ...] | None) -> 
     node = fs.get(key)
     if node is None:
         raise CalibrationError(f"missing key '{key}'", path)
+    dims: tuple[int, ...]
     if isinstance(node, _Matrix):
-        if not isinstance(node.data, list) or not all(isinstance(n, int) and n >= 0 for n in (node.rows, node.cols)):
+        rows, cols = node.rows, node.cols
+        if not isinstance(node.data, list) or not (isinstance(rows, int) and isinstance(cols, int) and rows >= 0
+                                                   and cols >= 0):
             raise CalibrationError(f"key '{key}' is not a well-formed matrix (rows, cols, data)", path)
-        if node.rows * node.cols != len(node.data):
-            raise CalibrationError(f"key '{key}' declares {node.rows}×{node.cols} but holds {len(node.data)} values", path)
-        vals, dims = node.data, (node.rows, node.cols)
+        if rows * cols != len(node.data):
+            raise CalibrationError(f"key '{key}' declares {rows}×{cols} but holds {len(node.data)} values", path)
+        vals, dims = node.data, (rows, cols)
     elif isinstance(node, list):
         vals, dims = node, (len(node),)
     else:

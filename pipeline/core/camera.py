@@ -165,7 +165,8 @@ class StereoRig:
     def dlt_matrices(self) -> tuple[np.ndarray, np.ndarray]:
         """Both cameras' ``K [R | t/b]`` (baseline units), the DLT's unit-free projections."""
         b = self.baseline
-        return tuple(c.K @ np.hstack([c.R, c.t.reshape(3, 1) / b]) for c in self.cameras)  # type: ignore[return-value]
+        left, right = (c.K @ np.hstack([c.R, c.t.reshape(3, 1) / b]) for c in self.cameras)
+        return left, right
 
     @classmethod
     def from_parameters(
@@ -183,7 +184,7 @@ class StereoRig:
         The right camera sits at ``(baseline, 0, 0)`` turned about its y axis towards the left
         camera's optical axis by ``toe_in``; both share the intrinsics.
         """
-        fx, fy = (focal, focal) if np.isscalar(focal) else focal  # type: ignore[misc]
+        fx, fy = (focal, focal) if isinstance(focal, (int, float)) else focal
         cx, cy = principal_point if principal_point is not None else ((width - 1) / 2, (height - 1) / 2)
         K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
         R_wc = rotation_y(-math.radians(toe_in_deg))  # right camera → world

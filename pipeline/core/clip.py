@@ -323,7 +323,8 @@ def footage_info(clip: Path, out_dir: Path) -> FootageInfo:
         try:
             d = json.loads(info.read_text())
             checks = [Check(**c) for c in d.get("checks", [])]
-            return FootageInfo(int(d["frames"]), tuple(d["frame_size"]), checks, list(d.get("cameras", [])))  # type: ignore[arg-type]
+            w, h = d["frame_size"]
+            return FootageInfo(int(d["frames"]), (int(w), int(h)), checks, list(d.get("cameras", [])))
         except (ValueError, KeyError, TypeError) as exc:
             raise StereotrackError(f"unreadable detect record ({exc}): rerun `stereotrack detect`", info) from None
     try:

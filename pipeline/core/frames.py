@@ -8,7 +8,7 @@ import queue
 import re
 import threading
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -233,7 +233,7 @@ class StereoFrameSource:
             srcs = [find_camera_source(clip, "left"), find_camera_source(clip, "right")]
             first = None
             if all(s.is_dir() for s in srcs):  # both folders number frames from the same origin
-                first = min(min(index_frame_files(s) or {0: None}) for s in srcs)
+                first = min(min(index_frame_files(s) or [0]) for s in srcs)
             threads = decoder_threads(len(srcs)) if prefetch else None  # the cameras decode at once
             self.readers = [CameraReader(s, first, threads) for s in srcs]
         for r in self.readers:
@@ -266,7 +266,7 @@ class StereoFrameSource:
     def __iter__(self) -> Iterator[StereoFrame]:
         return self.frames()
 
-    def frames(self, work: list[Work | None] | None = None) -> Iterator[StereoFrame]:
+    def frames(self, work: Sequence[Work | None] | None = None) -> Iterator[StereoFrame]:
         """The pairs in order, each camera's frames first through its ``work`` (one callable per
         camera, called on every frame of that camera in order) in the camera's decode thread:
         per-camera work such as detection runs beside the other camera's, off the thread that
@@ -275,7 +275,7 @@ class StereoFrameSource:
         its = [_worked(iter(r), w) for r, w in zip(self.readers, work, strict=True)]
         its = [_prefetch(it) for it in its] if self.prefetch else its
         k = 0
-        end = object()
+        end: Any = object()
         try:
             while True:
                 got = [next(it, end) for it in its]
@@ -290,7 +290,7 @@ class StereoFrameSource:
                     break
                 imgs = [None if i is end else i[0] for i in got]
                 found = tuple(None if i is end else i[1] for i in got)
-                yield StereoFrame(k, k / self.fps, imgs[0], imgs[1] if len(imgs) > 1 else None, found)  # type: ignore[arg-type]
+                yield StereoFrame(k, k / self.fps, imgs[0], imgs[1] if len(imgs) > 1 else None, found)
                 k += 1
         finally:
             for it in its:  # stop the decode-ahead threads before releasing their captures

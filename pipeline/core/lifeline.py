@@ -45,11 +45,11 @@ def child_environment(extra: dict[str, str] | None = None):
     try:
         yield
     finally:
-        for k, v in saved.items():
-            if v is None:
+        for k, before in saved.items():
+            if before is None:
                 os.environ.pop(k, None)
             else:
-                os.environ[k] = v
+                os.environ[k] = before
 
 
 LOCK_NAME = ".stereotrack.lock"

@@ -165,9 +165,11 @@ class AlphaBetaEstimator(Estimator):
                 self._correct_covariance(z)
             have = restarted or bool(np.isfinite(kept).any())
         extra = {"gated": float(n_gated), "restart": float(restarted)}
+        f = self.f
+        assert f is not None  # started above, or earlier
         if image:
-            return Step(self.model.inverse_function(self.f.x[None])[0], NAN3.copy(), predicted=not have, extra=extra)
-        return Step(self.f.x.copy(), self.f.v.copy(), predicted=not have, extra=extra)
+            return Step(self.model.inverse_function(f.x[None])[0], NAN3.copy(), predicted=not have, extra=extra)
+        return Step(f.x.copy(), f.v.copy(), predicted=not have, extra=extra)
 
 
 @register

@@ -337,6 +337,8 @@ class Estimator(ABC):
     #: measurement model (a state with velocity); the others are given the right camera's
     #: detections interpolated to the left camera's times when the cameras are out of sync
     models_time_offset: ClassVar[bool] = False
+    #: whether a target method takes the rendered target's dynamics (its ``config``) as settings
+    models_target_dynamics: ClassVar[bool] = False
 
     def __init__(self, rig: StereoRig, dt: float, config: EstimatorConfig | dict[str, Any] | None = None,
                  time_offset: float = 0.0) -> None:
@@ -367,8 +369,9 @@ class Estimator(ABC):
         self.rng = np.random.default_rng(self.config.seed)
         self.initiator = Initiator(self.config.init, self.model, self.dt, propagate=self.knows_pixel_noise(),
                                    gate=self.config.gate)
-        self.gated_run = 0  # frames in a row with a camera gated
-        self.unseen = self.returning = 0  # frames without observations; frames back from a long gap
+        self.gated_run: int = 0  # frames in a row with a camera gated
+        self.unseen: int = 0  # frames without observations
+        self.returning: int = 0  # frames back from a long gap
         self.recent: deque = deque(maxlen=self.config.restart_after)  # what a restart fits
 
     def start(self, y: np.ndarray) -> Start | None:

@@ -61,7 +61,7 @@ class EKFEstimator(GatedFilter, Estimator):
         self._x = np.zeros(6)
         self._P = np.eye(6)
         self._I = np.eye(6)
-        self._R_rows = {}  # the noise of each set of available rows
+        self._R_rows: dict[tuple[int, ...], np.ndarray] = {}  # the noise of each set of available rows
         self.y: np.ndarray | None = None  # the last update's innovation and its covariance (filterpy's names)
         self.S: np.ndarray | None = None
 
@@ -150,7 +150,7 @@ class EKFEstimator(GatedFilter, Estimator):
         a = {k: np.full(shape, np.nan) for k, shape in
              (("pos", (n, 3)), ("vel", (n, 3)), ("cov", (n, 6, 6)), ("nis", n), ("gated", n), ("restart", n))}
         a["pred"], a["dof"] = np.ones(n, dtype=bool), np.zeros(n, dtype=np.int64)
-        s = self.initiator.first(Y) if start is False else start
+        s = self.initiator.first(Y) if isinstance(start, bool) else start
         if s is None:
             return a
         x, P = s.state.copy(), s.covariance.copy()

@@ -209,7 +209,7 @@ class KalmanBucyEstimator(TargetEstimator):
                 return self.target_step(math.nan, math.nan, np.full(3, math.nan), True)
             self._start(np.asarray(obs, dtype=float), m)
             self.x = np.array([m.alpha, 0.0, m.distance, 0.0])
-            self._u_prev = np.array([m.alpha, m.distance])
+            self._u_prev: np.ndarray | None = np.array([m.alpha, m.distance])
             if c.gain == "riccati":
                 self.P = np.diag([self.meas_var[0], c.sigma_rate0**2, self.meas_var[1], c.sigma_rate0**2])
                 self.K = self.P @ C4.T @ self.Rinv

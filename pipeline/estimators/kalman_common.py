@@ -76,12 +76,15 @@ def joseph_update(x: np.ndarray, P: np.ndarray, H: np.ndarray, r: np.ndarray, R:
 Linearize = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
 
 
-class GatedFilter:
+class GatedFilter(Estimator):
     """Per-camera χ² gating and restarts for the Kalman-family filters (mixed into each): a gated
     camera's observation is dropped (set missing) before the ordinary update, so every path —
     :meth:`step`, :meth:`run`, :func:`kalman_batch` — gates identically."""
 
     config: KalmanConfig  # the host estimator's settings
+    #: the host's state transition and process noise (set by its ``reset``)
+    A: np.ndarray
+    Q: np.ndarray
 
     def gate_threshold(self) -> float:
         cfg = self.config
@@ -100,7 +103,7 @@ class GatedFilter:
         after ``restart_after`` frames in a row with a camera gated, the track restarts from this
         frame's detections (when they triangulate plausibly). ``h``, ``H``, ``S``: the model at
         ``x`` and the innovation covariance under the gate's noise, when the caller has them."""
-        g = gated_cameras(self.model, x, P, y, self.gate_threshold(), self.gate_covariance(), h, H, S)  # type: ignore[attr-defined]
+        g = gated_cameras(self.model, x, P, y, self.gate_threshold(), self.gate_covariance(), h, H, S)
         gated = bool(g[0] or g[1])
         kept = y
         if gated:
@@ -108,12 +111,12 @@ class GatedFilter:
             for c in np.flatnonzero(g):
                 kept[2 * c : 2 * c + 2] = np.nan
         had = gated or bool(np.isfinite(y).any())  # one track: plain Python, as update_gated_run
-        self.gated_run = self.gated_run + 1 if gated else (0 if had else self.gated_run)  # type: ignore[has-type]
-        self.gated_run, self.unseen, self.returning = after_gap(  # type: ignore[has-type]
+        self.gated_run = self.gated_run + 1 if gated else (0 if had else self.gated_run)
+        self.gated_run, self.unseen, self.returning = after_gap(
             self.gated_run, self.unseen, self.returning, had, gated, self.config.restart_after)
         restart = None
         if self.gated_run >= self.config.restart_after:
-            restart = self.initiator.restart(self.frame, self.recent_observations())  # type: ignore[attr-defined]
+            restart = self.initiator.restart(self.frame, self.recent_observations())
             if restart is not None:
                 self.gated_run = 0
         return kept, int(g.sum()), restart
@@ -148,7 +151,7 @@ def gated_step(step: Step, n_gated: int, restarted: bool = False) -> Step:
     return step
 
 
-def kalman_batch(est: Estimator, Y: np.ndarray, linearize: Linearize) -> np.ndarray:
+def kalman_batch(est: GatedFilter, Y: np.ndarray, linearize: Linearize) -> np.ndarray:
     """The filter of a Kalman-family estimator over M tracks at once (M × frames × 4 → M × frames
     × 3): each track starts where :class:`~pipeline.estimators.base.Initiator` says (the same
     start as :meth:`Estimator.run`), then predict with ``est.A, est.Q``, gate each camera as
@@ -161,7 +164,7 @@ def kalman_batch(est: Estimator, Y: np.ndarray, linearize: Linearize) -> np.ndar
     x, P = np.zeros((M, 6)), np.tile(np.eye(6), (M, 1, 1))
     out = np.full((M, n, 3), np.nan)
     A, Q = est.A, est.Q
-    threshold, Rg = est.gate_threshold(), est.gate_covariance()  # type: ignore[attr-defined]
+    threshold, Rg = est.gate_threshold(), est.gate_covariance()
     run_gated = np.zeros(M, dtype=int)
     unseen, returning = np.zeros(M, dtype=int), np.zeros(M, dtype=int)  # see after_gap
     for k in range(n):
@@ -169,7 +172,9 @@ def kalman_batch(est: Estimator, Y: np.ndarray, linearize: Linearize) -> np.ndar
         x[run] = x[run] @ A.T
         P[run] = A @ P[run] @ A.T + Q
         for m in np.flatnonzero(begin == k):
-            x[m], P[m] = starts[m].state, starts[m].covariance
+            s = starts[m]
+            assert s is not None  # a track begins where its start is
+            x[m], P[m] = s.state, s.covariance
         idx = np.flatnonzero(run)
         if len(idx):
             Yk = _gate_batch(est, x[idx], P[idx], Y[idx, k], threshold, Rg)
@@ -188,7 +193,7 @@ def kalman_batch(est: Estimator, Y: np.ndarray, linearize: Linearize) -> np.ndar
     return out
 
 
-def _gate_batch(est: Estimator, x: np.ndarray, P: np.ndarray, Yk: np.ndarray, threshold: float,
+def _gate_batch(est: GatedFilter, x: np.ndarray, P: np.ndarray, Yk: np.ndarray, threshold: float,
                 R: np.ndarray) -> np.ndarray:
     g = gated_cameras(est.model, x, P, Yk, threshold, R)
     Yk = Yk.copy()
@@ -197,7 +202,7 @@ def _gate_batch(est: Estimator, x: np.ndarray, P: np.ndarray, Yk: np.ndarray, th
     return Yk
 
 
-def _restart_batch(est: Estimator, idx: np.ndarray, k: int, Y: np.ndarray, run_gated: np.ndarray, x: np.ndarray,
+def _restart_batch(est: GatedFilter, idx: np.ndarray, k: int, Y: np.ndarray, run_gated: np.ndarray, x: np.ndarray,
                    P: np.ndarray) -> np.ndarray:
     """Restart the tracks of ``idx`` gated too long; which of them restarted."""
     fresh = np.zeros(len(idx), dtype=bool)
@@ -211,7 +216,7 @@ def _restart_batch(est: Estimator, idx: np.ndarray, k: int, Y: np.ndarray, run_g
     return fresh
 
 
-def rts_smooth(est: Estimator, track: Track) -> Track:
+def rts_smooth(est: GatedFilter, track: Track) -> Track:
     """Rauch–Tung–Striebel backward pass over a filtered track (filterpy's ``rts_smoother`` with
     the filter's constant ``A``, ``Q``), from its first estimate to its last::
 
@@ -237,7 +242,7 @@ def rts_smooth(est: Estimator, track: Track) -> Track:
     return track
 
 
-def _smoother(est: Estimator, frames: int) -> Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+def _smoother(est: GatedFilter, frames: int) -> Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
     """The backward pass for this filter: the compiled :func:`kernels.rts_backward` for the
     constant-velocity transition every built-in filter uses (tested equal to filterpy's) where
     compiling pays (:func:`~pipeline.estimators.base.use_compiled`), else filterpy's ``rts_smoother``."""
@@ -269,14 +274,14 @@ def filtered_step(x: np.ndarray, P: np.ndarray, predicted: bool, f=None, innovat
                 np.array(innovation_covariance, dtype=float).copy())
 
 
-class RTSMixin:
+class RTSMixin(GatedFilter):
     """Makes a Kalman-family estimator a smoother: every finished track (from :meth:`finish` or a
     compiled ``run``) gets :func:`rts_smooth` (the streaming ``step`` output stays the filter's);
     ``run_batch`` loops over :meth:`run` so that every track is smoothed."""
 
     def complete(self, track: Track, Y: np.ndarray) -> Track:
-        tr = rts_smooth(self, track)  # type: ignore[arg-type]
-        tr.reprojection_error = reprojection_errors(self.rig, tr.position, Y)  # type: ignore[attr-defined]
+        tr = rts_smooth(self, track)
+        tr.reprojection_error = reprojection_errors(self.rig, tr.position, Y)
         return tr
 
     run_batch = Estimator.run_batch

@@ -50,11 +50,12 @@ def uncompiled() -> ModuleType:
     if name in sys.modules:
         return sys.modules[name]
     spec = importlib.util.spec_from_file_location(name, __file__)
-    module = importlib.util.module_from_spec(spec)  # type: ignore[arg-type]
+    assert spec is not None and spec.loader is not None  # a file that exists: this one
+    module = importlib.util.module_from_spec(spec)
     before = os.environ.get("STEREOTRACK_JIT")
     os.environ["STEREOTRACK_JIT"] = "0"
     try:
-        spec.loader.exec_module(module)  # type: ignore[union-attr]
+        spec.loader.exec_module(module)
     finally:
         if before is None:
             del os.environ["STEREOTRACK_JIT"]

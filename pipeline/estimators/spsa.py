@@ -90,7 +90,8 @@ def _cost(p0: float, p1: float, p2: float, yn: tuple, use_l: bool, use_r: bool, 
 
 def camera_tuples(rig) -> tuple[tuple, tuple]:
     """Both cameras' ``(R, t)`` as plain-float tuples for :func:`_cost`."""
-    return tuple((*c.R.ravel().tolist(), *np.ravel(c.t).tolist()) for c in rig.cameras)  # type: ignore[return-value]
+    left, right = (tuple([*c.R.ravel().tolist(), *np.ravel(c.t).tolist()]) for c in rig.cameras)
+    return left, right
 
 
 def normalized_rows(rig, Y: np.ndarray) -> tuple[list, list, list]:

@@ -185,6 +185,7 @@ class SPSAStereoEstimator(Estimator):
             self._constants()
         self._scale = RobustNISScale(self.config.pixel_sigma)
         self._gated_run = 0  # frames in a row with a camera gated (restart after cfg.restart_after)
+        self._gated: int = 0  # this frame's cameras gated
         self.p = [0.0, 0.0, 0.0]
         self.v = [0.0, 0.0, 0.0]
 

@@ -36,8 +36,8 @@ class TriangulationEstimator(Estimator):
         return X, gated
 
     def _step(self, y: np.ndarray) -> Step:
-        X, gated = self._fix(y[None])
-        X, gated = X[0], bool(gated[0])
+        Xs, gated_all = self._fix(y[None])
+        X, gated = Xs[0], bool(gated_all[0])
         if np.all(np.isfinite(X)):
             self.last = X
             self.initialized = True

@@ -11,11 +11,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import Literal
 
 import numpy as np
 from scipy.linalg import expm
 
-from pipeline.estimators.four_point import alpha_z_from_y
+from pipeline.estimators.four_point import Formula, alpha_z_from_y
 from pipeline.estimators.kalman_bucy import filter_step, riccati_step, steady_state_gain
 
 F_ = R_ = Z_ = 0.5
@@ -33,8 +34,8 @@ class FilterSettings:
 
     name: str
     gain: str  # "paper" (K = [2, 2]), "steady" (ARE) or "riccati" (time-varying from P0)
-    integration: str  # "euler" (the paper's differences) or "exact"
-    formula: str  # "paper" eq. (3) or "exact"
+    integration: Literal["euler", "exact"]  # the paper's differences, or the exact discretisation
+    formula: Formula  # "paper" eq. (3) or "exact"
     q: float  # process-noise density on α̈
     rate_sigma0: float = 0.3  # prior std of α̇ at the start (rad/s), centred on 0 (the plate at rest)
     init: str = "rest"  # "rest": α̇ = 0 ± rate_sigma0; "two_point": α̇ from the first two measurements
@@ -71,7 +72,7 @@ def _riccati_gains(settings: FilterSettings, var: float, p12: float, p22: float,
     P, out = np.array([[var, p12], [p12, p22]]), []
     for _ in range(n):
         out.append(P @ C_A.T @ Rinv)
-        P = riccati_step(P, DT, A_CL, C_A, GQG, Rinv, settings.integration)  # type: ignore[arg-type]
+        P = riccati_step(P, DT, A_CL, C_A, GQG, Rinv, settings.integration)
     return tuple(out)
 
 
@@ -92,12 +93,12 @@ def y_coordinates(alpha: np.ndarray, z: float = Z_) -> tuple[np.ndarray, np.ndar
     return F_ * R_ * np.cos(alpha) / (z + R_ * np.sin(alpha)), F_ * R_ * np.cos(alpha) / (z - R_ * np.sin(alpha))
 
 
-def measurement_variance(y1: float, y3: float, sigma2: float, formula: str) -> float:
+def measurement_variance(y1: float, y3: float, sigma2: float, formula: Formula) -> float:
     """Variance of the α measurement from y-noise of variance σ², by first-order propagation."""
     eps = 1e-7
-    a0 = alpha_z_from_y(y1, y3, R_, F_, formula)[0]  # type: ignore[arg-type]
-    d1 = (alpha_z_from_y(y1 + eps, y3, R_, F_, formula)[0] - a0) / eps  # type: ignore[arg-type]
-    d3 = (alpha_z_from_y(y1, y3 + eps, R_, F_, formula)[0] - a0) / eps  # type: ignore[arg-type]
+    a0 = alpha_z_from_y(y1, y3, R_, F_, formula)[0]
+    d1 = (alpha_z_from_y(y1 + eps, y3, R_, F_, formula)[0] - a0) / eps
+    d3 = (alpha_z_from_y(y1, y3 + eps, R_, F_, formula)[0] - a0) / eps
     return sigma2 * (d1 * d1 + d3 * d3)
 
 
@@ -111,7 +112,7 @@ def run_once(
     y1, y3 = y_coordinates(alpha)
     y1n = y1 + rng.normal(0, math.sqrt(sigma2), len(alpha))
     y3n = y3 + rng.normal(0, math.sqrt(sigma2), len(alpha))
-    meas = np.array([alpha_z_from_y(a, b, R_, F_, settings.formula)[0] for a, b in zip(y1n, y3n, strict=True)])  # type: ignore[arg-type]
+    meas = np.array([alpha_z_from_y(a, b, R_, F_, settings.formula)[0] for a, b in zip(y1n, y3n, strict=True)])
     var = measurement_variance(float(y1[0]), float(y3[0]), sigma2, settings.formula)
     est = np.full(len(alpha), np.nan)
     first = np.flatnonzero(np.isfinite(meas))
@@ -134,12 +135,12 @@ def run_once(
         K = np.array([[2.0], [2.0]])
     else:
         gains = _riccati_gains(settings, var, p12, p22, len(alpha) - k0 - 1)
-    u_prev = np.array([meas[k0]])
+    u_prev: np.ndarray | None = np.array([meas[k0]])
     for k in range(k0 + 1, len(alpha)):
         u = np.array([meas[k]]) if np.isfinite(meas[k]) else None
         if settings.gain == "riccati":
             K = gains[k - k0 - 1]
-        x = filter_step(x, u, DT, A_CL, K, C_A, settings.integration, u_prev)  # type: ignore[arg-type]
+        x = filter_step(x, u, DT, A_CL, K, C_A, settings.integration, u_prev)
         u_prev = u
         est[k] = x[0]
     return alpha, meas, est

@@ -75,9 +75,9 @@ def _batches(tracks: list[np.ndarray], n: int, finite: bool = True) -> _Batches:
         m = min(n, len(t))
         A[:m, j] = t[:m]
         ok[:m, j] = np.isfinite(t[:m]).all(axis=1) if finite else True
-    k, j = np.nonzero(ok)  # row-major: frame by frame, tracks in order
-    frames, lengths = np.unique(k, return_counts=True)
-    return _Batches(frames.astype(np.int64), lengths, A[k, j], j)
+    rows, cols = np.nonzero(ok)  # row-major: frame by frame, tracks in order
+    frames, lengths = np.unique(rows, return_counts=True)
+    return _Batches(frames.astype(np.int64), lengths, A[rows, cols], cols)
 
 
 def blueprint(fps: float = 30.0, target: bool = False, info: bool = False, markers: list[str] | None = None,
@@ -99,7 +99,7 @@ def blueprint(fps: float = 30.0, target: bool = False, info: bool = False, marke
     if target:
         plots += [rrb.TimeSeriesView(name="target α (rad)", origin="/metrics/target/alpha"),
                   rrb.TimeSeriesView(name="target z (m)", origin="/metrics/target/distance")]
-    side = [rrb.Spatial2DView(name=f"{c} camera", origin=f"/world/{c}",
+    side: list[rrb.Spatial2DView | rrb.TextDocumentView] = [rrb.Spatial2DView(name=f"{c} camera", origin=f"/world/{c}",
                               overrides=_hidden([f"/world/{c}/estimates/{m}" for m in hidden]) or None)
             for c in ("left", "right")]
     if info:
@@ -145,9 +145,8 @@ class Recorder:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.tmp = partial_beside(self.path)  # readable like every other output once renamed
         self.quality, self.image_every = int(jpeg_quality), max(1, int(image_every))
-        self.rec = None
+        self.rec = rr.RecordingStream("stereotrack")
         try:
-            self.rec = rr.RecordingStream("stereotrack")
             self.rec.save(str(self.tmp))  # the blueprint, chosen for this run, is sent by finish
         except BaseException:  # interrupted while opening: leave nothing behind
             self.abort()
@@ -201,11 +200,10 @@ class Recorder:
         if not len(batches.frames):
             return
         arch = rr.Points3D if kind == "3d" else rr.Points2D
-        kw = {"labels": labels} if labels is not None else {}
         if labels is not None and not show_labels:
             self.rec.log(entity, arch.from_fields(show_labels=False), static=True)
         cols = arch.columns(positions=batches.points, colors=np.asarray(colours, dtype=np.uint8).reshape(-1, 3),
-                            radii=np.full(len(batches.points), radius, np.float32), **kw)
+                            radii=np.full(len(batches.points), radius, np.float32), labels=labels)
         self._columns(entity, batches.frames, cols.partition(batches.lengths.tolist()))
 
     def _scalars(self, entity: str, series: np.ndarray, name: str | None = None, rgb=None) -> None:
@@ -371,7 +369,6 @@ class Recorder:
         """Stop recording and remove the partial file (after the file sink has closed it, so that
         no late write recreates it)."""
         try:
-            if self.rec is not None:
-                self.rec.disconnect()
+            self.rec.disconnect()
         finally:
             self.tmp.unlink(missing_ok=True)

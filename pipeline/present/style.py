@@ -53,7 +53,8 @@ def method_rgb(method: str) -> tuple[int, int, int]:
 
 def method_colour(method: str) -> tuple[float, float, float]:
     """The method's colour for matplotlib (0–1)."""
-    return tuple(c / 255 for c in method_rgb(method))  # type: ignore[return-value]
+    r, g, b = method_rgb(method)
+    return r / 255, g / 255, b / 255
 
 
 def method_hex(method: str) -> str:
@@ -71,5 +72,6 @@ def marker_rgb(colours: dict[str, list[int]], marker: str, fallback_index: int =
     the four points of a target share their colour), else a palette colour."""
     for name in (marker, marker.rsplit("_", 1)[0]):
         if name in colours:
-            return tuple(int(c) for c in colours[name][:3])  # type: ignore[return-value]
+            r, g, b = colours[name][:3]
+            return int(r), int(g), int(b)
     return PALETTE[fallback_index % len(PALETTE)]

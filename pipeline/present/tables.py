@@ -42,7 +42,8 @@ class Column:
             return min(ok, key=lambda t: t[1])[0]
         if self.best == "max":
             return max(ok, key=lambda t: t[1])[0]
-        return min(ok, key=lambda t: abs(t[1] - float(self.best)))[0]  # type: ignore[arg-type]
+        target = float(self.best)  # a number to be near
+        return min(ok, key=lambda t: abs(t[1] - target))[0]
 
 
 @dataclass
@@ -59,7 +60,7 @@ class Table:
         """(text, is best) for every row and column; rows that print the best value all are."""
         text = [[c.fmt(c.values[i]) for c in self.columns] for i in range(len(self.rows))]
         best = [c.best_row() for c in self.columns]
-        return [[(text[i][j], best[j] is not None and text[i][j] == text[best[j]][j]) for j in range(len(self.columns))]
+        return [[(text[i][j], b is not None and text[i][j] == text[b][j]) for j, b in enumerate(best)]
                 for i in range(len(self.rows))]
 
 

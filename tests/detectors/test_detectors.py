@@ -252,9 +252,16 @@ def test_bad_inputs(tmp_path, png_clip):
     # ROI outside the frame
     with pytest.raises(StereotrackError, match="outside"):
         detect_clip(png_clip, RunSettings(detector="meanshift", roi=(400, 10, 20, 20)), out_dir=tmp_path / "o2")
-    # no marker colours for a clip without scenario
+    # no marker colours for a single video without a scenario (written here: no ../shared needed)
+    video = tmp_path / "alone" / "ball.mp4"
+    video.parent.mkdir()
+    frames = [cv2.imread(str(p)) for p in sorted((png_clip / "left").glob("*.png"))[:5]]
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), 30.0, frames[0].shape[1::-1])
+    for f in frames:
+        writer.write(f)
+    writer.release()
     with pytest.raises(StereotrackError, match="--markers"):
-        detect_clip(BALL if BALL.is_file() else clip / "left")
+        detect_clip(video)
 
 
 def test_blob_quantile_is_numpys():
