@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 from _common import LiveDoc, add_output_args, command, output_dir, stack_tree
 
-import pipeline.estimators.kernels  # noqa: F401  (loaded: every run below goes through the compiled cores)
+import pipeline.estimators.compiled  # noqa: F401  (loaded: every run below goes through the compiled cores)
 from pipeline.core.io import write_text
 from pipeline.estimators import Estimator, create, methods
 from pipeline.estimators.base import JIT_MIN_FRAMES

@@ -301,6 +301,25 @@ def triangulate(rig: StereoRig, Y: np.ndarray) -> np.ndarray:
     return out
 
 
+def linearize_point(Pm, delta, x, h, H):
+    """``h(x)`` (4) and ``∂h/∂x`` (4 × 6) of one state through both cameras' 3 × 4 matrices ``Pm``
+    (2 × 3 × 4), the right camera seeing ``p + v·δ``, into ``h`` and ``H``: the measurement model of
+    :meth:`StereoMeasurementModel.linearize` written for one state in scalar arithmetic, so that the
+    compiled filters compile this very function (:mod:`pipeline.estimators.compiled`) instead of a
+    copy of it (tested equal to the vectorised form)."""
+    for c in range(2):
+        dc = delta if c == 1 else 0.0
+        p0, p1, p2 = x[0] + x[3] * dc, x[1] + x[4] * dc, x[2] + x[5] * dc
+        q2 = Pm[c, 2, 0] * p0 + Pm[c, 2, 1] * p1 + Pm[c, 2, 2] * p2 + Pm[c, 2, 3]
+        for r in range(2):
+            uv = (Pm[c, r, 0] * p0 + Pm[c, r, 1] * p1 + Pm[c, r, 2] * p2 + Pm[c, r, 3]) / q2
+            h[2 * c + r] = uv
+            for a in range(3):
+                J = (Pm[c, r, a] - uv * Pm[c, 2, a]) / q2
+                H[2 * c + r, a] = J
+                H[2 * c + r, 3 + a] = dc * J
+
+
 @dataclass(frozen=True)
 class StereoMeasurementModel:
     """The measurement model every estimator uses (Stone Soup's ``function / jacobian /

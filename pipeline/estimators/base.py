@@ -67,10 +67,10 @@ JIT_MIN_FRAMES = 1000
 
 def use_compiled(frames: int) -> bool:
     """Whether a ``run`` over ``frames`` frames goes through the compiled cores
-    (:mod:`pipeline.estimators.kernels`): long clips, or any clip once the cores are loaded."""
+    (:mod:`pipeline.estimators.compiled`): long clips, or any clip once the cores are loaded."""
     import sys
 
-    return frames >= JIT_MIN_FRAMES or "pipeline.estimators.kernels" in sys.modules
+    return frames >= JIT_MIN_FRAMES or "pipeline.estimators.compiled" in sys.modules
 
 
 def transition(dt: float, dim: int = 3) -> np.ndarray:

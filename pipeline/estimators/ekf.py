@@ -10,7 +10,7 @@ model's analytic ``jacobian``, zeros for the velocity)::
 ``step`` runs filterpy's ``ExtendedKalmanFilter`` equations written out in numpy (a test holds
 them equal to filterpy itself, driven directly, to 1e-9; the per-call checks filterpy makes cost
 about as much as the arithmetic). ``run`` on a long clip and ``run_batch`` run the same arithmetic
-compiled (:func:`pipeline.estimators.kernels.ekf_frames`, tested equal to ``step``). A camera
+compiled (:func:`pipeline.estimators.compiled.ekf_frames`, tested equal to ``step``). A camera
 without a detection drops its two rows. ``ekf_rts`` adds the Rauch–Tung–Striebel backward pass
 (the transition is linear, so filterpy's smoother applies as it is; long clips use its compiled
 twin).
@@ -19,6 +19,8 @@ twin).
 from __future__ import annotations
 
 import time
+from types import ModuleType
+from typing import Any
 
 import numpy as np
 
@@ -127,7 +129,7 @@ class EKFEstimator(GatedFilter, Estimator):
         Y = self.check(Y)
         if not use_compiled(len(Y)):
             return Estimator.run(self, Y)
-        import pipeline.estimators.kernels as kernels
+        import pipeline.estimators.compiled as kernels
 
         kernels.warm_up("ekf_frames")
         t0 = time.perf_counter()
@@ -143,7 +145,7 @@ class EKFEstimator(GatedFilter, Estimator):
     def _compiled(self, Y: np.ndarray, start: Start | bool | None = False) -> dict[str, np.ndarray]:
         """Per-frame arrays of the filter over one clip from a fresh state (``start``: the
         initiator's start when the caller has it)."""
-        import pipeline.estimators.kernels as kernels
+        import pipeline.estimators.compiled as kernels
 
         self.reset()
         n = len(Y)
@@ -155,13 +157,12 @@ class EKFEstimator(GatedFilter, Estimator):
             return a
         x, P = s.state.copy(), s.covariance.copy()
         a["pos"][s.frame], a["vel"][s.frame], a["cov"][s.frame], a["pred"][s.frame] = x[:3], x[3:], P, False
-        cfg, (Pm, threshold) = self.config, self._kernel_model()
-        counters, sx, sP = np.zeros(6, dtype=np.int64), np.zeros(6), np.zeros((6, 6))
+        cfg, model = self.config, self._kernel_model(kernels)
+        track = kernels.new_track(x, P)
+        out = kernels.EKFOutput(a["pos"], a["vel"], a["cov"], a["pred"], a["nis"], a["dof"], a["gated"], a["restart"])
         k, resume = s.frame + 1, 0
         while k < n:
-            k = kernels.ekf_frames(Y, k, resume, Pm, self.model.time_offset, self.dt, self.Q, self.R, threshold,
-                                   cfg.restart_after, x, P, counters, sx, sP, a["pos"], a["vel"], a["cov"], a["pred"],
-                                   a["nis"], a["dof"], a["gated"], a["restart"])
+            k = kernels.ekf_frames(Y, k, resume, model, track, out)
             if k < n:  # gated too long: a restart from the recent detections, if they triangulate
                 r = self.initiator.restart(k, Y[max(0, k + 1 - cfg.restart_after) : k + 1])
                 resume = 2 if r is None else 1
@@ -170,16 +171,18 @@ class EKFEstimator(GatedFilter, Estimator):
         self.frame = n
         return a
 
-    def _kernel_model(self) -> tuple[np.ndarray, float]:
-        """What the compiled cores take of the model: both cameras' 3 × 4 matrices and the gate's
-        threshold (inf: no gate)."""
-        return np.stack([self.rig.left.P, self.rig.right.P]), self.gate_threshold() if self.config.gate > 0 else np.inf
+    def _kernel_model(self, kernels: ModuleType) -> Any:
+        """What the compiled core takes of the filter (an ``EKFModel`` of ``kernels``): both cameras'
+        3 × 4 matrices, the time offset, the noises and the gate's threshold (inf: no gate)."""
+        threshold = self.gate_threshold() if self.config.gate > 0 else np.inf
+        return kernels.EKFModel(np.stack([self.rig.left.P, self.rig.right.P]), self.model.time_offset, self.dt, self.Q,
+                                self.R, threshold, self.config.restart_after)
 
     def run_batch(self, Y: np.ndarray) -> np.ndarray:
         """The filter over M tracks (M × frames × 4 → M × frames × 3): the starts found for all
         tracks at once, then every track through the compiled batch core; a track that asks for a
         restart (the initiator is Python) runs again on its own through :meth:`_compiled`."""
-        import pipeline.estimators.kernels as kernels
+        import pipeline.estimators.compiled as kernels
 
         Y = np.asarray(Y, dtype=float)
         self.reset()
@@ -189,9 +192,8 @@ class EKFEstimator(GatedFilter, Estimator):
         begin = np.array([s.frame if s is not None else n for s in starts], dtype=np.int64)
         x0 = np.array([s.state if s is not None else np.zeros(6) for s in starts]).reshape(M, 6)
         P0 = np.array([s.covariance if s is not None else np.eye(6) for s in starts]).reshape(M, 6, 6)
-        Pm, threshold = self._kernel_model()
-        stopped = kernels.ekf_batch(Y, begin, x0, P0, Pm, self.model.time_offset, self.dt, self.Q, self.R, threshold,
-                                    self.config.restart_after, out)
+        scratch = kernels.new_track(np.zeros(6), np.eye(6))
+        stopped = kernels.ekf_batch(Y, begin, x0, P0, self._kernel_model(kernels), scratch, out)
         for m in np.flatnonzero(stopped < n):
             out[m] = self._compiled(Y[m], starts[m])["pos"]
         return out

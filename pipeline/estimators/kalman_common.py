@@ -247,7 +247,7 @@ def _smoother(est: GatedFilter, frames: int) -> Callable[[np.ndarray, np.ndarray
     constant-velocity transition every built-in filter uses (tested equal to filterpy's) where
     compiling pays (:func:`~pipeline.estimators.base.use_compiled`), else filterpy's ``rts_smoother``."""
     if est.A.shape == (6, 6) and np.array_equal(est.A, transition(est.dt)) and use_compiled(frames):
-        import pipeline.estimators.kernels as kernels
+        import pipeline.estimators.compiled as kernels
 
         def compiled(xs: np.ndarray, Ps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             kernels.rts_backward(xs, Ps, est.dt, np.ascontiguousarray(est.Q, dtype=float))

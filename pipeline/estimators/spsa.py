@@ -18,7 +18,7 @@ velocities are reported in m/s. The cost is computed in normalized image coordin
 either frame of a pair is left out of both costs; with no camera in common the iteration only
 predicts. The single-track step is written in plain Python scalars (a 6-vector is too small for
 numpy to pay off); ``run`` on a long clip and ``run_batch`` run the same iteration compiled
-(:func:`pipeline.estimators.kernels.spsa_frames`, tested equal to ``step``).
+(:func:`pipeline.estimators.compiled.spsa_frames`, tested equal to ``step``).
 """
 
 from __future__ import annotations
@@ -226,7 +226,7 @@ class SPSAEstimator(Estimator):
         """Every frame from a fresh state through the compiled core (:func:`kernels.spsa_frames`,
         the arithmetic of repeated :meth:`step`): θ per frame (frames × 6, frame units; NaN before
         the start) and which frames only predicted."""
-        import pipeline.estimators.kernels as kernels
+        import pipeline.estimators.compiled as kernels
 
         self.reset()
         n = len(Y)
@@ -236,12 +236,11 @@ class SPSAEstimator(Estimator):
             self._begin(start)
             k = start.frame
             states[k], pred[k] = self.theta, False
-            s = np.zeros(kernels.S_SIZE)
-            s[:6] = self.theta
+            s = kernels.new_state(self.theta)
             deltas = delta_sequence(self.config.seed, n // 2 + 2, 6)
             kernels.spsa_frames(self.rig.normalize(Y[k + 1 :]), *_present(Y[k + 1 :]), deltas, spsa_cameras(self.rig),
-                                self._alpha, self._beta, self._th, s, states[k + 1 :], pred[k + 1 :])
-            self.theta = s[:6].tolist()
+                                kernels.SPSAGains(self._alpha, self._beta, self._th), s, states[k + 1 :], pred[k + 1 :])
+            self.theta = s.theta.tolist()
         self.frame = n
         return states, pred
 
@@ -284,7 +283,7 @@ class SPSAEstimator(Estimator):
         """:meth:`_fast` (its kernel compiled or loaded here) where compiling pays, else :meth:`_loop`."""
         if not use_compiled(frames):
             return self._loop
-        import pipeline.estimators.kernels as kernels
+        import pipeline.estimators.compiled as kernels
 
         kernels.warm_up("spsa_frames")
         return self._fast
@@ -293,7 +292,7 @@ class SPSAEstimator(Estimator):
         """Algorithm 1 over M tracks (M × frames × 4 → M × frames × 3) through the compiled
         :func:`kernels.spsa_batch`: each track starts where the initiator says (as :meth:`run`) and
         draws the same Δ sequence a single track draws."""
-        import pipeline.estimators.kernels as kernels
+        import pipeline.estimators.compiled as kernels
 
         Y = np.asarray(Y, dtype=float)
         self.reset()
@@ -305,7 +304,7 @@ class SPSAEstimator(Estimator):
         out = np.full((M, n, 3), np.nan)
         Ks = np.stack([c.K for c in self.rig.cameras]).astype(float)
         kernels.spsa_batch(Y, Ks, begin, theta0, delta_sequence(self.config.seed, n // 2 + 2, 6), spsa_cameras(self.rig),
-                           self._alpha, self._beta, self._th, out)
+                           kernels.SPSAGains(self._alpha, self._beta, self._th), kernels.new_state(np.zeros(6)), out)
         return out
 
 

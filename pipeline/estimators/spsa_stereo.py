@@ -84,6 +84,7 @@ from __future__ import annotations
 
 import math
 import time
+from typing import Any
 
 import numpy as np
 from pydantic import Field
@@ -208,7 +209,7 @@ class SPSAStereoEstimator(Estimator):
         self._nis_gate = camera_gate(cfg.pixel_sigma, cfg.gate)
         self._f2 = [float(c.K[0, 0] * c.K[1, 1]) for c in self.rig.cameras]  # px² per normalized unit²
         self._poses = [(c.R.ravel().tolist(), c.t.ravel().tolist()) for c in self.rig.cameras]  # for the gate
-        self._prm: np.ndarray | None = None  # the compiled core's parameters (:meth:`_parameters`)
+        self._prm: Any = None  # the compiled core's parameters (:meth:`_parameters`)
 
     @property
     def x(self) -> np.ndarray:
@@ -465,32 +466,26 @@ class SPSAStereoEstimator(Estimator):
         self.frame = n
         return states, pred, costs, gains, gated, restarts
 
-    def _parameters(self) -> tuple[np.ndarray, np.ndarray]:
-        """Everything :func:`kernels.spsa_stereo_frames` reads besides the frames, packed in its
-        layout (made once), and a fresh robust scale."""
-        import pipeline.estimators.kernels as kernels
+    def _parameters(self) -> Any:
+        """Everything :func:`kernels.spsa_stereo_frames` reads besides the frames and the track: a
+        ``StereoParams`` record (made once)."""
+        import pipeline.estimators.compiled as kernels
 
-        sc = np.zeros(kernels.SC_SIZE)
-        sc[kernels.SC_VALUE] = sc[kernels.SC_MIN] = self._scale.minimum
-        if self._prm is not None:
-            return self._prm, sc
-        prm = np.zeros(kernels.P_SIZE)
-        prm[kernels.P_R : kernels.P_T], prm[kernels.P_T : kernels.P_B], prm[kernels.P_B] = self._Rl, self._tl, self._b
-        prm[kernels.P_AL : kernels.P_AR], prm[kernels.P_AR : kernels.P_POSE] = self._Al, self._Ar
-        prm[kernels.P_POSE : kernels.P_F2] = [v for R, t in self._poses for v in (*R, *t)]
-        prm[kernels.P_F2 : kernels.P_F2 + 2] = self._f2
-        prm[kernels.P_DT :] = (self.dt, self._c, self._far, self._sweeps, self._gate, self._nis_gate,
-                               self.config.pixel_sigma**2, self._nmax_image, self._kd, self._amin_d, self._runlen,
-                               self.config.restart_after)
-        self._prm = prm
-        return prm, sc
+        if self._prm is not None and isinstance(self._prm, kernels.StereoParams):
+            return self._prm
+        f = lambda v: np.array(v, dtype=float)  # noqa: E731
+        scalars = (self.dt, self._c, self._far, self._sweeps, self._gate, self._nis_gate, self.config.pixel_sigma**2,
+                   self._nmax_image, self._kd, self._amin_d, self._runlen, self.config.restart_after)
+        self._prm = kernels.StereoParams(f(self._Rl), f(self._tl), float(self._b), f(self._Al), f(self._Ar),
+                                         f([[*R, *t] for R, t in self._poses]), f(self._f2), *map(float, scalars))
+        return self._prm
 
     def _compiled(self, Y: np.ndarray) -> tuple:
         """:meth:`_fast` through :func:`kernels.spsa_stereo_frames`. Where the kernel stops, this
         asks the initiator for a restart, or computes what a frame needs and only Python has (both
         cameras gated: whether the detections are one point; a prediction behind the cameras: the
         frame's triangulation), and lets the kernel run that frame again."""
-        import pipeline.estimators.kernels as kernels
+        import pipeline.estimators.compiled as kernels
 
         self.reset()
         n = len(Y)
@@ -500,15 +495,17 @@ class SPSAStereoEstimator(Estimator):
         if start is not None:
             rows = self.rig.normalize(Y)
             okl, okr = np.isfinite(rows[:, :2]).all(axis=1), np.isfinite(rows[:, 2:]).all(axis=1)
-            prm, sc = self._parameters()
-            t = np.zeros(kernels.T_SIZE)
+            prm = self._parameters()
+            track = kernels.new_stereo_track(self._scale.minimum)
+            t = track.t
             kernels.st_begin(t, *start.state, self._start_memory())
-            states[start.frame], pred[start.frame] = t[:6], False
-            consistent, tri = np.full(n, np.nan), np.full((n, 4), np.nan)
+            states[start.frame], pred[start.frame] = kernels.state_of(t), False
+            frames = kernels.StereoFrames(rows, okl, okr, np.full(n, np.nan), np.full((n, 4), np.nan))
+            consistent, tri = frames.consistent, frames.tri
+            out = kernels.StereoOutput(states, pred, costs, gains, gated, restarts)
             j, ra = start.frame + 1, self.config.restart_after
             while j < n:
-                j, why = kernels.spsa_stereo_frames(rows, okl, okr, consistent, tri, j, prm, t, sc, states, pred, costs,
-                                                    gains, gated, restarts)
+                j, why = kernels.spsa_stereo_frames(frames, j, prm, track, out)
                 if why == kernels.ST_CONSISTENT:
                     consistent[j] = stereo_consistent(self.model, Y[j], self.config.pixel_sigma, self.config.gate)
                 elif why == kernels.ST_TRI:
@@ -517,8 +514,8 @@ class SPSAStereoEstimator(Estimator):
                     s = self.initiator.restart(j, Y[max(0, j + 1 - ra) : j + 1])
                     if s is not None:
                         kernels.st_begin(t, *s.state, self._start_memory())
-                        t[kernels.T_GRUN] = 0.0
-                        states[j], pred[j], restarts[j] = t[:6], False, 1.0
+                        t.grun = 0.0
+                        states[j], pred[j], restarts[j] = kernels.state_of(t), False, 1.0
                     j += 1
         self.frame = n
         return states, pred, costs, gains, gated, restarts
@@ -529,7 +526,7 @@ class SPSAStereoEstimator(Estimator):
         (:func:`~pipeline.estimators.base.use_compiled`); a warm-up on the first frames outside the timing."""
         Y = self.check(Y)
         if use_compiled(len(Y)):
-            import pipeline.estimators.kernels as kernels
+            import pipeline.estimators.compiled as kernels
 
             kernels.warm_up("spsa_stereo_frames")
             frames = self._compiled

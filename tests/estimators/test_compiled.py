@@ -1,4 +1,4 @@
-"""The compiled cores (pipeline/estimators/kernels.py): the same numbers compiled and as plain
+"""The compiled cores (pipeline/estimators/compiled/): the same numbers compiled and as plain
 Python, and the same as stepping frame by frame (the estimators' streaming arithmetic), on tracks
 that start late, lose a camera, black out, carry outliers and restart."""
 
@@ -9,7 +9,8 @@ import pytest
 
 import pipeline.estimators as estimators
 from pipeline.core.camera import Camera, StereoMeasurementModel, StereoRig
-from pipeline.estimators import base, create, kernels
+from pipeline.estimators import base, create
+from pipeline.estimators import compiled as kernels
 from pipeline.estimators.base import Estimator
 
 RIG = StereoRig.from_parameters(640, 480, (610.0, 590.0), (322.0, 241.0), 0.3, 4.0)
@@ -42,7 +43,7 @@ def always_compiled(monkeypatch):
 @pytest.fixture
 def uncompiled(monkeypatch):
     """Every kernel as plain Python (``STEREOTRACK_JIT=0``'s module) for the estimators."""
-    monkeypatch.setattr(estimators, "kernels", kernels.uncompiled())
+    monkeypatch.setattr(estimators, "compiled", kernels.uncompiled())
 
 
 def assert_same_track(a, b, tol: float = 1e-9) -> None:
@@ -75,11 +76,11 @@ def test_compiled_run_equals_the_streaming_steps(method, rig):
 def test_compiled_equals_plain_python(method, uncompiled):
     """The kernels run uncompiled (plain Python) give the numbers the compiled ones give."""
     compiled = kernels  # this module, compiled (the fixture swapped what the estimators import)
-    assert estimators.kernels is not compiled and not estimators.kernels.JIT
+    assert estimators.compiled is not compiled and not estimators.compiled.JIT
     Ys = np.stack([observations(RIG, s) for s in range(2)])
     plain = [create(method, RIG, DT).run(Y) for Y in Ys]
     plain_batch = create(method, RIG, DT).run_batch(Ys)
-    estimators.kernels = compiled
+    estimators.compiled = compiled
     for Y, p in zip(Ys, plain, strict=True):
         assert_same_track(create(method, RIG, DT).run(Y), p)
     np.testing.assert_allclose(create(method, RIG, DT).run_batch(Ys), plain_batch, rtol=1e-9, atol=1e-9)
@@ -192,11 +193,11 @@ def test_short_clips_step_unless_the_cores_are_loaded(monkeypatch):
     import sys
 
     monkeypatch.setattr(base, "JIT_MIN_FRAMES", 10_000)
-    monkeypatch.delitem(sys.modules, "pipeline.estimators.kernels")
+    monkeypatch.delitem(sys.modules, "pipeline.estimators.compiled")
     assert not base.use_compiled(120) and base.use_compiled(10_000)
     Y = observations(RIG, 0)
     stepped_track = create("ekf", RIG, DT).run(Y)
-    assert "pipeline.estimators.kernels" not in sys.modules
+    assert "pipeline.estimators.compiled" not in sys.modules
     monkeypatch.setattr(base, "JIT_MIN_FRAMES", 0)
     assert_same_track(create("ekf", RIG, DT).run(Y), stepped_track)
 
@@ -209,9 +210,9 @@ def test_short_spsa_clips_loop_as_the_steps(monkeypatch, rig, method):
     import sys
 
     monkeypatch.setattr(base, "JIT_MIN_FRAMES", 10_000)
-    monkeypatch.delitem(sys.modules, "pipeline.estimators.kernels")
+    monkeypatch.delitem(sys.modules, "pipeline.estimators.compiled")
     for seed in range(3):
         Y = observations(rig, seed)
         looped = create(method, rig, DT).run(Y)
-        assert "pipeline.estimators.kernels" not in sys.modules
+        assert "pipeline.estimators.compiled" not in sys.modules
         assert_same_track(looped, Estimator.run(create(method, rig, DT), Y))
