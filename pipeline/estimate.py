@@ -32,7 +32,7 @@ from pipeline.core.sync import SyncEstimate, grid_length, resolve_sync
 from pipeline.core.version import stereotrack_version
 from pipeline.estimators import Estimator, Track, create, registry
 from pipeline.estimators import methods as registered_methods
-from pipeline.estimators.base import is_builtin, origin
+from pipeline.estimators.registration import is_builtin, origin
 from pipeline.evaluation.metrics import compute_metrics, method_metrics
 from pipeline.evaluation.noise import estimate_pixel_sigma
 from pipeline.evaluation.scores import FrameScores, score_track, score_tracks

@@ -16,7 +16,8 @@ from pipeline.estimate import EstimateResult, estimate_clip
 from pipeline.estimators import Track
 from pipeline.evaluation.scores import FrameScores
 from pipeline.present.recording import Recorder
-from pipeline.present.report import ReportData, report_data, write_report
+from pipeline.present.report import write_report
+from pipeline.present.report_data import ReportData, report_data
 
 DEFAULT_SCENARIO = "default"
 

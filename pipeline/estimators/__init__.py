@@ -21,18 +21,8 @@ from pipeline.estimators import (  # noqa: F401  (imported to register, in this 
     predict_only,
 )
 # isort: on
-from pipeline.estimators.base import (
-    ENTRY_POINT_GROUP,
-    Estimator,
-    EstimatorConfig,
-    Initiator,
-    Step,
-    Track,
-    create,
-    methods,
-    register,
-    registry,
-)
+from pipeline.estimators.base import Estimator, EstimatorConfig, Initiator, Step, Track
+from pipeline.estimators.registration import ENTRY_POINT_GROUP, create, methods, register, registry
 
 __all__ = ["ENTRY_POINT_GROUP", "Estimator", "EstimatorConfig", "Initiator", "Step", "Track", "create", "methods",
            "register", "registry"]

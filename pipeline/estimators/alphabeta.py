@@ -23,19 +23,10 @@ import numpy as np
 from pydantic import Field
 
 from pipeline.core.alphabeta import ABFilter
-from pipeline.estimators.base import (
-    NAN3,
-    Estimator,
-    EstimatorConfig,
-    RobustNISScale,
-    Step,
-    camera_gate,
-    camera_nis,
-    not_started,
-    register,
-    stereo_consistent,
-)
+from pipeline.estimators.base import NAN3, Estimator, EstimatorConfig, Step, not_started
+from pipeline.estimators.gating import RobustNISScale, camera_gate, camera_nis, stereo_consistent
 from pipeline.estimators.kalman_common import update_gated_run
+from pipeline.estimators.registration import register
 
 
 class AlphaBetaConfig(EstimatorConfig):
@@ -117,7 +108,7 @@ class AlphaBetaEstimator(Estimator):
     def _gate(self, y: np.ndarray) -> tuple[np.ndarray, int]:
         """Drop the cameras whose innovation falls outside the χ² gate, on the filter's predicted
         error covariance (:meth:`_correct_covariance`; in 3-D seen through the cameras) times a
-        robust scale (:class:`~pipeline.estimators.base.RobustNISScale`): an α-β filter lags a
+        robust scale (:class:`~pipeline.estimators.gating.RobustNISScale`): an α-β filter lags a
         manoeuvre, and its innovations grow with the lag."""
         assert self.f is not None
         if not np.isfinite(self.threshold):

@@ -23,10 +23,7 @@ group ``stereotrack.estimators`` (see :func:`registry`).
 from __future__ import annotations
 
 import functools
-import math
-import statistics
 import time
-import warnings
 from abc import ABC, abstractmethod
 from collections import deque
 from dataclasses import dataclass, field
@@ -37,9 +34,9 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from pipeline.core.camera import StereoMeasurementModel, StereoRig
 from pipeline.core.errors import StereotrackError
+from pipeline.estimators.gating import plausible_residual, plausible_triangulation, reprojection_errors
 
 Kind = Literal["point", "target"]
-ENTRY_POINT_GROUP = "stereotrack.estimators"
 
 
 def expm(M: np.ndarray) -> np.ndarray:
@@ -471,210 +468,8 @@ class Estimator(ABC):
         return np.stack([self.run(y).position for y in np.asarray(Y, dtype=float)])
 
 
-def plausible_residual(sigma: float, gate: float) -> float:
-    """The χ² gate on a triangulation's summed squared reprojection residual (px²): one degree of
-    freedom (the distance from the epipolar line) at probability ``gate``; inf when gating is off."""
-    if gate <= 0:
-        return float("inf")
-    from scipy.special import chdtri
-
-    return float(sigma**2 * chdtri(1, 1.0 - gate))
-
-
-def stereo_consistent(model: StereoMeasurementModel, y: np.ndarray, sigma: float, gate: float) -> bool:
-    """Whether both cameras' detections of one frame are one point: they triangulate in front of
-    both cameras with a reprojection residual within the χ² gate of a noise of ``sigma`` px (at
-    least :data:`GATE_FLOOR_PX`). A wrong blob in one camera is off the other's epipolar line; two
-    detections far from a fixed-gain filter's prediction that agree are its lag (or a real jump,
-    which a restart would follow anyway), not an outlier its gate can tell."""
-    y = np.asarray(y, dtype=float)[None]
-    if not np.isfinite(y).all():
-        return False
-    limit = plausible_residual(max(sigma, GATE_FLOOR_PX), gate)
-    return bool(plausible_triangulation(model, model.inverse_function(y), y, limit)[0])
-
-
-def plausible_triangulation(model: StereoMeasurementModel, X: np.ndarray, Y: np.ndarray, limit: float) -> np.ndarray:
-    """Which triangulations ``X`` (…×3) of ``Y`` (…×4) are finite, in front of both cameras and
-    reproject within ``limit`` px² (:func:`plausible_residual`)."""
-    ok = np.all(np.isfinite(X), axis=-1)
-    depth = np.where(ok[..., None], model.rig.depths(np.where(ok[..., None], X, 1.0)), -1.0)
-    return ok & np.all(depth > 0, axis=-1) & (reprojection_residual(model, X, Y) <= limit)
-
-
-def camera_gate(sigma: float, gate: float) -> float:
-    """The χ² gate on one camera's normalized innovation squared (2 degrees of freedom)."""
-    if gate <= 0:
-        return float("inf")
-    from scipy.special import chdtri
-
-    return float(chdtri(2, 1.0 - gate))
-
-
-LN4 = math.log(4.0)  # the median of χ²₂
-#: the smallest detection noise (px) the robust gates assume (see :class:`RobustNISScale`)
-GATE_FLOOR_PX = 1.0
-
-
-class RobustNISScale:
-    """The gate's scale for filters whose gains ignore their own lag (alpha-beta, ``spsa_stereo``):
-    the median of the last ``memory`` NIS values, gated ones included, over χ²₂'s median (ln 4),
-    floored at ``(GATE_FLOOR_PX / σ)²`` (at least 1). A lagging filter's innovations grow and widen
-    its gate within a few frames; occasional outliers do not move a median. The floor keeps a gate
-    from assuming detections more precise than ``GATE_FLOOR_PX``: lossless renders give σ of a few
-    hundredths of a pixel, against which a fixed-gain filter's lag of a pixel is hundreds of σ.
-    ``value`` is the scale from the innovations added so far (use it, then :meth:`add` the new ones)."""
-
-    def __init__(self, sigma: float = 1.0, memory: int = 30) -> None:
-        self.recent: deque = deque(maxlen=memory)
-        self.minimum = max(1.0, (GATE_FLOOR_PX / sigma) ** 2)
-        self.value = self.minimum
-
-    def add(self, nis) -> None:
-        self.recent.extend(float(v) for v in nis if math.isfinite(v))
-        if self.recent:
-            self.value = max(self.minimum, statistics.median(self.recent) / LN4)
-
-
-def reprojection_residual(model: StereoMeasurementModel, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
-    """Summed squared pixel residual ``‖h(X) − y‖²`` of triangulations ``X`` (…×3) of ``Y`` (…×4)."""
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.sum((model.function(np.nan_to_num(X)) - Y) ** 2, axis=-1)
-
-
-def camera_nis(model: StereoMeasurementModel, x: np.ndarray, P: np.ndarray, Y: np.ndarray,
-               R: np.ndarray | None = None, h: np.ndarray | None = None, H: np.ndarray | None = None,
-               S: np.ndarray | None = None) -> np.ndarray:
-    """Each camera's normalized innovation squared ``rᵀ S⁻¹ r`` (…×2; NaN where it has no
-    observation), ``r = y_c − h_c(x)``, ``S = H_c P H_cᵀ + R_c`` at the predicted state ``x`` (…×d)
-    and covariance ``P`` (…×d×d); ``R`` (4×4) defaults to the model's ``σ² I``; ``h``, ``H``, ``S``:
-    the model at ``x`` and the 4×4 innovation covariance when the caller has them already."""
-    R = model.covar() if R is None else R
-    h = model.function(x) if h is None else h
-    H = model.jacobian(x) if H is None else H
-    if S is None:
-        S = H @ P @ np.swapaxes(H, -1, -2) + R  # both cameras at once; each camera's own is its 2×2 block
-    if np.ndim(Y) == 1:
-        return _camera_nis_one(S, Y - h)
-    with np.errstate(invalid="ignore"):
-        r = Y - h
-    out = np.full((*np.shape(Y)[:-1], 2), np.nan)
-    for c in range(2):
-        i = 2 * c
-        a, b, d = S[..., i, i], S[..., i, i + 1], S[..., i + 1, i + 1]
-        u, v = r[..., i], r[..., i + 1]
-        out[..., c] = (d * u * u - 2.0 * b * u * v + a * v * v) / (a * d - b * b)  # rᵀ S_c⁻¹ r, 2×2 in closed form
-    return out
-
-
-def _camera_nis_one(S: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """:func:`camera_nis` of one track in Python floats (the same closed form; NaN stays NaN)."""
-    s, (u1, v1, u2, v2) = S.tolist(), r.tolist()
-    out = []
-    for i, u, v in ((0, u1, v1), (2, u2, v2)):
-        a, b, d = s[i][i], s[i][i + 1], s[i + 1][i + 1]
-        out.append((d * u * u - 2.0 * b * u * v + a * v * v) / (a * d - b * b))
-    return np.array(out)
-
-
-def gated_cameras(model: StereoMeasurementModel, x: np.ndarray, P: np.ndarray, Y: np.ndarray,
-                  threshold: float, R: np.ndarray | None = None, h: np.ndarray | None = None,
-                  H: np.ndarray | None = None, S: np.ndarray | None = None) -> np.ndarray:
-    """Which cameras' observations fall outside the χ² gate (…×2 booleans), each camera on its own
-    (a bad blob in one camera never discards the other's): :func:`camera_nis` above ``threshold``."""
-    if not np.isfinite(threshold):
-        return np.zeros((*np.shape(Y)[:-1], 2), dtype=bool)
-    with np.errstate(invalid="ignore"):
-        return camera_nis(model, x, P, Y, R, h, H, S) > threshold
-
-
-def reprojection_errors(rig: StereoRig, positions: np.ndarray, Y: np.ndarray, velocities: np.ndarray | None = None,
-                        time_offset: float = 0.0) -> np.ndarray:
-    """Per-frame RMS pixel distance between ``h(position)`` and the available observations (with a
-    time offset, the right camera sees ``position + velocity·δ``)."""
-    ok = np.all(np.isfinite(positions), axis=1)
-    r = np.full(Y.shape, np.nan)
-    if time_offset and velocities is not None:
-        model = StereoMeasurementModel(rig, time_offset=time_offset)
-        ok &= np.all(np.isfinite(velocities), axis=1)
-        r[ok] = model.function(np.hstack([positions[ok], velocities[ok]])) - Y[ok]
-    else:
-        r[ok] = rig.project(positions[ok]) - Y[ok]
-    with np.errstate(invalid="ignore"):
-        n = np.sum(np.isfinite(r), axis=1)
-        out = np.sqrt(np.nansum(r**2, axis=1) / np.maximum(n, 1))
-    out[n == 0] = np.nan
-    return out
-
-
 def not_started() -> Step:
     """The output of a frame before the track has started."""
     return Step(NAN3.copy(), NAN3.copy(), predicted=True)
 
 
-# -- the registry -------------------------------------------------------------------------------
-REGISTRY: dict[str, type[Estimator]] = {}
-_plugins_loaded = False
-
-
-def register(cls: type[Estimator]) -> type[Estimator]:
-    """Class decorator: make an estimator available by name to the pipeline, CLI, reports,
-    recordings and benchmarks. Third-party packages call it from a module named by an entry point
-    of the group ``stereotrack.estimators`` (or point the entry point at the class itself)."""
-    if not (isinstance(cls, type) and issubclass(cls, Estimator)):
-        raise StereotrackError(f"{cls!r} is not an Estimator subclass")
-    if not getattr(cls, "name", None):
-        raise StereotrackError(f"estimator class {cls.__name__} has no name")
-    prev = REGISTRY.get(cls.name)
-    if prev is not None and origin(prev) != origin(cls):
-        kept = "the built-in" if is_builtin(prev) else f"the first ({origin(prev)})"
-        warnings.warn(f"estimator {origin(cls)} is named {cls.name!r}, which {origin(prev)} already is: {kept} is kept; "
-                      "rename the plugin's method", stacklevel=2)
-        return cls
-    REGISTRY[cls.name] = cls
-    return cls
-
-
-def origin(cls: type) -> str:
-    """Where an estimator class comes from, for messages: ``module.Class``."""
-    return f"{cls.__module__}.{cls.__qualname__}"
-
-
-def is_builtin(cls: type) -> bool:
-    """Whether an estimator is one of stereotrack's own (not a plugin's)."""
-    return cls.__module__.startswith("pipeline.estimators.")
-
-
-def registry() -> dict[str, type[Estimator]]:
-    """Every registered method (built-ins, then plugins from the ``stereotrack.estimators``
-    entry points, loaded once; a plugin that fails to load is skipped with a warning)."""
-    global _plugins_loaded
-    if not _plugins_loaded:
-        _plugins_loaded = True
-        from importlib.metadata import entry_points
-
-        for ep in entry_points(group=ENTRY_POINT_GROUP):
-            try:
-                obj = ep.load()
-                if isinstance(obj, type):
-                    register(obj)
-            except Exception as exc:
-                warnings.warn(f"estimator plugin {ep.name!r} ({ep.value}) failed to load: {exc}", stacklevel=2)
-    return REGISTRY
-
-
-def methods(kind: Kind | None = None) -> list[str]:
-    """Registered method names (of one kind), in registration order."""
-    return [n for n, c in registry().items() if kind is None or c.kind == kind]
-
-
-def create(name: str, rig: StereoRig, dt: float, config: EstimatorConfig | dict | None = None,
-           time_offset: float = 0.0) -> Estimator:
-    """Build a registered estimator by name (``time_offset``: δ of the rig, for the methods that
-    model it; see :attr:`Estimator.models_time_offset`)."""
-    reg = registry()
-    if name not in reg:
-        raise StereotrackError(f"unknown method {name!r} (known: {', '.join(reg)})")
-    if time_offset and reg[name].models_time_offset:
-        return reg[name](rig, dt, config, time_offset=time_offset)
-    return reg[name](rig, dt, config)

@@ -30,7 +30,6 @@ from pipeline.estimators.base import (
     Step,
     Track,
     not_started,
-    register,
     transition,
     use_compiled,
     white_noise_acceleration,
@@ -43,6 +42,7 @@ from pipeline.estimators.kalman_common import (
     filtered_step,
     gated_step,
 )
+from pipeline.estimators.registration import register
 
 
 @register

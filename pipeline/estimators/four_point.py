@@ -34,7 +34,9 @@ import numpy as np
 from pydantic import Field
 
 from pipeline.core.camera import Camera, StereoRig
-from pipeline.estimators.base import Estimator, EstimatorConfig, Step, camera_gate, register
+from pipeline.estimators.base import Estimator, EstimatorConfig, Step
+from pipeline.estimators.gating import camera_gate
+from pipeline.estimators.registration import register
 
 Formula = Literal["exact", "paper"]
 

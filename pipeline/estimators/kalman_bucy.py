@@ -25,8 +25,9 @@ import numpy as np
 from pydantic import Field
 
 from pipeline.core.errors import StereotrackError
-from pipeline.estimators.base import Step, expm, register
+from pipeline.estimators.base import Step, expm
 from pipeline.estimators.four_point import TargetConfig, TargetEstimator
+from pipeline.estimators.registration import register
 
 C4 = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
 G4 = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 0.0], [0.0, 1.0]])

@@ -10,18 +10,8 @@ from collections.abc import Callable
 import numpy as np
 from pydantic import Field
 
-from pipeline.estimators.base import (
-    Estimator,
-    EstimatorConfig,
-    Start,
-    Step,
-    Track,
-    camera_gate,
-    gated_cameras,
-    reprojection_errors,
-    transition,
-    use_compiled,
-)
+from pipeline.estimators.base import Estimator, EstimatorConfig, Start, Step, Track, transition, use_compiled
+from pipeline.estimators.gating import camera_gate, gated_cameras, reprojection_errors
 
 
 class KalmanConfig(EstimatorConfig):

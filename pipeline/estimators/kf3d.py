@@ -15,8 +15,9 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from pipeline.estimators.base import Estimator, Step, not_started, register, transition, white_noise_acceleration
+from pipeline.estimators.base import Estimator, Step, not_started, transition, white_noise_acceleration
 from pipeline.estimators.kalman_common import GatedFilter, KalmanConfig, RTSMixin, filtered_step, gated_step, kalman_batch
+from pipeline.estimators.registration import register
 
 
 class KF3DConfig(KalmanConfig):

@@ -14,7 +14,7 @@ import math
 import cv2
 import numpy as np
 
-from pipeline.estimators.base import Step, expm, register
+from pipeline.estimators.base import Step, expm
 from pipeline.estimators.four_point import (
     TargetEstimator,
     TargetMeasurement,
@@ -22,6 +22,7 @@ from pipeline.estimators.four_point import (
     camera_to_left,
 )
 from pipeline.estimators.kalman_bucy import C4, G4, KalmanBucyConfig, channel_matrix, propagated_variance
+from pipeline.estimators.registration import register
 
 #: IPPE_SQUARE wants the corners of a square of side s = R√2 in its own order; our points
 #: 1 (up), 2 (right), 3 (down), 4 (left) are that square turned by 45°: pass them as 4, 1, 2, 3.

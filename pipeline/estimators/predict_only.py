@@ -7,7 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.estimators.base import Estimator, EstimatorConfig, Step, not_started, register
+from pipeline.estimators.base import Estimator, EstimatorConfig, Step, not_started
+from pipeline.estimators.registration import register
 
 
 class PredictOnlyConfig(EstimatorConfig):

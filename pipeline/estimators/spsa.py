@@ -29,17 +29,8 @@ import time
 import numpy as np
 from pydantic import Field
 
-from pipeline.estimators.base import (
-    Estimator,
-    EstimatorConfig,
-    InitConfig,
-    Start,
-    Step,
-    Track,
-    not_started,
-    register,
-    use_compiled,
-)
+from pipeline.estimators.base import Estimator, EstimatorConfig, InitConfig, Start, Step, Track, not_started, use_compiled
+from pipeline.estimators.registration import register
 
 BIG_COST = 1.0e6  # cost of a trial point behind a camera (keeps the iteration finite)
 

@@ -70,7 +70,7 @@ fast depth may change against the disparity noise; ``run`` (Kesten) how many sam
 innovations in a row count as a manoeuvre. Change the frame rate and these are what to revisit.
 
 Outliers: each camera's squared reprojection residual at the prediction, over σ² and the robust
-scale of :class:`~pipeline.estimators.base.RobustNISScale` (a floor-gain tracker lags manoeuvres,
+scale of :class:`~pipeline.estimators.gating.RobustNISScale` (a floor-gain tracker lags manoeuvres,
 and the median of its recent residuals widens the gate with the lag), is gated at the χ²₂ quantile
 ``gate``; ``restart_after`` frames in a row with a camera gated restart the track from its recent
 detections. A prediction behind the left camera restarts the track from the frame's own minimum. A frame whose
@@ -89,19 +89,10 @@ from typing import Any
 import numpy as np
 from pydantic import Field
 
-from pipeline.estimators.base import (
-    Estimator,
-    EstimatorConfig,
-    InitConfig,
-    RobustNISScale,
-    Step,
-    Track,
-    camera_gate,
-    not_started,
-    register,
-    stereo_consistent,
-    use_compiled,
-)
+from pipeline.core.camera import disparity_maps, rectifying_frame
+from pipeline.estimators.base import Estimator, EstimatorConfig, InitConfig, Step, Track, not_started, use_compiled
+from pipeline.estimators.gating import RobustNISScale, camera_gate, stereo_consistent
+from pipeline.estimators.registration import register
 from pipeline.estimators.spsa import normalized_rows
 
 SQRT_HALF = math.sqrt(0.5)
@@ -136,34 +127,6 @@ class SPSAStereoConfig(EstimatorConfig):
     cost_gate: float = Field(math.inf, gt=0)
     """a frame whose minimised cost (normalized units², per camera) exceeds this is skipped as an outlier (it catches
     detections off the epipolar line); inf disables this cost gate"""
-
-
-def rectifying_frame(rig) -> tuple[np.ndarray, np.ndarray]:
-    """``(R, t)``: world → a frame at the left camera whose x axis points along the baseline, to the
-    second camera wherever it sits (right, left, above, below, diagonal), and whose z axis stays
-    close to the left optical axis — Bouguet's rectifying rotation (e₁ along the baseline,
-    e₂ = (−e₁ᵧ, e₁ₓ, 0)/‖·‖, e₃ = e₁ × e₂; Bradski & Kaehler, *Learning OpenCV*, ch. 12). In it
-    the second camera sits at (b, 0, 0), so ``q₂`` is its image x for any layout."""
-    left = rig.left
-    e1 = left.R @ rig.right.center + np.ravel(left.t)  # the second camera, in the left camera's frame
-    e1 = e1 / np.linalg.norm(e1)
-    e2 = np.array([-e1[1], e1[0], 0.0])
-    e2 = e2 / np.linalg.norm(e2) if np.linalg.norm(e2) > 1e-9 else np.array([0.0, 1.0, 0.0])
-    Rr = np.stack([e1, e2, np.cross(e1, e2)])
-    return Rr @ left.R, Rr @ np.ravel(left.t)
-
-
-def disparity_maps(rig) -> tuple[list[float], list[float]]:
-    """Each camera's normalized projection as a 3×4 map of ``(s₀, s₁, 1, s₂)`` (row-major floats):
-    ``[M_c | m_c / b]`` with ``M_c = R_c R₀ᵀ``, ``m_c = t_c − M_c t₀`` for the rectifying frame
-    ``(R₀, t₀)`` of :func:`rectifying_frame`."""
-    R0, t0 = rectifying_frame(rig)
-    out = []
-    for cam in rig.cameras:
-        M = cam.R @ R0.T
-        m = np.ravel(cam.t) - M @ t0
-        out.append(np.hstack([M, (m / rig.baseline)[:, None]]).ravel().tolist())
-    return out[0], out[1]
 
 
 def max_memory(alpha: float) -> float:
@@ -236,27 +199,19 @@ class SPSAStereoEstimator(Estimator):
 
     def cost(self, q0: float, q1: float, q2: float, yn: tuple, use_l: bool, use_r: bool) -> float:
         """``J(q) = ‖h(g⁻¹(q)) − y‖²`` in normalized image coordinates over the cameras in use,
-        through :func:`disparity_maps`; ``BIG_COST`` beyond infinity or behind a camera."""
+        through :func:`~pipeline.core.camera.disparity_maps`; ``BIG_COST`` beyond infinity or behind a camera."""
         s0, s1, s2 = q0, q1, q0 - q2
         if s2 <= 1e-12:
             return BIG_COST
         c = 0.0
-        if use_l:
-            A = self._Al
-            w = A[8] * s0 + A[9] * s1 + A[10] + A[11] * s2
-            if w <= 1e-12:
-                return BIG_COST
-            du = (A[0] * s0 + A[1] * s1 + A[2] + A[3] * s2) / w - yn[0]
-            dv = (A[4] * s0 + A[5] * s1 + A[6] + A[7] * s2) / w - yn[1]
-            c += du * du + dv * dv
-        if use_r:
-            A = self._Ar
-            w = A[8] * s0 + A[9] * s1 + A[10] + A[11] * s2
-            if w <= 1e-12:
-                return BIG_COST
-            du = (A[0] * s0 + A[1] * s1 + A[2] + A[3] * s2) / w - yn[2]
-            dv = (A[4] * s0 + A[5] * s1 + A[6] + A[7] * s2) / w - yn[3]
-            c += du * du + dv * dv
+        for use, A, i in ((use_l, self._Al, 0), (use_r, self._Ar, 2)):
+            if use:
+                w = A[8] * s0 + A[9] * s1 + A[10] + A[11] * s2
+                if w <= 1e-12:
+                    return BIG_COST
+                du = (A[0] * s0 + A[1] * s1 + A[2] + A[3] * s2) / w - yn[i]
+                dv = (A[4] * s0 + A[5] * s1 + A[6] + A[7] * s2) / w - yn[i + 1]
+                c += du * du + dv * dv
         return c
 
     def _start_memory(self) -> float:
@@ -384,7 +339,7 @@ class SPSAStereoEstimator(Estimator):
                       pixels: np.ndarray) -> tuple[bool, bool]:
         """Drop a camera whose observation lies too far from the prediction: its squared
         reprojection residual (px²) over ``σ²`` times the robust scale of
-        :class:`~pipeline.estimators.base.RobustNISScale`, beyond the χ² gate (2 dof). The
+        :class:`~pipeline.estimators.gating.RobustNISScale`, beyond the χ² gate (2 dof). The
         prediction is projected in Python floats (normalized coordinates: ``R p + t``, divided)."""
         if not all(math.isfinite(c) for c in pp):
             return use_l, use_r

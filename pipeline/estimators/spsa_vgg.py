@@ -15,7 +15,8 @@ import math
 
 import numpy as np
 
-from pipeline.estimators.base import NAN3, Estimator, Start, Step, register
+from pipeline.estimators.base import NAN3, Estimator, Start, Step
+from pipeline.estimators.registration import register
 from pipeline.estimators.spsa import SPSAConfig, SPSAEstimator, _cost
 
 

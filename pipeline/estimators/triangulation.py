@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.estimators.base import NAN3, Estimator, Step, plausible_residual, register, reprojection_residual
+from pipeline.estimators.base import NAN3, Estimator, Step
+from pipeline.estimators.gating import plausible_residual, reprojection_residual
+from pipeline.estimators.registration import register
 
 
 @register

@@ -6,8 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.estimators.base import Estimator, Step, not_started, register, transition, white_noise_acceleration
+from pipeline.estimators.base import Estimator, Step, not_started, transition, white_noise_acceleration
 from pipeline.estimators.kalman_common import GatedFilter, KalmanConfig, available_rows, filtered_step, gated_step
+from pipeline.estimators.registration import register
 
 
 @register

@@ -210,7 +210,7 @@ def _calib_image_size(clip: Path) -> None:
 
 
 def _raising_plugin(monkeypatch) -> None:
-    from pipeline.estimators import base
+    from pipeline.estimators import registration as base
     from pipeline.estimators.triangulation import TriangulationEstimator
 
     class Boom(TriangulationEstimator):
@@ -436,7 +436,8 @@ def test_fuzz_scheduler_file(tmp_path, data, raw):
 
 
 def test_plugin_cannot_shadow_a_builtin(monkeypatch):
-    from pipeline.estimators import base, register
+    from pipeline.estimators import register
+    from pipeline.estimators import registration as base
     from pipeline.estimators.ekf import EKFEstimator
     from pipeline.estimators.triangulation import TriangulationEstimator
 

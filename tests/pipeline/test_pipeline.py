@@ -285,7 +285,7 @@ def test_view_works_on_any_folder_with_a_recording(e2e_run, tmp_path, monkeypatc
 def test_view_web_runs_the_viewer_beside_python_and_passes_its_exit_code(e2e_run, tmp_path, monkeypatch):
     """`view --web` serves rerun's web viewer on 127.0.0.1, prints the URL, and the viewer's exit
     code is the command's (a fake viewer that exits 3 stands in for rerun)."""
-    import pipeline.app.cli as cli_module
+    import pipeline.app.cli_batch as cli_module
 
     fake = tmp_path / "rerun"
     fake.write_text(f"#!/bin/sh\necho \"$@\" > {tmp_path / 'args'}\nexit 3\n")

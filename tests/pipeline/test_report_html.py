@@ -13,7 +13,9 @@ import pytest
 from pipeline.core.clip import Clip
 from pipeline.core.io import read_csv
 from pipeline.core.settings import RunSettings
-from pipeline.present.report import FIGURES, load_report_data, write_report
+from pipeline.present.figures import FIGURES
+from pipeline.present.report import write_report
+from pipeline.present.report_data import load_report_data
 from pipeline.present.style import PALETTE, TRUTH_RGB, delta_e, method_rgb
 from tests.pipeline.test_pipeline import e2e_run  # noqa: F401  (the module's end-to-end run)
 
@@ -146,7 +148,7 @@ def test_batch_summary_html(tmp_path):
 def test_report_from_memory_equals_report_from_files(e2e_run):  # noqa: F811
     """`run` draws the report from its results in memory; `stereotrack report` reads the stage
     files back: the same data either way (to the CSVs' 10 significant digits)."""
-    from pipeline.present.report import report_data
+    from pipeline.present.report_data import report_data
 
     clip = Clip.open(e2e_run.clip)
     mem = report_data(clip, e2e_run.estimate, e2e_run.detect.marker_colours, e2e_run.out_dir)
@@ -171,7 +173,7 @@ def test_run_reads_each_input_once(tmp_path, monkeypatch):
     import detectors.stage
     import pipeline.core.clip
     import pipeline.core.io
-    import pipeline.present.report
+    import pipeline.present.report_data
     from pipeline.app.run import process_clip
     from tests.conftest import REPO
 
@@ -192,8 +194,8 @@ def test_run_reads_each_input_once(tmp_path, monkeypatch):
     spy(pipeline.core.clip, "read_csv", "read_csv")
     spy(pipeline.core.io, "read_csv", "read_csv")
     spy(pipeline.core.clip, "read_json_mapping", "read_json")
-    spy(pipeline.present.report, "read_csv", "read_csv")
-    spy(pipeline.present.report, "read_json_mapping", "read_json")
+    spy(pipeline.present.report_data, "read_csv", "read_csv")
+    spy(pipeline.present.report_data, "read_json_mapping", "read_json")
     res = process_clip(clip, settings=RunSettings(methods=["triangulation", "ekf"], images=False))
     assert len(calls["calibration"]) == 1 and len(calls["markers"]) == 1, calls
     outputs = [p for p in calls["read_csv"] + calls["read_json"] if p is not None and res.out_dir in Path(p).parents]
@@ -205,7 +207,7 @@ def test_long_series_are_thinned_to_what_a_figure_shows():
     """Past MAX_LINE_POINTS a per-frame series keeps each bucket's extremes in frame order (a
     one-frame spike and a gap survive) and a path every k-th point and its end; shorter ones are
     drawn whole."""
-    from pipeline.present.report import MAX_LINE_POINTS, _envelope, _thin
+    from pipeline.present.figures import MAX_LINE_POINTS, _envelope, _thin
 
     rng = np.random.default_rng(0)
     y = rng.normal(10.0, 1.0, 7001)

@@ -87,7 +87,7 @@ def ekf_frames(Y, k0, resume, model, track, out):
             ekf_predict(model.dt, model.Q, x, P)
             n_gated = 0
             if gate_on:
-                n_gated = _gate(Y[k], model, x, P, g, h, H, r, kept, ws, nz)
+                n_gated = _gate(Y[k], model, track, h, H, r, kept, ws, nz)
                 if g.run >= model.restart_after:
                     _copy_state(x, P, track.scratch_x, track.scratch_P)
                     g.held = n_gated
@@ -108,10 +108,11 @@ def ekf_frames(Y, k0, resume, model, track, out):
 
 
 @kernel
-def _gate(y, model, x, P, g, h, H, r, kept, ws, nz):
-    """This frame's gate: each camera whose NIS under the predicted ``x``, ``P`` exceeds the
-    threshold is dropped from ``kept``; the counters of ``g`` move on; the number gated. Leaves
-    ``h``, ``H``, ``ws.PHt`` and ``ws.S`` (with ``R``) for the update."""
+def _gate(y, model, track, h, H, r, kept, ws, nz):
+    """This frame's gate: each camera whose NIS under the track's prediction exceeds the threshold
+    is dropped from ``kept``; the track's gate counters move on; the number gated. Leaves ``h``,
+    ``H``, ``ws.PHt`` and ``ws.S`` (with ``R``) for the update."""
+    x, P, g = track.x, track.P, track.gate
     stereo_linearize(model.Pm, model.delta, x, h, H)
     _gate_products(P, H, ws.PHt, ws.S, nz)
     S = ws.S

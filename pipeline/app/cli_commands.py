@@ -1,0 +1,313 @@
+"""The ``stereotrack`` commands on one clip (and the lists of what is built in): ``scenarios``,
+``methods``, ``render``, ``detect``, ``estimate``, ``calibrate``, ``export``, ``report``, ``run``.
+I/O and presentation only: each calls the library functions the tests call."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+from typing import Annotated, Literal
+
+import typer
+from rich.markup import escape
+from rich.table import Table
+
+from pipeline.app.cli_common import (
+    CalibUnitsOption,
+    ConfigOption,
+    DetectorOption,
+    ForceWindowOption,
+    FpsOption,
+    MarkersOption,
+    TimeOffsetOption,
+    app,
+    clip_format,
+    console,
+    fmt_value,
+    marker_specs,
+    method_configs,
+    method_list,
+    metrics_table,
+    out,
+    parse_roi,
+    print_learned,
+    print_sync,
+    print_time,
+    progress_bar,
+)
+from pipeline.core.errors import StereotrackError
+from pipeline.core.outputs import Outputs
+
+
+@app.command("scenarios")
+def scenarios_cmd() -> None:
+    """List the built-in scenarios."""
+    from renderers.scenario import builtin_scenarios, load_scenario
+
+    table = Table("name", "frames", "fps", "markers", "description")
+    for name in builtin_scenarios():
+        s = load_scenario(name)
+        table.add_row(name, str(s.frames), f"{s.fps:g}", ", ".join(s.marker_names()), s.description)
+    out.print(table)
+
+
+@app.command("methods")
+def methods_cmd(
+    names: Annotated[list[str] | None, typer.Argument(
+        help="Methods whose settings to list (the keys of a --config file), with defaults and what each does.")] = None,
+) -> None:
+    """List every estimator and detector (built-in and plugins), or the settings of the methods named."""
+    from detectors import registry as detectors
+    from pipeline.estimators import registry
+
+    if names:
+        return _print_settings(names, registry())
+    table = Table("method", "kind", "description", title="estimators (--methods, --config)")
+    for name, cls in registry().items():
+        table.add_row(name, cls.kind, cls.description())
+    out.print(table)
+    found = Table("detector", "description", title="detectors (--detector)")
+    for name, det in detectors().items():
+        found.add_row(name, (det.__doc__ or "").strip().splitlines()[0])
+    out.print(found)
+    out.print("settings of a method: stereotrack methods NAME", highlight=False)
+
+
+def _print_settings(names: list[str], reg: dict) -> None:
+    """Each named method's settings: the key, its default and what it does."""
+    unknown = [n for n in names if n not in reg]
+    if unknown:
+        raise StereotrackError(f"unknown method(s) {', '.join(unknown)} (known: {', '.join(reg)})")
+    for name in names:
+        fields = reg[name].Config.model_fields
+        table = Table(title=f"{name} (a --config file's '{name}:' section)")
+        table.add_column("setting", no_wrap=True, min_width=max(len(k) for k in fields))  # a key is never cut
+        table.add_column("default", overflow="fold")
+        table.add_column("what it does", overflow="fold")
+        for key, field in fields.items():
+            default = field.get_default(call_default_factory=True)
+            shown = default.model_dump() if hasattr(default, "model_dump") else default
+            table.add_row(key, escape(str(shown)), escape(" ".join((field.description or "").replace("``", "").split())))
+        out.print(table)
+
+
+@app.command("render")
+def render_cmd(
+    scenario: Annotated[str, typer.Argument(help="Scenario YAML file or built-in name (see `stereotrack scenarios`).")],
+    output: Annotated[Path, typer.Option("-o", "--output", help="Clip folder to write.")],
+    frames: Annotated[int | None, typer.Option(help="Override the scenario's frame count.")] = None,
+    seed: Annotated[int | None, typer.Option(help="Override the scenario's seed.")] = None,
+    fmt: Annotated[str, typer.Option("--format", help="mp4 (videos) or png (lossless frame folders).")] = "mp4",
+    workers: Annotated[int, typer.Option(help="1 renders the cameras in turn; 2 in two processes.")] = 2,
+) -> None:
+    """Render a scenario into a stereo clip folder with exact ground truth and calib.yaml."""
+    from renderers.render import render_clip
+    from renderers.scenario import load_scenario
+
+    fmt = clip_format(fmt)
+    scen = load_scenario(scenario)
+    try:
+        scen = scen.with_overrides(frames=frames, seed=seed)
+    except Exception as exc:  # pydantic validation of the overrides
+        raise StereotrackError(f"invalid --frames/--seed: {str(exc).splitlines()[-1].strip()}") from None
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with progress_bar() as bar:
+            task = bar.add_task(f"render {scen.name}", total=scen.frames)
+            result = render_clip(scen, output, fmt=fmt, workers=workers,
+                                 progress=lambda done, total: bar.update(task, completed=done))
+    for w in caught:
+        console.print(f"[yellow]warning:[/] {w.message}")
+    out.print(f"wrote {result.frames} stereo frames to {result.clip_dir}")
+
+
+@app.command("detect")
+def detect_cmd(
+    clip: Annotated[Path, typer.Argument(help="Clip folder (left/right videos or PNG folders) or a single video.")],
+    detector: DetectorOption = "blob",
+    markers: MarkersOption = None,
+    roi: Annotated[str | None, typer.Option(help="Initial tracking window x,y,w,h (meanshift/camshift).")] = None,
+    allow_unequal: Annotated[bool, typer.Option("--allow-unequal", help="Truncate unequal left/right lengths.")] = False,
+    output: Annotated[Path | None, typer.Option("-o", "--output", help="Output folder (default CLIP/out).")] = None,
+    calib_units: CalibUnitsOption = None,
+    fps: FpsOption = None,
+    force: ForceWindowOption = False,
+) -> None:
+    """Find the markers in every frame; write detections.csv and print a per-camera summary."""
+    from detectors.stage import detect_clip
+    from pipeline.core.clip import Clip
+    from pipeline.core.settings import RunHooks, RunSettings
+
+    settings = RunSettings.checked(detector=detector, markers=marker_specs(markers), roi=parse_roi(roi), fps=fps,
+                                   allow_unequal=allow_unequal, calib_units=calib_units, force_window=force)
+    clip_ = Clip(clip, settings.fps)
+    with progress_bar() as bar:
+        task = bar.add_task(f"detect ({detector})", total=None)
+        hooks = RunHooks(progress=lambda done, total: bar.update(task, completed=done, total=total or None))
+        result = detect_clip(clip_, settings, output, hooks)
+    print_learned(result.learned)
+    print_time(clip_.fps, clip_.fps_source)
+    table = Table("camera", "frames", "detections", "misses", "false (hidden)", "px err median", "p95", "max",
+                  title=str(result.path))
+    for s in result.summaries:
+        table.add_row(s.camera, str(s.frames), str(s.detections), "—" if s.misses is None else str(s.misses),
+                      "—" if s.false is None else str(s.false), fmt_value(s.err_median), fmt_value(s.err_p95),
+                      fmt_value(s.err_max))
+    out.print(table)
+
+
+@app.command("estimate")
+def estimate_cmd(
+    clip: Annotated[Path, typer.Argument(help="Clip folder with calib.yaml and out/detections.csv.")],
+    methods: Annotated[str | None, typer.Option(help="Comma-separated methods (default: all point methods).")] = None,
+    output: Annotated[Path | None, typer.Option("-o", "--output", help="Where the outputs go (default CLIP/out); "
+                                                "inputs are always read from CLIP/out.")] = None,
+    calib_units: CalibUnitsOption = None,
+    config: ConfigOption = None,
+    time_offset: TimeOffsetOption = "auto",
+    fps: FpsOption = None,
+) -> None:
+    """Estimate 3-D tracks with each method; write estimates/<method>.csv and metrics.json."""
+    from pipeline.core.clip import Clip
+    from pipeline.core.settings import RunHooks, RunSettings
+    from pipeline.estimate import estimate_clip
+
+    settings = RunSettings.checked(methods=method_list(methods), configs=method_configs(config), calib_units=calib_units,
+                                   time_offset=time_offset, fps=fps)
+    with progress_bar() as bar:
+        task = bar.add_task("estimate", total=None)
+        hooks = RunHooks(stage=lambda name: bar.update(task, description=name),
+                         progress=lambda d, t: bar.update(task, completed=d, total=t))
+        res = estimate_clip(Clip(clip, settings.fps), settings, output, hooks, in_dir=Outputs.of(clip).folder)
+    print_time(res.metrics["time"]["fps"], res.metrics["time"]["source"])
+    print_sync(res.metrics)
+    out.print(metrics_table(res.metrics, str(Outputs(res.out_dir).metrics)))
+
+
+@app.command("calibrate")
+def calibrate_cmd(
+    images: Annotated[Path, typer.Argument(help="Folder of image pairs (left*/right* numbered alike, or left/ and "
+                                           "right/ folders) or of two videos left.* and right.*.")],
+    board: Annotated[str, typer.Option(help="chessboard:COLSxROWS (inner corners) or charuco:COLSxROWS:DICT "
+                                       "(squares; DICT e.g. 4X4_50).")],
+    square: Annotated[str, typer.Option(help="Side of a square with its unit: 24mm, 2.4cm, 0.024 (metres).")],
+    marker: Annotated[str | None, typer.Option(help="ChArUco: side of a marker, with its unit.")] = None,
+    output: Annotated[Path, typer.Option("-o", "--output", help="The calibration to write.")] = Path("calib.yaml"),
+) -> None:
+    """Calibrate a stereo rig from board pairs: calib.yaml (metres) and a report beside it."""
+    from pipeline.calibrate import calibrate_folder, parse_board, parse_length
+
+    b = parse_board(board, parse_length(square), parse_length(marker, "--marker") if marker else None)
+    with progress_bar() as bar:
+        bar.add_task("calibrate", total=None)
+        cal, report, _ = calibrate_folder(images, b, output)
+    for name, why in cal.rejected.items():
+        out.print(f"left out {name}: {why}", highlight=False)
+    out.print(f"{len(cal.used)} pairs; RMS left {cal.rms_left:.3f} px, right {cal.rms_right:.3f} px, stereo "
+              f"{cal.rms_stereo:.3f} px; baseline {cal.baseline:.4f} m; second camera on the {cal.second_camera_side}",
+              highlight=False)
+    out.print(f"wrote {output} and {report}")
+
+
+@app.command("export")
+def export_cmd(
+    clip: Annotated[Path, typer.Argument(help="Clip folder whose out/ holds estimates (after estimate or run).")],
+    fmt: Annotated[str, typer.Option("--format", help="trc (OpenSim), c3d (motion capture) or csv (one row per "
+                                     "frame).")] = "trc",
+    methods: Annotated[str | None, typer.Option(help="Comma-separated methods (default: every one with "
+                                                "estimates).")] = None,
+    output: Annotated[Path | None, typer.Option("-o", "--output", help="Folder for the files (default "
+                                                "CLIP/out/export).")] = None,
+) -> None:
+    """Write each method's 3-D tracks as <method>.<format>: marker names, frame rate, metres."""
+    from pipeline.present.export import export_clip
+
+    for path in export_clip(clip, fmt.lower(), method_list(methods), output):
+        out.print(f"wrote {path}")
+
+
+@app.command("report")
+def report_cmd(
+    clip: Annotated[Path, typer.Argument(help="Clip folder whose out/ holds estimates and metrics.")],
+    output: Annotated[Path | None, typer.Option("-o", "--output", help="Where the outputs go (default CLIP/out); "
+                                                "inputs are always read from CLIP/out.")] = None,
+) -> None:
+    """Write out/report.md with the metrics table and figures."""
+    from pipeline.present.report import write_report
+
+    with progress_bar() as bar:
+        task = bar.add_task("report", total=None)
+        path = write_report(clip, output, progress=lambda d, t: bar.update(task, completed=d, total=t),
+                            in_dir=Outputs.of(clip).folder)
+    out.print(f"wrote {path}")
+
+
+@app.command("run")
+def run_cmd(
+    target: Annotated[str | None, typer.Argument(
+        help="A clip folder, a scenario (YAML or built-in name), or nothing for the built-in default scenario.")] = None,
+    output: Annotated[Path | None, typer.Option("-o", "--output",
+                                                help="Where a rendered clip goes (default runs/<scenario>).")] = None,
+    frames: Annotated[int | None, typer.Option(help="Override the scenario's frame count.")] = None,
+    seed: Annotated[int | None, typer.Option(help="Override the scenario's seed.")] = None,
+    detector: DetectorOption = "blob",
+    methods: Annotated[str | None, typer.Option(help="Comma-separated methods (default: all).")] = None,
+    fmt: Annotated[str, typer.Option("--format", help="Rendered clip format: mp4 or png.")] = "mp4",
+    markers: MarkersOption = None,
+    calib_units: CalibUnitsOption = None,
+    config: ConfigOption = None,
+    time_offset: TimeOffsetOption = "auto",
+    fps: FpsOption = None,
+    force: ForceWindowOption = False,
+) -> None:
+    """Run every stage on one clip: (render), detect, estimate, metrics, report, recording.
+
+    A clip folder of real footage needs two videos (or PNG folders), a calibration and its markers
+    (--markers or a markers.yaml in the folder)."""
+    from pipeline.app.run import DEFAULT_SCENARIO, process_clip
+    from pipeline.core.settings import RunHooks, RunSettings
+
+    t0 = __import__("time").perf_counter()
+    settings = RunSettings.checked(detector=detector, methods=method_list(methods), markers=marker_specs(markers),
+                                   calib_units=calib_units, configs=method_configs(config), time_offset=time_offset, fps=fps,
+                                   force_window=force)
+    clip = _clip_or_render(target or DEFAULT_SCENARIO, output, frames, seed, clip_format(fmt))
+    with progress_bar() as bar:
+        task = bar.add_task("detect", total=None)
+
+        def stage(name: str) -> None:  # a fresh task: no count or clock carried over from the stage before
+            nonlocal task
+            bar.remove_task(task)
+            task = bar.add_task(name, total=None)
+
+        hooks = RunHooks(stage=stage, progress=lambda d, t: bar.update(task, completed=d, total=t))
+        res = process_clip(clip, settings=settings, hooks=hooks, keep_tracks=False)
+    print_learned(res.detect.learned)
+    print_time(res.estimate.metrics["time"]["fps"], res.estimate.metrics["time"]["source"])
+    print_sync(res.estimate.metrics)
+    out.print(metrics_table(res.estimate.metrics, f"{clip} — {res.estimate.n_frames} frames"))
+    out.print(f"outputs in {res.out_dir}: detections.csv, estimates/, metrics.json, report.html, report.md, run.rrd")
+    out.print(f"replay: stereotrack view {clip}    ({__import__('time').perf_counter() - t0:.1f} s)")
+
+
+def _clip_or_render(target: str, output: Path | None, frames: int | None, seed: int | None, fmt: Literal["mp4", "png"]) -> Path:
+    """The clip folder ``run`` works on: ``target`` itself, or the scenario ``target`` rendered."""
+    clip = Path(target)
+    if clip.is_file() and clip.suffix.lower() not in (".yaml", ".yml"):
+        from pipeline.core.frames import VIDEO_EXTS
+
+        why = ("is a single video: a one-camera clip, which `stereotrack detect` reads; `run` needs a stereo clip folder "
+               "(left/right videos and a calibration)") if clip.suffix.lower() in VIDEO_EXTS else \
+            "is neither a clip folder nor a scenario (.yaml)"
+        raise StereotrackError(why, clip)
+    if clip.is_dir() and any(clip.iterdir()):
+        return clip
+    from renderers.render import render_clip
+    from renderers.scenario import load_scenario
+
+    scen = load_scenario(target).with_overrides(frames=frames, seed=seed)
+    clip = output or Path("runs") / scen.name
+    with progress_bar() as bar:
+        task = bar.add_task(f"render {scen.name}", total=scen.frames)
+        render_clip(scen, clip, fmt=fmt, progress=lambda d, t: bar.update(task, completed=d))
+    return clip
