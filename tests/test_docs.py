@@ -2,6 +2,13 @@
 
 from __future__ import annotations
 
+import os
+import re
+import subprocess
+import sys
+
+import pytest
+
 from tests.conftest import REPO
 
 
@@ -35,3 +42,19 @@ def test_file_formats_are_generated_from_the_schemas():
         assert shown[0] == own[0] and shown[-1] == own[-1] and set(shown) <= set(own), schema.file
         assert [n for n in own if n in shown] == shown, schema.file  # in order
     assert all(f"| `{f.name}` |" in text for f in Outputs.files())
+
+
+@pytest.mark.slow
+def test_built_site_shows_no_raw_sphinx_role(tmp_path):
+    """The API pages render the docstrings' cross-reference roles (``:meth:`x```) as code: a strict
+    build of the site holds no raw role on any page."""
+    pytest.importorskip("mkdocs", reason="mkdocs comes with the docs extra (pip install -e '.[docs]')")
+    site = tmp_path / "site"
+    res = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "-q", "-d", str(site)], cwd=REPO,
+                         capture_output=True, text=True, check=False, env={**os.environ, "NO_MKDOCS_2_WARNING": "1"})
+    assert res.returncode == 0, res.stderr[-3000:]
+    raw = re.compile(r":(?:py:)?(?:func|meth|class|mod|attr|data|exc|obj|const|ref):(?:<code>|`)")
+    pages = sorted(site.rglob("*.html"))
+    assert any("reference" in p.parts for p in pages)
+    found = {str(p.relative_to(site)): len(raw.findall(p.read_text())) for p in pages}
+    assert not {k: v for k, v in found.items() if v}, found
