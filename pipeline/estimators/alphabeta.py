@@ -62,7 +62,7 @@ class AlphaBetaEstimator(Estimator):
         super().reset()
         self.f: ABFilter | None = None
         cfg = self.config
-        self.threshold = camera_gate(cfg.pixel_sigma, cfg.gate)
+        self.threshold = camera_gate(cfg.gate)
         gamma = self._gamma()
         order = 2 if gamma is None else 3
         self.F1 = np.array([[1.0, self.dt, 0.5 * self.dt**2], [0.0, 1.0, self.dt], [0.0, 0.0, 1.0]])[:order, :order]

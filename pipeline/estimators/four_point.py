@@ -228,7 +228,7 @@ class TargetEstimator(Estimator):
         """Whether a measurement ``u = [α, z]`` lies outside the χ² gate (2 dof, ``gate``) around the
         filter's predicted ``[α, z]`` with innovation covariance ``S``: a target whose points were
         mis-detected or mislabelled in one frame must not throw the filter off."""
-        threshold = camera_gate(self.config.pixel_sigma, self.config.gate)
+        threshold = camera_gate(self.config.gate)
         if not np.isfinite(threshold):
             return False
         r = np.asarray(u, dtype=float) - predicted

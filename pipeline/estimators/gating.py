@@ -44,8 +44,10 @@ def plausible_triangulation(model: StereoMeasurementModel, X: np.ndarray, Y: np.
     return ok & np.all(depth > 0, axis=-1) & (reprojection_residual(model, X, Y) <= limit)
 
 
-def camera_gate(sigma: float, gate: float) -> float:
-    """The χ² gate on one camera's normalized innovation squared (2 degrees of freedom)."""
+def camera_gate(gate: float) -> float:
+    """The χ² gate on one camera's normalized innovation squared (2 degrees of freedom): the
+    quantile ``gate`` of χ²₂ (inf when ``gate`` is 0: no gate). The innovation is normalized by its
+    covariance already, so the pixel noise does not enter."""
     if gate <= 0:
         return float("inf")
     from scipy.special import chdtri

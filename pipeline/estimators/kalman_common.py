@@ -78,9 +78,8 @@ class GatedFilter(Estimator):
 
     def gate_threshold(self) -> float:
         cfg = self.config
-        key = (cfg.pixel_sigma, cfg.gate)
-        if getattr(self, "_gate_key", None) != key:  # chdtri costs more than a filter step
-            self._gate_key, self._gate_value = key, camera_gate(cfg.pixel_sigma, cfg.gate)
+        if getattr(self, "_gate_key", None) != cfg.gate:  # chdtri costs more than a filter step
+            self._gate_key, self._gate_value = cfg.gate, camera_gate(cfg.gate)
         return self._gate_value
 
     def gate_covariance(self) -> np.ndarray:

@@ -169,7 +169,7 @@ class SPSAStereoEstimator(Estimator):
         self._far = 5.0 * cfg.perturbation
         self._sweeps = cfg.max_sweeps
         self._gate = cfg.cost_gate
-        self._nis_gate = camera_gate(cfg.pixel_sigma, cfg.gate)
+        self._nis_gate = camera_gate(cfg.gate)
         self._f2 = [float(c.K[0, 0] * c.K[1, 1]) for c in self.rig.cameras]  # px² per normalized unit²
         self._poses = [(c.R.ravel().tolist(), c.t.ravel().tolist()) for c in self.rig.cameras]  # for the gate
         self._prm: Any = None  # the compiled core's parameters (:meth:`_parameters`)
@@ -423,16 +423,17 @@ class SPSAStereoEstimator(Estimator):
 
     def _parameters(self) -> Any:
         """Everything :func:`kernels.spsa_stereo_frames` reads besides the frames and the track: a
-        ``StereoParams`` record (made once)."""
+        ``PARAMS`` record (made once)."""
         import pipeline.estimators.compiled as kernels
 
-        if self._prm is not None and isinstance(self._prm, kernels.StereoParams):
+        if self._prm is not None and self._prm.dtype == kernels.PARAMS:
             return self._prm
-        f = lambda v: np.array(v, dtype=float)  # noqa: E731
-        scalars = (self.dt, self._c, self._far, self._sweeps, self._gate, self._nis_gate, self.config.pixel_sigma**2,
-                   self._nmax_image, self._kd, self._amin_d, self._runlen, self.config.restart_after)
-        self._prm = kernels.StereoParams(f(self._Rl), f(self._tl), float(self._b), f(self._Al), f(self._Ar),
-                                         f([[*R, *t] for R, t in self._poses]), f(self._f2), *map(float, scalars))
+        c = self.config
+        self._prm = kernels.new_stereo_params(
+            R=self._Rl, t=self._tl, b=self._b, AL=self._Al, AR=self._Ar, poses=[[*R, *t] for R, t in self._poses],
+            f2=self._f2, dt=self.dt, c=self._c, far=self._far, sweeps=self._sweeps, cost_gate=self._gate,
+            nis_gate=self._nis_gate, sigma2=c.pixel_sigma**2, nmax=self._nmax_image, kd=self._kd, amin_d=self._amin_d,
+            runlen=self._runlen, restart=c.restart_after)
         return self._prm
 
     def _compiled(self, Y: np.ndarray) -> tuple:

@@ -33,23 +33,25 @@ from .ekf import EKFModel, EKFOutput, ekf_batch, ekf_frames, new_output, new_tra
 from .linalg import inv_small, joseph_update, mm6
 from .spsa import SPSAGains, new_state, spsa_batch, spsa_frames
 from .spsa_stereo import (
+    PARAMS,
     ST_CONSISTENT,
     ST_DONE,
     ST_RESTART,
     ST_TRI,
     StereoFrames,
     StereoOutput,
-    StereoParams,
     spsa_stereo_frames,
     st_begin,
     state_of,
 )
+from .spsa_stereo import new_params as new_stereo_params
 from .spsa_stereo import new_track as new_stereo_track
 
-__all__ = ["JIT", "ST_CONSISTENT", "ST_DONE", "ST_RESTART", "ST_TRI", "EKFModel", "EKFOutput", "SPSAGains",
-           "StereoFrames", "StereoOutput", "StereoParams", "ekf_batch", "ekf_frames", "inv_small", "joseph_update",
-           "kernel", "mm6", "new_output", "new_state", "new_stereo_track", "new_track", "rts_backward", "spsa_batch",
-           "spsa_frames", "spsa_stereo_frames", "st_begin", "state_of", "stereo_linearize", "uncompiled", "warm_up"]
+__all__ = ["JIT", "PARAMS", "ST_CONSISTENT", "ST_DONE", "ST_RESTART", "ST_TRI", "EKFModel", "EKFOutput", "SPSAGains",
+           "StereoFrames", "StereoOutput", "ekf_batch", "ekf_frames", "inv_small", "joseph_update", "kernel", "mm6",
+           "new_output", "new_state", "new_stereo_params", "new_stereo_track", "new_track", "rts_backward",
+           "spsa_batch", "spsa_frames", "spsa_stereo_frames", "st_begin", "state_of", "stereo_linearize",
+           "uncompiled", "warm_up"]
 
 
 def uncompiled() -> ModuleType:
@@ -105,7 +107,9 @@ def _warm_spsa() -> None:
 
 def _warm_spsa_stereo() -> None:
     n, f = 3, np.zeros
-    prm = StereoParams(f(9), f(3), 1.0, f(12), f(12), f((2, 12)), f(2), *([1.0] * 12))
+    prm = new_stereo_params(R=f(9), t=f(3), b=1.0, AL=f(12), AR=f(12), poses=f((2, 12)), f2=f(2),
+                            **dict.fromkeys(("dt", "c", "far", "sweeps", "cost_gate", "nis_gate", "sigma2", "nmax", "kd",
+                                             "amin_d", "runlen", "restart"), 1.0))
     frames = StereoFrames(np.full((n, 4), np.nan), f(n, np.bool_), f(n, np.bool_), f(n), f((n, 4)))
     out = StereoOutput(f((n, 6)), np.ones(n, dtype=np.bool_), f(n), f(n), f(n), f(n))
     spsa_stereo_frames(frames, 0, prm, new_stereo_track(1.0), out)

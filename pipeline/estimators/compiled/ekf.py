@@ -15,7 +15,7 @@ import numpy as np
 from pipeline.core.camera import linearize_point
 
 from ._jit import kernel
-from .linalg import Workspace, ekf_predict, inv_small, joseph_update, mm, mm6
+from .linalg import Workspace, ekf_predict, inv_small, joseph_inlined, joseph_update, mm, mm6
 
 #: the model a track is filtered with: both cameras' 3 × 4 matrices ``Pm`` (2 × 3 × 4), the time
 #: offset δ, the frame step, the process and pixel noise ``Q`` (6 × 6) and ``R`` (4 × 4), the gate's
@@ -101,13 +101,13 @@ def ekf_frames(Y, k0, resume, model, track, out):
         if not have_S:
             stereo_linearize(model.Pm, model.delta, x, h, H)
         _gather_rows(rows, m, H, kept, h, model.R, Hs, rs, Rs)
-        out.nis[k] = joseph_update(x, P, Hs, rs, Rs, m, nz, ws, have_S)
+        out.nis[k] = _update(x, P, Hs, rs, Rs, m, nz, ws, have_S)
         out.dof[k] = m
         _ekf_output(k, x, P, out, False)
     return n
 
 
-@kernel
+@kernel(inline=True)
 def _gate(y, model, track, h, H, r, kept, ws, nz):
     """This frame's gate: each camera whose NIS under the track's prediction exceeds the threshold
     is dropped from ``kept``; the track's gate counters move on; the number gated. Leaves ``h``,
@@ -157,6 +157,15 @@ def ekf_batch(Y, begin, x0, P0, model, track, out):
     return stopped
 
 
+@kernel
+def _update(x, P, Hs, rs, Rs, m, nz, ws, have_S):
+    """The Joseph update; in the common case (both cameras, no time offset: ``m`` 4, ``nz`` 3) the
+    copy with constant sizes, which the compiler unrolls (the same operations in the same order)."""
+    if m == 4 and nz == 3:
+        return joseph_inlined(x, P, Hs, rs, Rs, 4, 3, ws, have_S)
+    return joseph_update(x, P, Hs, rs, Rs, m, nz, ws, have_S)
+
+
 @kernel(inline=True)
 def _gate_products(P, H, PHt, S, nz):
     """The gate's ``P Hᵀ`` and ``H P Hᵀ`` on all four rows, the sizes written as constants."""
@@ -190,7 +199,7 @@ def _present_rows(kept, rows):
     return m
 
 
-@kernel
+@kernel(inline=True)
 def _resume(track, kept):
     """Back at the frame a restart was asked for: its prediction, and the gate's verdict on ``kept``."""
     _copy_state(track.scratch_x, track.scratch_P, track.x, track.P)
@@ -208,7 +217,7 @@ def _copy_state(x, P, to_x, to_P):
             to_P[i, j] = P[i, j]
 
 
-@kernel
+@kernel(inline=True)
 def _count_gated(g, had, gated, restart_after):
     """The gated-run, unseen and returning counters after one frame (``after_gap``'s arithmetic)."""
     run = g.run + 1 if gated else (0 if had else g.run)
@@ -223,7 +232,7 @@ def _count_gated(g, had, gated, restart_after):
     g.run, g.unseen, g.returning = run, unseen, returning
 
 
-@kernel
+@kernel(inline=True)
 def _ekf_output(k, x, P, out, predicted):
     for i in range(3):
         out.pos[k, i] = x[i]

@@ -153,17 +153,10 @@ def _joseph(x, P, Hs, rs, Rs, m, nz, ws, have_S):
     return nis
 
 
-_joseph_any = kernel(_joseph)
-#: the same update copied into its caller, where the constant sizes below let the compiler unroll it
-_joseph_inlined = kernel(inline=True)(_joseph)
-
-
-@kernel
-def joseph_update(x, P, Hs, rs, Rs, m, nz, ws, have_S):
-    """The Joseph-form update (see ``_joseph``, the one update every compiled Kalman filter runs);
-    in the common case (both cameras, no time offset: ``m`` 4, ``nz`` 3) a copy with the sizes
-    written as constants, which the compiler unrolls (the same operations in the same order). One
-    copy only: each costs about a second of compilation."""
-    if m == 4 and nz == 3:
-        return _joseph_inlined(x, P, Hs, rs, Rs, 4, 3, ws, have_S)
-    return _joseph_any(x, P, Hs, rs, Rs, m, nz, ws, have_S)
+#: the Joseph-form update (see ``_joseph``, the one update every compiled Kalman filter runs), for
+#: any number of rows
+joseph_update = kernel(_joseph)
+#: the same update copied into its caller, where constant sizes (both cameras, no time offset: ``m``
+#: 4, ``nz`` 3) let the compiler unroll it (the same operations in the same order). One copy only:
+#: each costs about a second of compilation
+joseph_inlined = kernel(inline=True)(_joseph)

@@ -13,16 +13,17 @@ import numpy as np
 from ._jit import kernel
 from .spsa import BIG_COST
 
-#: what the update reads besides the frames (made once per estimator): the rectifying frame ``R``
-#: (row-major, 9) and ``t``, the baseline ``b``, the two disparity maps ``AL``, ``AR`` (3 × 4
-#: row-major, 12 each), both cameras' poses (2 × 12: R row-major, t), fx·fy per camera ``f2``, then
-#: the frame step, the perturbation size ``c``, the step below which the search stops (``far``),
-#: Newton sweeps, the cost gate, the NIS gate, σ², the image coordinates' largest memory, the
-#: disparity's memory slope ``kd`` and floor ``amin_d``, Kesten's run length and the gated run that
-#: asks for a restart
-StereoParams = namedtuple("StereoParams", ["R", "t", "b", "AL", "AR", "poses", "f2", "dt", "c", "far", "sweeps",
-                                           "cost_gate", "nis_gate", "sigma2", "nmax", "kd", "amin_d", "runlen",
-                                           "restart"])
+#: what the update reads besides the frames (made once per estimator; a record, passed to each
+#: function as one pointer): the rectifying frame ``R`` (row-major, 9) and ``t``, the baseline ``b``,
+#: the two disparity maps ``AL``, ``AR`` (3 × 4 row-major, 12 each), both cameras' poses (2 × 12: R
+#: row-major, t), fx·fy per camera ``f2``, then the frame step, the perturbation size ``c``, the step
+#: below which the search stops (``far``), Newton sweeps, the cost gate, the NIS gate, σ², the image
+#: coordinates' largest memory, the disparity's memory slope ``kd`` and floor ``amin_d``, Kesten's run
+#: length and the gated run that asks for a restart
+PARAMS = np.dtype([("R", "f8", (9,)), ("t", "f8", (3,)), ("b", "f8"), ("AL", "f8", (12,)), ("AR", "f8", (12,)),
+                   ("poses", "f8", (2, 12)), ("f2", "f8", (2,))]
+                  + [(k, "f8") for k in ("dt", "c", "far", "sweeps", "cost_gate", "nis_gate", "sigma2", "nmax", "kd",
+                                         "amin_d", "runlen", "restart")])
 #: a track's state: position, velocity (m, m/s), each coordinate's memory n, its run of same-signed
 #: innovations and its last innovation, and the run of gated frames
 TRACK = np.dtype([("p", "f8", (3,)), ("v", "f8", (3,)), ("mem", "f8", (3,)), ("run", "f8", (3,)), ("sgn", "f8", (3,)),
@@ -46,6 +47,14 @@ DIAGONALS = np.array([[1.0, 1.0, 1.0], [1.0, 1.0, -1.0], [1.0, -1.0, 1.0], [-1.0
 
 def _record(dtype: np.dtype) -> np.record:
     return np.zeros(1, dtype=dtype).view(np.recarray)[0]
+
+
+def new_params(**fields: object) -> np.record:
+    """A :data:`PARAMS` record holding ``fields`` (every field of the dtype)."""
+    prm = _record(PARAMS)
+    for name in PARAMS.names or ():
+        setattr(prm, name, fields[name])
+    return prm
 
 
 def new_track(scale_floor: float) -> StereoTrack:
