@@ -100,7 +100,7 @@ def _clear_pairs(f: Frame, last: dict[int, int], threshold: float) -> list[tuple
     rest by Hungarian on the distances below ``threshold``."""
     gi = {int(g): i for i, g in enumerate(f.truth)}
     ti = {int(t): j for j, t in enumerate(f.tracks)}
-    pairs = []
+    pairs: list[tuple[int, int]] = []
     for g in gi:
         t = last.get(g)
         if t is not None and t in ti and not any(t == u for _, u in pairs) and f.distance[gi[g], ti[t]] < threshold:

@@ -41,7 +41,7 @@ def fixture(seed: int, n: int = 80, markers: int = 4) -> tuple[dict[str, np.ndar
 
 def motmetrics_reference(truth: dict, tracks: dict) -> dict[str, float]:
     mm = pytest.importorskip("motmetrics", reason="py-motmetrics comes with the test extra")
-    gt_names, tr_names, seq = identity.frames(truth, tracks)
+    _, _, seq = identity.frames(truth, tracks)
     acc = mm.MOTAccumulator(auto_id=True)
     for f in seq:
         acc.update(f.truth.tolist(), f.tracks.tolist(), np.where(f.distance < THRESHOLD, f.distance, np.nan))
@@ -103,7 +103,7 @@ def test_gospa_equals_brute_force(seed):
     for table in (truth, tracks):
         for v in table.values():
             v[rng.random(12) < 0.3] = np.nan
-    gt_names, tr_names, seq = identity.frames(truth, tracks)
+    _, _, seq = identity.frames(truth, tracks)
     want = []
     for k in range(12):
         X = np.array([v[k] for v in truth.values() if np.isfinite(v[k]).all()]).reshape(-1, 3)

@@ -1,0 +1,376 @@
+"""Many identical markers: which detection belongs to which track, over any number of cameras.
+
+Each frame the association (1) predicts every live track with a constant-velocity Kalman filter
+(Bar-Shalom, Li & Kirubarajan §6.2.2) and projects it into each camera with the camera model's
+Jacobian, ``S = J P Jᵀ + σ² I``; (2) assigns each camera's detections to the tracks as a whole
+(global nearest neighbour: :func:`scipy.optimize.linear_sum_assignment` on the negative
+log-likelihood ``rᵀ S⁻¹ r + ln det S`` gated at the χ²₂ quantile), the cameras in turn, each
+camera's assignment using the detections the earlier cameras gave the tracks this frame (the
+sequential corrector), so a look-alike that lies on one camera's epipolar line but not where the
+other cameras put the track is not taken; (3) starts tentative tracks from detections left over in
+two cameras that agree epipolarly (Hartley & Zisserman §9.2) and triangulate in front of both,
+confirms a track after ``confirm_hits`` of ``confirm_window`` frames, lets a confirmed track coast
+through ``max_coast`` frames without a detection and ends it then, or when its position's
+uncertainty grows past ``max_position_sigma``.
+
+The result is each confirmed track's own observation stream (frames × 2·cameras pixels, NaN where it
+had no detection): any registered point estimator then filters it (``run``), so one association
+serves every filter. Two baselines share the harness: ``mode="greedy"`` lets tracks take their
+best gated detection one track after another, and ``mode="epipolar"`` matches each frame on its
+own (Hungarian on the epipolar distance) and links the frames' points by nearest neighbour.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.optimize import linear_sum_assignment
+from scipy.special import chdtri
+
+from pipeline.core.camera import Camera, StereoRig
+from pipeline.estimators.base import Track, transition, white_noise_acceleration
+from pipeline.estimators.registration import create
+
+Mode = Literal["gnn", "greedy", "epipolar"]
+INFEASIBLE = 1e9  # an assignment cost that means "not this pair"
+
+
+class AssociationConfig(BaseModel):
+    """How tracks are predicted, gated, started, confirmed and ended."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    pixel_sigma: float = Field(1.0, gt=0)
+    """detection noise (px) of every camera"""
+    process_noise: float = Field(0.5, gt=0)
+    """spectral density q (m²/s³) of the prediction's white-noise acceleration"""
+    gate: float = Field(0.9999, gt=0, lt=1)
+    """χ²₂ quantile a detection's normalized innovation must stay under to be assigned to a track"""
+    birth_gate_sigmas: float = Field(3.0, gt=0)
+    """two cameras' leftover detections start a track when their epipolar distance is under this many σ"""
+    confirm_hits: int = Field(3, ge=1)
+    """frames with a detection, within ``confirm_window``, that confirm a tentative track"""
+    confirm_window: int = Field(4, ge=1)
+    max_coast: int = Field(10, ge=0)
+    """frames a confirmed track predicts without a detection before it ends"""
+    max_position_sigma: float = Field(0.5, gt=0)
+    """a track whose predicted position σ (m, largest axis) grows past this ends"""
+    start_velocity_sigma: float = Field(2.0, gt=0)
+    """σ (m/s) of a new track's velocity (it starts at rest)"""
+    merge_px: float = Field(4.0, ge=0)
+    """two tracks whose images lie closer than this (px) and share fewer detections than they are
+    were merged into one blob: neither updates from it in that camera"""
+    link_distance: float = Field(0.3, gt=0)
+    """the epipolar baseline's largest 3-D step (m) between frames that links two points"""
+
+
+@dataclass
+class _Track:
+    """One track while the association runs: its state, its detections so far and its history."""
+
+    x: np.ndarray
+    P: np.ndarray
+    born: int
+    obs: list[np.ndarray] = field(default_factory=list)  # per frame since birth: 2·cameras pixels
+    hits: deque = field(default_factory=lambda: deque(maxlen=64))
+    coasted: int = 0
+    number: int | None = None  # given at confirmation, in order, never reused
+
+    def position_sigma(self) -> float:
+        return float(np.sqrt(np.max(np.diag(self.P)[:3])))
+
+
+@dataclass
+class Association:
+    """The outcome: each confirmed track's observations (frames × 2·cameras, NaN outside its life)
+    and the frames it was born and ended at (``end`` exclusive)."""
+
+    observations: dict[int, np.ndarray]
+    born: dict[int, int]
+    ended: dict[int, int]
+
+
+def associate(cameras: list[Camera], dt: float, detections: list[list[np.ndarray]],
+              config: AssociationConfig | None = None, mode: Mode = "gnn") -> Association:
+    """Associate ``detections`` (per frame, per camera: k × 2 undistorted pixels) into tracks."""
+    cfg = config or AssociationConfig()
+    if mode == "epipolar":
+        return _epipolar_baseline(cameras, detections, cfg)
+    run = _Run(cameras, dt, cfg, mode)
+    for k, frame in enumerate(detections):
+        run.frame(k, frame)
+    return run.finish(len(detections))
+
+
+class _Run:
+    """The state of one association over a clip (tracks alive and ended)."""
+
+    def __init__(self, cameras: list[Camera], dt: float, cfg: AssociationConfig, mode: Mode) -> None:
+        self.cameras, self.cfg, self.mode = cameras, cfg, mode
+        self.A, self.Q = transition(dt), white_noise_acceleration(dt, cfg.process_noise)
+        self.R = np.eye(2) * cfg.pixel_sigma**2
+        self.threshold = float(chdtri(2, 1.0 - cfg.gate))
+        self.live: list[_Track] = []
+        self.done: list[tuple[_Track, int]] = []
+        self.count = 0
+
+    def frame(self, k: int, frame: list[np.ndarray]) -> None:
+        """Predict, assign camera by camera, start tracks from what is left, manage the tracks."""
+        for t in self.live:
+            t.x, t.P = self.A @ t.x, self.A @ t.P @ self.A.T + self.Q
+            t.obs.append(np.full(2 * len(self.cameras), np.nan))
+        left = []
+        frame = [np.asarray(d, dtype=float).reshape(-1, 2) for d in frame]
+        for c, dets in enumerate(frame):
+            ahead = frame[c + 1] if c + 1 < len(frame) and self.mode == "gnn" else None
+            near = self._assign(c, dets, ahead) if self.live and len(dets) else set()
+            left.append(np.array([d for j, d in enumerate(dets) if j not in near]).reshape(-1, 2))
+        self._births(k, left)
+        self._manage(k)
+
+    def _assign(self, c: int, dets: np.ndarray, ahead: np.ndarray | None) -> set[int]:
+        """Camera ``c``'s detections to the live tracks, each assigned detection applied to its track
+        at once (the next camera sees the update); returns the detections inside some track's gate,
+        assigned or not (a blob two tracks share, or a track's second blob, starts no new track).
+        With ``ahead`` (the next camera's detections) a pairing's cost adds the best the next camera
+        offers the track once updated with it: a look-alike that fits this camera but leaves the
+        track nothing consistent in the next is not taken."""
+        cam = self.cameras[c]
+        cost = np.full((len(self.live), len(dets)), INFEASIBLE)
+        where = np.full((len(self.live), 2), np.nan)
+        for i, t in enumerate(self.live):
+            h, _, S = self._predicted(cam, t)
+            if h is None:
+                continue
+            where[i] = h
+            nis = _nis(dets - h, S)
+            for j in np.flatnonzero(nis < self.threshold):
+                cost[i, j] = nis[j] + np.log(np.linalg.det(S))
+                if ahead is not None:
+                    cost[i, j] += self._best_next(t, c, dets[j], ahead)
+        near = {int(j) for j in np.flatnonzero((cost < INFEASIBLE).any(axis=0))}
+        if self.mode == "gnn":
+            cost[_merged_tracks(where, cost, self.cfg.merge_px)] = INFEASIBLE
+        pairs = _greedy(cost) if self.mode == "greedy" else _hungarian(cost)
+        for i, j in pairs.items():
+            self._update(self.live[i], c, dets[j])
+        return near
+
+    def _best_next(self, t: _Track, c: int, uv: np.ndarray, ahead: np.ndarray) -> float:
+        """The negative log-likelihood of the next camera's best gated detection for ``t`` once
+        updated with ``uv`` in camera ``c`` (a miss: the gate's value)."""
+        probe = _Track(t.x.copy(), t.P.copy(), t.born, [np.full(2 * len(self.cameras), np.nan)])
+        self._update(probe, c, uv)
+        h, _, S = self._predicted(self.cameras[c + 1], probe)
+        if h is None:
+            return 0.0
+        nis = _nis(ahead - h, S) if len(ahead) else np.zeros(0)
+        return float(min(nis.min() if len(nis) else np.inf, self.threshold)) + float(np.log(np.linalg.det(S)))
+
+    def _predicted(self, cam: Camera, t: _Track) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
+        """The track's predicted pixel in a camera, the measurement Jacobian and ``S``; None behind it."""
+        p = t.x[:3]
+        if cam.depth(p[None])[0] <= 0:
+            return None, np.zeros((2, 6)), np.eye(2)
+        H = np.zeros((2, 6))
+        H[:, :3] = cam.jacobian(p[None])[0]
+        return cam.project(p[None])[0], H, H @ t.P @ H.T + self.R
+
+    def _update(self, t: _Track, c: int, uv: np.ndarray) -> None:
+        """The Kalman update of a track with one camera's detection (Joseph form)."""
+        h, H, S = self._predicted(self.cameras[c], t)
+        if h is None:
+            return
+        K = t.P @ H.T @ np.linalg.inv(S)
+        t.x = t.x + K @ (uv - h)
+        IKH = np.eye(6) - K @ H
+        t.P = IKH @ t.P @ IKH.T + K @ self.R @ K.T
+        t.obs[-1][2 * c : 2 * c + 2] = uv
+
+    def _births(self, k: int, left: list[np.ndarray]) -> None:
+        """Tentative tracks from leftover detections that two cameras agree on."""
+        for X, obs in _stereo_points(self.cameras, left, self.cfg.birth_gate_sigmas * self.cfg.pixel_sigma):
+            P = np.diag([*([_start_position_var(self.cameras, X, self.cfg.pixel_sigma)] * 3),
+                         *([self.cfg.start_velocity_sigma**2] * 3)])
+            t = _Track(np.r_[X, 0.0, 0.0, 0.0], P, k)
+            t.obs.append(obs)
+            self.live.append(t)
+
+    def _manage(self, k: int) -> None:
+        """Hits and coasting counted; tentative tracks confirmed or dropped; lost tracks ended."""
+        keep = []
+        for t in self.live:
+            hit = bool(np.isfinite(t.obs[-1]).any())
+            t.hits.append(hit)
+            t.coasted = 0 if hit else t.coasted + 1
+            if t.number is None and sum(list(t.hits)[-self.cfg.confirm_window :]) >= self.cfg.confirm_hits:
+                t.number, self.count = self.count, self.count + 1
+            lost = t.coasted > self.cfg.max_coast or t.position_sigma() > self.cfg.max_position_sigma
+            tentative_failed = t.number is None and len(t.hits) >= self.cfg.confirm_window
+            if lost or tentative_failed:
+                if t.number is not None:
+                    self.done.append((t, k + 1 - t.coasted))
+                continue
+            keep.append(t)
+        self.live = keep
+
+    def finish(self, n: int) -> Association:
+        """Every confirmed track's observations over the clip's ``n`` frames."""
+        ended = self.done + [(t, n - t.coasted) for t in self.live if t.number is not None]
+        out = Association({}, {}, {})
+        for t, end in ended:
+            Y = np.full((n, 2 * len(self.cameras)), np.nan)
+            Y[t.born : t.born + len(t.obs)] = np.array(t.obs)
+            Y[end:] = np.nan
+            assert t.number is not None
+            out.observations[t.number], out.born[t.number], out.ended[t.number] = Y, t.born, end
+        return out
+
+
+def _nis(r: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """``rᵀ S⁻¹ r`` of each row of ``r``."""
+    return np.einsum("ni,ij,nj->n", r, np.linalg.inv(S), r)
+
+
+def _merged_tracks(where: np.ndarray, cost: np.ndarray, merge_px: float) -> np.ndarray:
+    """Tracks whose images lie within ``merge_px`` of another's and that, together, gate fewer
+    detections than they are: their blobs have merged, and a merged blob is no one's position (the
+    tracks coast in this camera until their images part)."""
+    out = np.zeros(len(where), dtype=bool)
+    d = np.linalg.norm(where[:, None] - where[None], axis=2)
+    close = (d < merge_px) & ~np.eye(len(where), dtype=bool)
+    for i in np.flatnonzero(close.any(axis=1)):
+        group = np.flatnonzero(close[i] | (np.arange(len(where)) == i))
+        if (cost[group] < INFEASIBLE).any(axis=0).sum() < len(group):
+            out[group] = True
+    return out
+
+
+def _hungarian(cost: np.ndarray) -> dict[int, int]:
+    r, c = linear_sum_assignment(cost)
+    return {int(a): int(b) for a, b in zip(r, c, strict=True) if cost[a, b] < INFEASIBLE}
+
+
+def _greedy(cost: np.ndarray) -> dict[int, int]:
+    """The baseline: each track in turn takes its cheapest feasible detection not taken yet."""
+    taken: dict[int, int] = {}
+    for i in range(cost.shape[0]):
+        free = [j for j in np.argsort(cost[i]) if cost[i, j] < INFEASIBLE and j not in taken.values()]
+        if free:
+            taken[i] = int(free[0])
+    return taken
+
+
+def fundamental(a: Camera, b: Camera) -> np.ndarray:
+    """``F`` with ``x_bᵀ F x_a = 0`` between two cameras (Hartley & Zisserman, eq. 9.2)."""
+    R = b.R @ a.R.T
+    t = np.ravel(b.t) - R @ np.ravel(a.t)
+    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    return np.linalg.inv(b.K).T @ tx @ R @ np.linalg.inv(a.K)
+
+
+def epipolar_distances(a: Camera, b: Camera, ua: np.ndarray, ub: np.ndarray) -> np.ndarray:
+    """Symmetric point-to-epipolar-line distances (px) of every pair of ``ua`` (m × 2) and ``ub`` (n × 2)."""
+    F = fundamental(a, b)
+    xa, xb = np.c_[ua, np.ones(len(ua))], np.c_[ub, np.ones(len(ub))]
+    lb, la = xa @ F.T, xb @ F  # lines in b of a's points, in a of b's points
+    alg = np.abs(xb @ F @ xa.T).T  # m × n
+    return 0.5 * (alg / np.hypot(lb[:, 0], lb[:, 1])[:, None] + alg / np.hypot(la[:, 0], la[:, 1])[None, :])
+
+
+def triangulate_views(cameras: list[Camera], uv: np.ndarray) -> np.ndarray:
+    """The homogeneous DLT over the cameras whose pixel (``uv``: 2·cameras, NaN missing) is given."""
+    rows = []
+    for c, cam in enumerate(cameras):
+        u, v = uv[2 * c : 2 * c + 2]
+        if np.isfinite(u) and np.isfinite(v):
+            rows += [u * cam.P[2] - cam.P[0], v * cam.P[2] - cam.P[1]]
+    if len(rows) < 4:
+        return np.full(3, np.nan)
+    X = np.linalg.svd(np.array(rows))[2][-1]
+    return X[:3] / X[3]
+
+
+def _stereo_points(cameras: list[Camera], dets: list[np.ndarray], gate_px: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """3-D points from detections two cameras agree on: the first two cameras' detections matched
+    by Hungarian on the epipolar distance (under ``gate_px``), triangulated in front of both, each
+    other camera's detection added where it reprojects within the gate. (point, observation row)."""
+    if len(cameras) < 2 or not len(dets[0]) or not len(dets[1]):
+        return []
+    D = epipolar_distances(cameras[0], cameras[1], dets[0], dets[1])
+    out = []
+    for i, j in _hungarian(np.where(D < gate_px, D, INFEASIBLE)).items():
+        obs = np.full(2 * len(cameras), np.nan)
+        obs[0:2], obs[2:4] = dets[0][i], dets[1][j]
+        X = triangulate_views(cameras, obs)
+        if not np.all(np.isfinite(X)) or any(cam.depth(X[None])[0] <= 0 for cam in cameras[:2]):
+            continue
+        for c in range(2, len(cameras)):
+            if len(dets[c]) and cameras[c].depth(X[None])[0] > 0:
+                d = np.linalg.norm(dets[c] - cameras[c].project(X[None])[0], axis=1)
+                if d.min() < gate_px:
+                    obs[2 * c : 2 * c + 2] = dets[c][int(np.argmin(d))]
+        out.append((X, obs))
+    return out
+
+
+def _start_position_var(cameras: list[Camera], X: np.ndarray, sigma: float) -> float:
+    """A new track's position variance: the triangulated point's, ``σ² (JᵀJ)⁻¹``'s largest diagonal
+    term over the first two cameras (depth is the poorly known direction)."""
+    J = np.vstack([cam.jacobian(X[None])[0] for cam in cameras[:2]])
+    return float(sigma**2 * np.max(np.diag(np.linalg.inv(J.T @ J))))
+
+
+def _epipolar_baseline(cameras: list[Camera], detections: list[list[np.ndarray]],
+                       cfg: AssociationConfig) -> Association:
+    """The per-frame baseline: each frame's points from :func:`_stereo_points`, linked to the tracks'
+    last points by Hungarian on the 3-D distance (under ``link_distance``); a point left unlinked
+    starts a track, a track unlinked for more than ``max_coast`` frames ends."""
+    n = len(detections)
+    tracks: dict[int, list[tuple[int, np.ndarray, np.ndarray]]] = {}
+    last: dict[int, np.ndarray] = {}
+    seen: dict[int, int] = {}
+    for k, frame in enumerate(detections):
+        last = {i: X for i, X in last.items() if k - seen[i] <= cfg.max_coast + 1}
+        pts = _stereo_points(cameras, [np.asarray(d, float).reshape(-1, 2) for d in frame],
+                             cfg.birth_gate_sigmas * cfg.pixel_sigma)
+        ids = list(last)
+        D = np.array([[np.linalg.norm(last[i] - X) for X, _ in pts] for i in ids]).reshape(len(ids), len(pts))
+        links = _hungarian(np.where(D < cfg.link_distance, D, INFEASIBLE))
+        now = {}
+        for a, b in links.items():
+            now[ids[a]] = b
+        for b in set(range(len(pts))) - set(now.values()):
+            now[len(tracks)] = b
+            tracks[len(tracks)] = []
+        for i, b in now.items():
+            tracks[i].append((k, *pts[b]))
+            last[i], seen[i] = pts[b][0], k
+    out = Association({}, {}, {})
+    for i, rows in tracks.items():
+        Y = np.full((n, 2 * len(cameras)), np.nan)
+        for k, _, obs in rows:
+            Y[k] = obs
+        out.observations[i], out.born[i], out.ended[i] = Y, rows[0][0], rows[-1][0] + 1
+    return out
+
+
+def track_group(rig: StereoRig, dt: float, detections: list[list[np.ndarray]], method: str = "ekf",
+                group: str = "marker", config: AssociationConfig | None = None,
+                method_config: dict | None = None, mode: Mode = "gnn") -> dict[str, Track]:
+    """A group of identical markers seen by a stereo rig: the association's tracks (``<group>#<n>``,
+    numbered from 1 in order of confirmation), each filtered by the registered point ``method``
+    from its own observations, NaN before its birth and after its end."""
+    assoc = associate(list(rig.cameras), dt, detections, config, mode)
+    out = {}
+    for number, Y in assoc.observations.items():
+        tr = create(method, rig, dt, method_config).run(Y)
+        life = np.zeros(len(Y), dtype=bool)
+        life[assoc.born[number] : assoc.ended[number]] = True
+        tr.position[~life], tr.velocity[~life] = np.nan, np.nan
+        out[f"{group}#{number + 1}"] = tr
+    return out
