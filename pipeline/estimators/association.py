@@ -156,8 +156,8 @@ class _Run:
         if self.mode == "gnn":
             cost[_merged_tracks(where, cost, self.cfg.merge_px)] = INFEASIBLE
         pairs = _greedy(cost) if self.mode == "greedy" else _hungarian(cost)
-        for i, j in pairs.items():
-            self._update(self.live[i], c, dets[j])
+        for i, d in pairs.items():
+            self._update(self.live[i], c, dets[d])
         return near
 
     def _best_next(self, t: _Track, c: int, uv: np.ndarray, ahead: np.ndarray) -> float:
