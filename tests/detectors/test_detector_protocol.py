@@ -50,3 +50,33 @@ def test_detector_finds_the_markers(name, png_clip):
 def test_point_trackers_refuse_a_one_colour_target(name):
     with pytest.raises(StereotrackError, match="one point per colour"):
         create_detector(name, [MarkerColor.from_rgb("t", (200, 200, 30))], {"t": ["t_1", "t_2", "t_3", "t_4"]})
+
+
+def test_plugins_register_through_the_entry_point(monkeypatch):
+    """A package that names a Detector subclass under the ``stereotrack.detectors`` entry points adds
+    it to the registry (as estimators do); an entry point that is no Detector is skipped, warned."""
+    import importlib.metadata
+    import types
+
+    import detectors
+    from detectors.base import _REGISTRY
+    from detectors.blob_tracker import BlobTracker
+
+    class Plugged(BlobTracker):
+        """A plugin's detector."""
+
+        name = "plugged"
+
+    module = types.ModuleType("plugin_module")
+    module.Plugged, module.NotOne = Plugged, object
+    monkeypatch.setitem(__import__("sys").modules, "plugin_module", module)
+    points = [importlib.metadata.EntryPoint("plugged", "plugin_module:Plugged", detectors.ENTRY_POINT_GROUP),
+              importlib.metadata.EntryPoint("broken", "plugin_module:NotOne", detectors.ENTRY_POINT_GROUP)]
+    monkeypatch.setattr(importlib.metadata, "entry_points",
+                        lambda group=None: [p for p in points if p.group == group])
+    monkeypatch.setattr(detectors, "_plugins_loaded", False)
+    monkeypatch.setattr(detectors.base, "_REGISTRY", dict(_REGISTRY))
+    monkeypatch.setattr(detectors, "_REGISTRY", detectors.base._REGISTRY)
+    with pytest.warns(UserWarning, match="detector plugin 'broken'.*is not a detectors.base.Detector"):
+        reg = detectors.registry()
+    assert reg["plugged"] is Plugged and "broken" not in reg and list(reg)[0] == "blob"
