@@ -79,4 +79,4 @@ def test_plugins_register_through_the_entry_point(monkeypatch):
     monkeypatch.setattr(detectors, "_REGISTRY", detectors.base._REGISTRY)
     with pytest.warns(UserWarning, match="detector plugin 'broken'.*is not a detectors.base.Detector"):
         reg = detectors.registry()
-    assert reg["plugged"] is Plugged and "broken" not in reg and list(reg)[0] == "blob"
+    assert reg["plugged"] is Plugged and "broken" not in reg and next(iter(reg)) == "blob"
