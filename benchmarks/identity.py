@@ -81,13 +81,13 @@ def main() -> None:
           "GOSPA (m) |")
     print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|")
     for (layout, mode), ms in res.items():
-        col = lambda k, f=".3f": spread([m[k] for m in ms], f)  # noqa: E731
+        col = lambda k, f=".3f", ms=ms: spread([m[k] for m in ms], f)  # noqa: E731
         print(f"| {layout} | {mode} | {col('tracks', '.0f')} | {col('switches_per_1000', '.2f')} | {col('idf1')} | "
               f"{col('hota')} | {col('deta')} | {col('assa')} | {col('mota')} | {col('gospa_m')} |")
     print("\nSwitches over all seeds, the baselines against the association:\n")
     for layout in LAYOUTS:
         n = {mode: sum(m["id_switches"] for m in res[(layout, mode)]) for mode in MODES}
-        ratio = lambda b: f"{n[b] / n['gnn']:.1f}×" if n["gnn"] else "— (gnn made none)"  # noqa: E731
+        ratio = lambda b, n=n: f"{n[b] / n['gnn']:.1f}×" if n["gnn"] else "— (gnn made none)"  # noqa: E731
         print(f"- {layout}: gnn {n['gnn']}, greedy {n['greedy']} ({ratio('greedy')}), epipolar {n['epipolar']} "
               f"({ratio('epipolar')})")
     print("\n| markers | association alone, ms per frame (best of 3, one process) |\n|---:|---:|")

@@ -5,6 +5,7 @@ detector and colour ranges (:mod:`detectors.blob`), the stateful detectors (``bl
 from __future__ import annotations
 
 import warnings
+from collections.abc import Collection
 
 from detectors import blob_tracker, meanshift  # noqa: F401  (the imports register blob, meanshift, camshift)
 from detectors.base import _REGISTRY, Detector, register
@@ -45,7 +46,9 @@ def check_detector(name: str) -> None:
 
 
 def create_detector(name: str, markers: list[MarkerColor], groups: dict[str, list[str]] | None = None,
-                    roi: tuple[int, int, int, int] | None = None) -> Detector:
-    """A new detector of the registered kind ``name`` (one per camera)."""
+                    roi: tuple[int, int, int, int] | None = None, identical: Collection[str] = ()) -> Detector:
+    """A new detector of the registered kind ``name`` (one per camera); ``identical``: the colour
+    names of groups of identical markers, whose every blob it reports."""
     check_detector(name)
-    return registry()[name](markers, groups, roi)
+    cls = registry()[name]
+    return cls(markers, groups, roi, identical) if identical else cls(markers, groups, roi)

@@ -6,6 +6,7 @@ role); ``tests/detectors/test_detector_protocol.py`` runs every registered one t
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from collections.abc import Collection
 from typing import ClassVar
 
 import numpy as np
@@ -25,14 +26,21 @@ class Detector(ABC):
     name: ClassVar[str]
     #: whether it can label a one-colour four-point target's points
     labels_targets: ClassVar[bool] = False
+    #: whether it reports every blob of a group of identical markers (not one per colour)
+    reports_many: ClassVar[bool] = False
 
     def __init__(self, markers: list[MarkerColor], groups: dict[str, list[str]] | None = None,
-                 roi: tuple[int, int, int, int] | None = None) -> None:
+                 roi: tuple[int, int, int, int] | None = None, identical: Collection[str] = ()) -> None:
         if not markers:
             raise StereotrackError("no markers to detect: give --markers or a clip with clip.json")
         if groups and not self.labels_targets:
             raise StereotrackError(f"{self.name} tracks one point per colour: use blob for a one-colour target")
+        if identical and not self.reports_many:
+            raise StereotrackError(f"{self.name} tracks one point per colour: use blob for identical markers "
+                                   f"({', '.join(sorted(identical))})")
         self.markers, self.groups, self.roi = markers, dict(groups or {}), roi
+        #: the groups of identical markers (colour names) whose every blob is reported, unlabelled
+        self.identical = frozenset(identical)
 
     @abstractmethod
     def detect(self, frame: np.ndarray) -> list[Detection]:

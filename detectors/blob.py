@@ -277,6 +277,10 @@ class Detection:
     score: float
 
 
+#: the most blobs of one colour a frame reports (a group of identical markers)
+MAX_BLOBS = 256
+
+
 class BlobDetector:
     """Detect every marker's blobs in a BGR frame. ``max_per_marker`` keeps the best-scoring ones."""
 
@@ -295,6 +299,8 @@ class BlobDetector:
         self.markers = markers
         self.min_area, self.max_area, self.min_roundness = min_area, max_area, min_roundness
         self.max_per_marker = max_per_marker
+        #: markers whose every blob is reported (a group of identical markers), up to :data:`MAX_BLOBS`
+        self.many: frozenset[str] = frozenset()
         self.backend = backend
         self.coarse = coarse  # half-resolution whole-frame search on frames ≥ 640 px wide
         self._small: np.ndarray | None = None
@@ -346,7 +352,7 @@ class BlobDetector:
                     found = self._detect_coarse(mk, bgr)
                 else:
                     found = self.detect_marker(mk, bgr, whole(), 0, 0)
-            out += found[: self.max_per_marker]
+            out += found[: MAX_BLOBS if mk.name in self.many else self.max_per_marker]
         return out
 
     def _detect_coarse(self, mk: MarkerColor, bgr: np.ndarray) -> list[Detection]:

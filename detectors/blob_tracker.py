@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import statistics
 from collections import deque
+from collections.abc import Collection
 
 import numpy as np
 
@@ -59,12 +60,14 @@ class BlobTracker(Detector):
 
     name = "blob"
     labels_targets = True
+    reports_many = True
 
     def __init__(self, markers: list[MarkerColor], groups: dict[str, list[str]] | None = None,
-                 roi: tuple[int, int, int, int] | None = None) -> None:
-        super().__init__(markers, groups, roi)
+                 roi: tuple[int, int, int, int] | None = None, identical: Collection[str] = ()) -> None:
+        super().__init__(markers, groups, roi, identical)
         self.blob = BlobDetector(markers, max_per_marker=4)
-        self.grouped = {n for names in self.groups.values() for n in names}
+        self.blob.many = self.identical
+        self.grouped = {n for names in self.groups.values() for n in names} | self.identical
         self.windows: dict[str, tuple[int, int, int, int]] = {}
         self.areas: dict[str, deque] = {}
         self.labelled: dict[str, np.ndarray] = {}
@@ -91,7 +94,9 @@ class BlobTracker(Detector):
             by.setdefault(d.marker, []).append(d)
         out: list[Detection] = []
         for name, ds in by.items():
-            if name not in self.groups:
+            if name in self.identical:  # every blob, unlabelled: the association tells them apart
+                out += ds
+            elif name not in self.groups:
                 out.append(ds[0])
             elif len(ds) >= 4:  # fewer than four points: the target is skipped this frame
                 ds = sorted(ds, key=lambda d: -d.area)[:4]

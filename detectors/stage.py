@@ -21,8 +21,10 @@ from pipeline.core.clip import (
     DETECTION_COLUMNS,
     MARKERS_FILE,
     Clip,
+    Detections,
     FootageInfo,
-    observations_from_columns,
+    GroupDetections,
+    split_groups,
 )
 from pipeline.core.errors import StereotrackError
 from pipeline.core.frames import CameraReader, StereoFrameSource
@@ -59,6 +61,12 @@ class DetectResult:
     marker_colours: dict[str, list[int]] = field(default_factory=dict)  # for drawing, RGB
     observations: dict[str, np.ndarray] = field(default_factory=dict)  # marker → frames × [u1, v1, u2, v2]
     footage: FootageInfo | None = None  # what the estimate stage needs to know of the frames
+    groups: dict[str, GroupDetections] = field(default_factory=dict)  # identical markers: per frame, per camera
+
+    def detections(self) -> Detections:
+        """What the estimate stage takes of this result, in memory."""
+        assert self.footage is not None  # the detect stage always says what it saw
+        return Detections(self.observations, self.footage, self.groups)
 
 
 def markers_for_clip(clip: Clip, specs: list[str] | None, left_frame: Callable[[int], np.ndarray | None] | None = None,
@@ -135,7 +143,10 @@ def detect_clip(clip: str | Path | Clip, settings: RunSettings | None = None, ou
     learned: dict[str, str] = {}
     specs = resolve_marker_specs(clip_.path, list(settings.markers) if settings.markers else None)
     markers, groups = markers_for_clip(clip_, specs, lambda k: _left_frame(source, k), learned, settings.force_window)
-    finders = [create_detector(settings.detector, markers, groups, settings.roi) for _ in range(2 if source.stereo else 1)]
+    identical = set(clip_.identical_groups()) & set(groups)
+    targets = {g: names for g, names in groups.items() if g not in identical}
+    finders = [create_detector(settings.detector, markers, targets, settings.roi, identical)
+               for _ in range(2 if source.stereo else 1)]
     scan = _scan(source, finders, rig, markers, {n for names in groups.values() for n in names} | set(groups),
                  hooks.frame, hooks.progress)
     checks += colour_checks(scan.samples)
@@ -255,13 +266,14 @@ def _write_detections(out_dir: Path, clip: Clip, source: StereoFrameSource, scan
     write_csv(path, DETECTION_COLUMNS, scan.rows)
     cols = scan.rows.columns()
     summaries = summarize(cols, clip, scan.frames, scan.cameras)
+    observations, groups = split_groups(cols, scan.frames, path, clip.identical_groups())
     cameras = [asdict(s) for s in summaries]
     write_json(Outputs(out_dir).detect_info, {
         "clip": str(clip.path), "frames": scan.frames, "frame_size": list(source.size), "stereo": source.stereo,
         **record, "checks": [c.as_dict() for c in checks], "cameras": cameras})
     return DetectResult(path, scan.rows, summaries, learned=record["learned"], checks=checks,
                         marker_colours=record["marker_colours"],
-                        observations=observations_from_columns(cols, scan.frames, path),
+                        observations=observations, groups=groups,
                         footage=FootageInfo(scan.frames, tuple(source.size), checks, cameras))
 
 
@@ -301,6 +313,11 @@ def summarize(cols: dict[str, np.ndarray], clip: Clip, n_frames: int, n_cams: in
     """Frames, detections, misses and pixel errors against truth (when ``truth.csv`` exists), from
     the detection columns (the ``detections.csv`` schema)."""
     truth = clip.truth_table()
+    identical = clip.identical_groups()
+    if truth is not None and identical:  # identical markers are scored by identity, after estimation
+        members = [n for names in identical.values() for n in names]
+        truth = {k: v[~np.isin(truth["marker"], members)] for k, v in truth.items()}
+        cols = {k: v[~np.isin(cols["marker"], list(identical))] for k, v in cols.items()}
     out = []
     grid = _footage_to_grid(clip) if truth is not None else None
     for c in range(n_cams):

@@ -14,25 +14,30 @@ import numpy as np
 from pipeline.core.camera import StereoRig
 from pipeline.core.checks import Check, jump_checks, rig_for_frames, stereo_checks, warn_failed
 from pipeline.core.clip import (
+    DETECTION_COLUMNS,
     ESTIMATE_COLUMNS,
     TARGET_COLUMNS,
     Clip,
     ClipTruth,
+    Detections,
     FootageInfo,
+    GroupDetections,
     TargetInfo,
     find_target,
     footage_info,
-    load_detections,
+    split_groups,
 )
 from pipeline.core.errors import StereotrackError, first_line
-from pipeline.core.io import write_csv, write_json
+from pipeline.core.io import read_csv, write_csv, write_json
 from pipeline.core.outputs import Outputs
 from pipeline.core.settings import RunHooks, RunSettings
 from pipeline.core.sync import SyncEstimate, grid_length, resolve_sync
 from pipeline.core.version import stereotrack_version
 from pipeline.estimators import Estimator, Track, create, registry
 from pipeline.estimators import methods as registered_methods
+from pipeline.estimators.association import Association, associate, filter_tracks
 from pipeline.estimators.registration import is_builtin, origin
+from pipeline.evaluation.identity import MATCH_M, identity_metrics, matched_truth
 from pipeline.evaluation.metrics import compute_metrics, method_metrics
 from pipeline.evaluation.noise import estimate_pixel_sigma
 from pipeline.evaluation.scores import FrameScores, score_track, score_tracks
@@ -84,11 +89,17 @@ class Observed:
     checks: list[Check]
     footage: FootageInfo
     sigma: float | None
+    #: groups of identical markers: per frame, per camera, their detections (no identity)
+    groups: dict[str, GroupDetections] = field(default_factory=dict)
+    #: each group's association, made once and filtered by every method
+    associations: dict[str, Association] = field(default_factory=dict)
+    #: a rendered clip's groups → their markers' own names (their identities, in the truth)
+    members: dict[str, list[str]] = field(default_factory=dict)
 
 
 def estimate_clip(clip: str | Path | Clip, settings: RunSettings | None = None, out_dir: str | Path | None = None,
                   hooks: RunHooks | None = None, in_dir: str | Path | None = None,
-                  detections: tuple[dict[str, np.ndarray], FootageInfo] | None = None,
+                  detections: Detections | None = None,
                   keep_tracks: bool = True) -> EstimateResult:
     """Run every requested method on every marker of a clip and write estimates and metrics.
 
@@ -119,8 +130,8 @@ def estimate_clip(clip: str | Path | Clip, settings: RunSettings | None = None, 
     target = [m for m in methods if reg[m].kind == "target"]
     if target and seen.target is None:
         raise StereotrackError(f"method(s) {', '.join(target)} require a four-point target; this clip has none", clip_.path)
-    count = _Count(len(point) * len(seen.obs) + len(target), hooks)
-    hooks.say(f"estimate ({count.total} tracks: {len(point)} methods × {len(seen.obs)} markers"
+    count = _Count(len(point) * (len(seen.obs) + len(seen.groups)) + len(target), hooks)
+    hooks.say(f"estimate ({count.total} tracks: {len(point)} methods × {len(seen.obs) + len(seen.groups)} markers"
                  + (f" + {len(target)} target methods" if target else "") + ")")
     configs = _with_pixel_noise(settings.configs, methods, seen.sigma)
     resolved: dict[str, dict[str, Any]] = {}
@@ -128,8 +139,10 @@ def estimate_clip(clip: str | Path | Clip, settings: RunSettings | None = None, 
     result = EstimateResult(out_dir, seen.rig, seen.dt, seen.n, seen.obs, {}, seen.truth, seen.target, target_tracks)
     entries = {}
     for m in point:
-        tracks, scores = _run_point(m, seen, configs.get(m), out_dir, resolved, count)
+        tracks, scores, identity = _run_point(m, seen, configs.get(m), out_dir, resolved, count)
         entries[m] = method_metrics(result, m, tracks, scores)
+        if identity:
+            entries[m]["identity"] = identity
         if hooks.method is not None:
             hooks.method(result, m, tracks, scores)
         if keep_tracks:
@@ -150,29 +163,36 @@ class _Count:
         self.hooks.tick(self.done, self.total)
 
 
-def observe(clip: Clip, in_dir: Path, detections: tuple[dict[str, np.ndarray], FootageInfo] | None,
-            settings: RunSettings) -> Observed:
+def observe(clip: Clip, in_dir: Path, detections: Detections | None, settings: RunSettings) -> Observed:
     """The detections (in memory, else ``in_dir/detections.csv``) padded to the clip's frame grid,
     the rig as the frames need it, the time offset resolved and applied, and the input checks."""
     det_path = Outputs(in_dir).detections
     if detections is None and not det_path.is_file():
         raise StereotrackError("no detections.csv: run `stereotrack detect` first", det_path)
-    footage = detections[1] if detections is not None else footage_info(clip.path, in_dir)
+    footage = detections.footage if detections is not None else footage_info(clip.path, in_dir)
     rig, checks = _rig_for_footage(clip, footage, settings.calib_units, warn_sized=detections is None)
     ts = _timestamps(clip, settings.time_offset)
     grid = grid_length(ts, clip.fps) if ts is not None else None  # videos that dropped frames are shorter
     truth = clip.truth(max(footage.frames, grid) if footage.frames is not None and grid is not None else footage.frames)
-    obs = detections[0] if detections is not None else load_detections(det_path, footage.frames)
-    if not obs:
+    if detections is None:
+        cols = read_csv(det_path, DETECTION_COLUMNS, numeric=["area", "score"], finite=["frame", "u", "v"])
+        singles, found = split_groups(cols, footage.frames, det_path, clip.identical_groups())
+        detections = Detections(singles, footage, found)
+    obs, groups = detections.observations, detections.groups
+    if not obs and not groups:
         raise StereotrackError("no detections in this clip", det_path)
-    n = max(max(len(v) for v in obs.values()), grid or 0, truth.n_frames if truth is not None else 0)
+    lengths = [len(v) for v in obs.values()] + [len(v) for v in groups.values()]
+    n = max([*lengths, grid or 0, truth.n_frames if truth is not None else 0])
     obs = {k: np.vstack([v, np.full((n - len(v), 4), np.nan)]) for k, v in obs.items()}
-    sync, aligned = resolve_sync(settings.time_offset, rig, obs, clip.fps, ts)
-    new_checks = [_sync_check(sync), *stereo_checks(rig, aligned, clip.calibration_name),
-                  *jump_checks(obs, rig.image_size[0] or 640)]
+    groups = {g: [*v, *([[np.zeros((0, 2)), np.zeros((0, 2))]] * (n - len(v)))] for g, v in groups.items()}
+    sync, aligned = resolve_sync(settings.time_offset if obs else "off", rig, obs, clip.fps, ts)
+    new_checks = [_sync_check(sync)]
+    if obs:  # the pair checks read single markers (a group's detections pair up only through the association)
+        new_checks += [*stereo_checks(rig, aligned, clip.calibration_name), *jump_checks(obs, rig.image_size[0] or 640)]
     warn_failed(new_checks)
     return Observed(rig, 1.0 / clip.fps, n, obs, aligned, sync, truth, find_target(clip, settings.target_radius, obs),
-                    checks + new_checks, footage, estimate_pixel_sigma(rig, aligned))
+                    checks + new_checks, footage, estimate_pixel_sigma(rig, aligned), groups,
+                    members=clip.identical_groups())
 
 
 def _rig_for_footage(clip: Clip, footage: FootageInfo, calib_units: str | None,
@@ -220,23 +240,47 @@ def _run_target(m: str, seen: Observed, config: dict, out_dir: Path, resolved: d
     return track
 
 
-def _run_point(m: str, seen: Observed, config: dict | None, out_dir: Path, resolved: dict,
-               count: _Count) -> tuple[dict[str, Track], dict[str, FrameScores]]:
-    """One point method on every marker; writes its estimates. Methods that model the time offset
-    see the right camera at its own times, the others the right camera interpolated."""
+def _run_group(m: str, seen: Observed, group: str, config: dict | None
+               ) -> tuple[dict[str, Track], dict[str, FrameScores], dict[str, Any] | None]:
+    """One point method behind the association of a group of identical markers: its tracks
+    (``<group>#<n>``), their scores against the truth marker each follows frame by frame, and the
+    identity metrics (None without truth)."""
+    if group not in seen.associations:
+        seen.associations[group] = associate(list(seen.rig.cameras), seen.dt, seen.groups[group])
+    tracks = filter_tracks(seen.rig, seen.dt, seen.associations[group], m, group, config)
+    truth = {mk: seen.truth.positions[mk] for mk in seen.members.get(group, []) if mk in seen.truth.positions} \
+        if seen.truth is not None else {}
+    if not truth:
+        return tracks, score_tracks(tracks, None), None
+    positions = {k: t.position for k, t in tracks.items()}
+    follows = matched_truth(truth, positions)
+    scores = {k: score_track(t, follows[k]) for k, t in tracks.items()}
+    return tracks, scores, identity_metrics(truth, positions, MATCH_M)
+
+
+def _run_point(m: str, seen: Observed, config: dict | None, out_dir: Path, resolved: dict, count: _Count
+               ) -> tuple[dict[str, Track], dict[str, FrameScores], dict[str, dict[str, Any] | None]]:
+    """One point method on every marker, and behind the association on each group of identical
+    markers; writes its estimates. Methods that model the time offset see the right camera at its
+    own times, the others the right camera interpolated."""
     modelled = seen.sync.applied and seen.sync.source != "timestamps" and registry()[m].models_time_offset
     est = create(m, seen.rig, seen.dt, config, time_offset=seen.sync.offset_s if modelled else 0.0)
     resolved[m] = est.config.model_dump(mode="json")
-    tracks = {}
+    tracks, identity = {}, {}
     for marker, Y in (seen.obs if modelled else seen.aligned).items():
         tracks[marker] = _run_method(est, Y, marker)
         count.tick()
     scores = score_tracks(tracks, seen.truth.positions if seen.truth is not None else None)
+    for g in seen.groups:
+        mine, mine_scores, identity[g] = _run_group(m, seen, g, config)
+        tracks.update(mine)
+        scores.update(mine_scores)
+        count.tick()
     _write_estimates(Outputs(out_dir).estimates(m), tracks, seen.dt, scores)
     for tr in tracks.values():  # what the later stages use of it: memory that does not grow 4× per frame
         if tr.covariance is not None and tr.covariance.shape[1] > 3:
             tr.covariance = np.ascontiguousarray(tr.covariance[:, :3, :3])
-    return tracks, scores
+    return tracks, scores, identity
 
 
 def _metrics(result: EstimateResult, seen: Observed, clip: Clip, calib_units: str | None,

@@ -217,6 +217,9 @@ class ObjectSpec(_Model):
     plate_color: Color = (235, 235, 235)
     #: surface roughness under lit shading: low values give specular highlights
     roughness: float = Field(0.9, ge=0.0, le=1.0)
+    #: markers that look alike: what the detector sees of this marker (its identity stays ``name``);
+    #: markers of one colour form a group even without it (named after the colour)
+    group: str | None = Field(None, min_length=1, pattern=r"^[A-Za-z0-9_\-]+$")
 
     @field_validator("color", "plate_color")
     @classmethod
@@ -310,6 +313,15 @@ class Scenario(_Model):
             raise ValueError(f"duplicate object/marker names: {sorted(dup)}")
         if sum(o.is_target for o in self.objects) > 1:
             raise ValueError("at most one four_point_target object per scenario")
+        colours: dict[str, set] = {}
+        for o in self.objects:
+            if o.group is not None:
+                colours.setdefault(o.group, set()).add(tuple(o.color))
+        for group, cols in colours.items():
+            if len(cols) > 1:
+                raise ValueError(f"the markers of group {group!r} have different colours: a group is what looks alike")
+            if group in names:
+                raise ValueError(f"group {group!r} is also a marker's name")
         if self.render.exposure_s > 1.0 / self.fps:
             raise ValueError(f"render.exposure_s {self.render.exposure_s:g} s is longer than the frame period "
                              f"{1.0 / self.fps:g} s")
@@ -444,15 +456,30 @@ def parse_scenario(data: dict, source: str | Path = "<scenario>") -> Scenario:
         raise ScenarioError("invalid scenario: " + "; ".join(parts) + more, source) from None
 
 
+def marker_groups(scenario: Scenario) -> dict[str, str]:
+    """Marker → its group of identical markers: its ``group``, else — when another marker shares its
+    colour — the colour's name (``rgb_RRGGBB``); a marker of a colour of its own is in none."""
+    plain = [o for o in scenario.objects if not o.is_target]
+    shared = {tuple(o.color) for o in plain if sum(tuple(p.color) == tuple(o.color) for p in plain) > 1}
+    out = {}
+    for o in plain:
+        if o.group is not None:
+            out[o.name] = o.group
+        elif tuple(o.color) in shared:
+            out[o.name] = "rgb_" + "".join(f"{c:02x}" for c in o.color)
+    return out
+
+
 def clip_description(scenario: Scenario) -> dict:
     """What a clip rendered from ``scenario`` shows, for ``clip.json``: fps, frames, every marker
     with its colour (the points of a one-colour four-point target grouped under its name), and the
     target's radius and the dynamics the Kalman–Bucy filter assumes. Stages downstream read this
     instead of the scenario model."""
     markers, target = [], None
+    groups = marker_groups(scenario)
     for obj in scenario.objects:
         names, cols = obj.marker_names(), obj.marker_colors()
-        group = obj.name if obj.is_target and len(set(cols)) == 1 else None
+        group = obj.name if obj.is_target and len(set(cols)) == 1 else groups.get(obj.name)
         markers += [{"name": n, "rgb": list(c), "group": group} for n, c in zip(names, cols, strict=True)]
         if isinstance(obj.motion, FourPointTarget):
             m = obj.motion

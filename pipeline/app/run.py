@@ -91,9 +91,8 @@ def _process_clip(clip_: Clip, out_dir: Path, settings: RunSettings, hooks: RunH
             if recorder is not None:
                 recorder.method(est, m, tracks, scores)
 
-        assert det.footage is not None  # the detect stage always says what it saw
-        est = estimate_clip(clip_, settings, out_dir, replace(hooks, method=finished),
-                            detections=(det.observations, det.footage), keep_tracks=keep_tracks)
+        est = estimate_clip(clip_, settings, out_dir, replace(hooks, method=finished), detections=det.detections(),
+                            keep_tracks=keep_tracks)
         hooks.say("report (figures)" if settings.figures else "report")
         report = write_report(clip_, out_dir, progress=hooks.progress, figures=settings.figures,
                               data=report_data(clip_, est, det.marker_colours, out_dir, data))

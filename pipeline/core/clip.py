@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import warnings
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -193,6 +194,16 @@ class Clip:
     def markers(self) -> list[MarkerInfo]:
         """The markers a rendered clip shows (empty for real footage)."""
         return [MarkerInfo(m["name"], tuple(m["rgb"]), m.get("group")) for m in self.info.get("markers", [])]
+
+    def identical_groups(self) -> dict[str, list[str]]:
+        """Groups of identical markers (what the detector sees → each member's own name): the markers'
+        groups other than the four-point target's, whose points are labelled by geometry instead."""
+        target = (self.info.get("target") or {}).get("name")
+        out: dict[str, list[str]] = {}
+        for m in self.markers:
+            if m.group is not None and m.group != target:
+                out.setdefault(m.group, []).append(m.name)
+        return out
 
     @cached_property
     def settings(self) -> ClipSettings:
@@ -393,6 +404,50 @@ def load_truth(clip: str | Path, n_frames: int | None = None) -> ClipTruth | Non
                       f"the last {n_frames - truth.n_frames} are not scored", stacklevel=2)
     return truth
 
+
+
+#: a group's detections: per frame, per camera, k × 2 pixels (no identity)
+GroupDetections = list[list[np.ndarray]]
+
+
+@dataclass
+class Detections:
+    """What the estimate stage takes of the detect stage: each single marker's observations (frames
+    × 4), each group of identical markers' detections per frame and camera, and the footage seen."""
+
+    observations: dict[str, np.ndarray]
+    footage: FootageInfo
+    groups: dict[str, GroupDetections] = field(default_factory=dict)
+
+
+def split_groups(cols: dict[str, np.ndarray], n_frames: int | None, path: str | Path,
+                 groups: Collection[str] = ()) -> tuple[dict[str, np.ndarray], dict[str, GroupDetections]]:
+    """Detection columns → (single markers' observations, as :func:`observations_from_columns`;
+    groups' detections). A name is a group when ``groups`` declares it or when it has several rows
+    in one frame and camera (identical markers: the detector reports every blob of their colour)."""
+    frames = np.asarray(cols["frame"], dtype=float)
+    if not len(frames):
+        return {}, {}
+    check_frame_column(frames, n_frames, path)
+    n = max(int(frames.max()) + 1, n_frames or 0)
+    cams = np.array([{"left": 0, "right": 1}.get(str(c), -1) for c in cols["camera"]])
+    if (cams < 0).any():
+        i = int(np.flatnonzero(cams < 0)[0])
+        raise StereotrackError(f"line {i + 2}: unknown camera {cols['camera'][i]!r} (expected left/right)", path)
+    names = np.asarray(cols["marker"]).astype(str)
+    keys = frames.astype(np.int64) * 2 + cams
+    many = set(groups) | {str(m) for m in np.unique(names) if len(np.unique(keys[names == m])) < (names == m).sum()}
+    single = ~np.isin(names, sorted(many))
+    obs = observations_from_columns({k: np.asarray(v)[single] for k, v in cols.items()}, n_frames, path)
+    out: dict[str, GroupDetections] = {}
+    for g in sorted(many & set(names.tolist())):
+        mine = names == g
+        table: GroupDetections = [[np.zeros((0, 2)), np.zeros((0, 2))] for _ in range(n)]
+        for k, c, u, v in zip(frames[mine].astype(int), cams[mine], np.asarray(cols["u"])[mine],
+                              np.asarray(cols["v"])[mine], strict=True):
+            table[k][c] = np.vstack([table[k][c], [u, v]])
+        out[g] = table
+    return obs, out
 
 
 def load_detections(path: str | Path, n_frames: int | None = None) -> dict[str, np.ndarray]:

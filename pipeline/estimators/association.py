@@ -365,7 +365,14 @@ def track_group(rig: StereoRig, dt: float, detections: list[list[np.ndarray]], m
     """A group of identical markers seen by a stereo rig: the association's tracks (``<group>#<n>``,
     numbered from 1 in order of confirmation), each filtered by the registered point ``method``
     from its own observations, NaN before its birth and after its end."""
-    assoc = associate(list(rig.cameras), dt, detections, config, mode)
+    return filter_tracks(rig, dt, associate(list(rig.cameras), dt, detections, config, mode), method, group,
+                         method_config)
+
+
+def filter_tracks(rig: StereoRig, dt: float, assoc: Association, method: str, group: str = "marker",
+                  method_config: dict | None = None) -> dict[str, Track]:
+    """Each associated track filtered by ``method`` from its own observations (``<group>#<n>``),
+    NaN before its birth and after its end: one association, any filter."""
     out = {}
     for number, Y in assoc.observations.items():
         tr = create(method, rig, dt, method_config).run(Y)

@@ -12,6 +12,7 @@ import shutil
 import numpy as np
 import pytest
 
+from pipeline.core.clip import Detections
 from pipeline.core.settings import RunSettings
 from pipeline.core.sync import estimate_offset, resolve_sync
 from pipeline.estimators import create
@@ -305,7 +306,7 @@ def test_target_filters_gate_a_corrupted_frame(target_clip, tmp_path):
     runs = {}
     for name, o, cfg in (("clean", obs, gate_on), ("gated", dirty, gate_on), ("ungated", dirty, gate_off)):
         res = estimate_clip(target_clip, RunSettings(methods=["kalman_bucy", "pnp_kf"], configs=cfg), out_dir=tmp_path / name,
-                            detections=(o, det.footage))
+                            detections=Detections(o, det.footage))
         runs[name] = res.metrics["methods"]
     for m in ("kalman_bucy", "pnp_kf"):
         for q in ("alpha_rmse_rad", "distance_rmse_m"):

@@ -1,0 +1,72 @@
+"""Identical markers through the whole pipeline: a rendered clip of same-coloured spheres (one
+group, identities only in the truth) goes through `run`; the detector reports every blob of the
+colour, the association makes tracks named ``<group>#<n>``, every method filters them, and
+metrics.json scores them by identity against the truth; `estimate` alone reads the same from
+detections.csv."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from pipeline.app.run import process_clip
+from pipeline.core.clip import read_csv
+from pipeline.core.settings import RunSettings
+from pipeline.estimate import estimate_clip
+from renderers.render import render_clip
+from renderers.scenario import parse_scenario
+
+SCENARIO = {
+    "name": "identical_small", "frames": 45, "fps": 30, "seed": 3,
+    "rig": {"width": 640, "height": 480, "focal": 600, "baseline": 0.3},
+    "render": {"shading": "flat", "noise_std": 2.0, "blur_sigma": 0.6},
+    "objects": [{"name": f"o{i}", "color": [240, 150, 20], "radius": 0.03,
+                 "motion": {"type": "constant_velocity", "start": [-0.3 + 0.2 * i, 0.08 * (i % 2) - 0.04, 2.4 + 0.1 * i],
+                            "velocity": [0.25 * (-1) ** i, 0.0, 0.05]}} for i in range(4)],
+}
+
+
+@pytest.fixture(scope="module")
+def identical_run(tmp_path_factory):
+    clip = tmp_path_factory.mktemp("identical") / "clip"
+    render_clip(parse_scenario(SCENARIO), clip, fmt="png", workers=1)
+    res = process_clip(clip, settings=RunSettings(methods=("triangulation", "ekf"), images=False))
+    return clip, res
+
+
+@pytest.mark.slow
+def test_identical_markers_run_end_to_end(identical_run):
+    clip, res = identical_run
+    info = json.loads((clip / "clip.json").read_text())
+    group = {m["group"] for m in info["markers"]}
+    assert len(group) == 1 and None not in group  # same colour, no group given: one group named after it
+    g = group.pop()
+    det = read_csv(res.out_dir / "detections.csv", ["frame", "camera", "marker"])
+    per = {}
+    for k, c, m in zip(det["frame"], det["camera"], det["marker"], strict=True):
+        per[(k, c)] = per.get((k, c), 0) + (m == g)
+    assert max(per.values()) == 4  # every blob of the colour, not one per colour
+    for method in ("triangulation", "ekf"):
+        est = read_csv(res.out_dir / "estimates" / f"{method}.csv", ["marker", "x"], numeric=["x"])
+        names = set(est["marker"])
+        assert names and all(n.startswith(f"{g}#") for n in names)
+        ident = res.estimate.metrics["methods"][method]["identity"][g]
+        assert ident["idf1"] >= 0.8 and ident["mota"] >= 0.7, ident
+        assert ident["id_switches"] <= 2, ident
+        assert res.estimate.metrics["methods"][method]["rmse"] < 0.1  # errors against the marker each track follows
+    assert not [c for c in res.estimate.metrics["checks"] if not c["ok"] and c["name"] == "stereo_pairs"]
+
+
+@pytest.mark.slow
+def test_estimate_alone_reads_the_groups_from_detections_csv(identical_run, tmp_path):
+    """`estimate` on its own, from detections.csv and the clip: the same tracks and identity scores."""
+    clip, res = identical_run
+    alone = estimate_clip(clip, RunSettings(methods=("ekf",)), out_dir=tmp_path, in_dir=res.out_dir)
+    a, b = alone.metrics["methods"]["ekf"], res.estimate.metrics["methods"]["ekf"]
+    (g, mine), (_, theirs) = next(iter(a["identity"].items())), next(iter(b["identity"].items()))
+    assert a["identity"].keys() == b["identity"].keys() and mine.keys() == theirs.keys()
+    for key, value in mine.items():  # detections.csv holds the pixels to its printed precision
+        assert value == pytest.approx(theirs[key], rel=1e-6, abs=1e-9), (g, key)
+    assert np.isclose(a["rmse"], b["rmse"])
