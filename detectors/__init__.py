@@ -4,13 +4,13 @@ detector and colour ranges (:mod:`detectors.blob`), the stateful detectors (``bl
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Collection
 
 from detectors import blob_tracker, meanshift  # noqa: F401  (the imports register blob, meanshift, camshift)
 from detectors.base import _REGISTRY, Detector, register
 from detectors.blob import MarkerColor
 from pipeline.core.errors import StereotrackError
+from pipeline.core.plugins import load_entry_points
 
 #: the entry-point group a plugin package registers its detectors under (as estimators use
 #: ``stereotrack.estimators``): ``[project.entry-points."stereotrack.detectors"] NAME = "module:Class"``
@@ -25,16 +25,7 @@ def registry() -> dict[str, type[Detector]]:
     global _plugins_loaded
     if not _plugins_loaded:
         _plugins_loaded = True
-        from importlib.metadata import entry_points
-
-        for ep in entry_points(group=ENTRY_POINT_GROUP):
-            try:
-                obj = ep.load()
-                if not (isinstance(obj, type) and issubclass(obj, Detector)):
-                    raise TypeError(f"{ep.value} is not a detectors.base.Detector subclass")
-                register(obj)
-            except Exception as exc:
-                warnings.warn(f"detector plugin {ep.name!r} ({ep.value}) failed to load: {exc}", stacklevel=2)
+        load_entry_points(ENTRY_POINT_GROUP, "detector", register)
     return dict(_REGISTRY)
 
 

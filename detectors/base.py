@@ -56,5 +56,7 @@ _REGISTRY: dict[str, type[Detector]] = {}
 
 def register(cls: type[Detector]) -> type[Detector]:
     """Class decorator: make a detector available by its ``name``."""
+    if not (isinstance(cls, type) and issubclass(cls, Detector)):
+        raise TypeError(f"{cls!r} is not a detectors.base.Detector subclass")
     _REGISTRY[cls.name] = cls
     return cls

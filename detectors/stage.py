@@ -16,16 +16,8 @@ from detectors.blob import BlobDetector, MarkerColor
 from detectors.markers import resolve_marker_specs
 from pipeline.core.camera import StereoRig
 from pipeline.core.checks import Check, colour_checks, rig_for_frames, warn_failed
-from pipeline.core.clip import (
-    CLIP_INFO,
-    DETECTION_COLUMNS,
-    MARKERS_FILE,
-    Clip,
-    Detections,
-    FootageInfo,
-    GroupDetections,
-    split_groups,
-)
+from pipeline.core.clip import CLIP_INFO, DETECTION_COLUMNS, MARKERS_FILE, Clip, FootageInfo
+from pipeline.core.detections import Detections, GroupDetections, split_groups
 from pipeline.core.errors import StereotrackError
 from pipeline.core.frames import CameraReader, StereoFrameSource
 from pipeline.core.io import write_csv, write_json

@@ -19,14 +19,12 @@ from pipeline.core.clip import (
     TARGET_COLUMNS,
     Clip,
     ClipTruth,
-    Detections,
     FootageInfo,
-    GroupDetections,
     TargetInfo,
     find_target,
     footage_info,
-    split_groups,
 )
+from pipeline.core.detections import Detections, GroupDetections, split_groups
 from pipeline.core.errors import StereotrackError, first_line
 from pipeline.core.io import read_csv, write_csv, write_json
 from pipeline.core.outputs import Outputs

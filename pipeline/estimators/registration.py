@@ -7,6 +7,7 @@ import warnings
 
 from pipeline.core.camera import StereoRig
 from pipeline.core.errors import StereotrackError
+from pipeline.core.plugins import load_entry_points
 from pipeline.estimators.base import Estimator, EstimatorConfig, Kind
 
 ENTRY_POINT_GROUP = "stereotrack.estimators"
@@ -48,15 +49,7 @@ def registry() -> dict[str, type[Estimator]]:
     global _plugins_loaded
     if not _plugins_loaded:
         _plugins_loaded = True
-        from importlib.metadata import entry_points
-
-        for ep in entry_points(group=ENTRY_POINT_GROUP):
-            try:
-                obj = ep.load()
-                if isinstance(obj, type):
-                    register(obj)
-            except Exception as exc:
-                warnings.warn(f"estimator plugin {ep.name!r} ({ep.value}) failed to load: {exc}", stacklevel=2)
+        load_entry_points(ENTRY_POINT_GROUP, "estimator", register)
     return REGISTRY
 
 

@@ -11,7 +11,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from pipeline.core.camera import StereoRig
-from pipeline.core.clip import Clip, load_detections, positions_from_columns
+from pipeline.core.clip import Clip, positions_from_columns
+from pipeline.core.detections import load_detections
 from pipeline.core.errors import StereotrackError
 from pipeline.core.io import check_frame_column, read_csv, read_json_mapping
 from pipeline.core.outputs import Outputs

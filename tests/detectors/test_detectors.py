@@ -12,7 +12,7 @@ from detectors.blob import BlobDetector, MarkerColor
 from detectors.blob_tracker import label_four_points
 from detectors.meanshift import MeanShiftTracker
 from detectors.stage import detect_clip
-from pipeline.core.clip import load_detections
+from pipeline.core.detections import load_detections
 from pipeline.core.errors import ClipError, StereotrackError
 from pipeline.core.frames import StereoFrameSource
 from pipeline.core.io import read_csv

@@ -12,7 +12,7 @@ import shutil
 import numpy as np
 import pytest
 
-from pipeline.core.clip import Detections
+from pipeline.core.detections import Detections
 from pipeline.core.settings import RunSettings
 from pipeline.core.sync import estimate_offset, resolve_sync
 from pipeline.estimators import create

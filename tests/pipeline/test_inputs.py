@@ -16,7 +16,7 @@ from detectors.blob import BlobDetector, MarkerColor
 from detectors.stage import detect_clip
 from pipeline.core.calibration import load_calibration, save_calibration
 from pipeline.core.camera import Camera, StereoRig, triangulate
-from pipeline.core.clip import load_detections
+from pipeline.core.detections import load_detections
 from pipeline.core.errors import ClipError
 from pipeline.core.frames import StereoFrameSource
 from pipeline.core.io import read_csv

@@ -393,7 +393,8 @@ CSV_CELL = st.one_of(st.sampled_from(["", "nan", "inf", "-1", "0", "3", "1e400",
 def test_fuzz_detection_csv(tmp_path, rows, header, raw):
     import csv
 
-    from pipeline.core.clip import DETECTION_COLUMNS, load_detections
+    from pipeline.core.clip import DETECTION_COLUMNS
+    from pipeline.core.detections import load_detections
 
     path = tmp_path / "detections.csv"
     if raw is not None:

@@ -342,7 +342,7 @@ def test_loose_window_on_real_footage(tmp_path, ball_reference, scale):
     """ball2.mp4: a window drawn as the ball's bounding box, or 1.5× it, learns a range that finds
     the ball on ≥ 90 % of the reference's frames, within 3 px (median) of the strict-HSV reference.
     (The range learned from every pixel of the window: 1.5× gave a median of 3.1 px.)"""
-    from pipeline.core.clip import load_detections
+    from pipeline.core.detections import load_detections
 
     u, v = ball_reference[100]
     spec = f"ball@{window_around(u, v, 20.6, scale)}@100"  # the ball's radius at frame 100: 20.6 px
@@ -369,7 +369,7 @@ def test_loose_window_on_an_orange_ball_before_a_brown_wall(skin_wall, tmp_path)
     hue, a skin-toned hand, motion blur), window = the ball's bounding box in frame 0: found on
     ≥ 90 % of the frames where truth shows it, within 3 px (median). The range learned from every
     pixel of the window selected 98 % of the frame and found the ball on no frame."""
-    from pipeline.core.clip import load_detections
+    from pipeline.core.detections import load_detections
     from pipeline.core.io import read_csv
 
     truth = read_csv(skin_wall / "truth.csv")

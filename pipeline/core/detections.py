@@ -1,0 +1,95 @@
+"""The detections the estimate stage takes: ``detections.csv``'s columns (or the detect stage's, in
+memory) as each single marker's observations (frames × ``[u1, v1, u2, v2]``) and each group of
+identical markers' detections per frame and camera (no identity)."""
+
+from __future__ import annotations
+
+from collections.abc import Collection
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.core.clip import DETECTION_COLUMNS, FootageInfo
+from pipeline.core.errors import StereotrackError
+from pipeline.core.io import check_frame_column, read_csv
+
+#: a group's detections: per frame, per camera, k × 2 pixels (no identity)
+GroupDetections = list[list[np.ndarray]]
+
+
+@dataclass
+class Detections:
+    """What the estimate stage takes of the detect stage: each single marker's observations (frames
+    × 4), each group of identical markers' detections per frame and camera, and the footage seen."""
+
+    observations: dict[str, np.ndarray]
+    footage: FootageInfo
+    groups: dict[str, GroupDetections] = field(default_factory=dict)
+
+
+def split_groups(cols: dict[str, np.ndarray], n_frames: int | None, path: str | Path,
+                 groups: Collection[str] = ()) -> tuple[dict[str, np.ndarray], dict[str, GroupDetections]]:
+    """Detection columns → (single markers' observations, as :func:`observations_from_columns`;
+    groups' detections). A name is a group when ``groups`` declares it or when it has several rows
+    in one frame and camera (identical markers: the detector reports every blob of their colour)."""
+    frames = np.asarray(cols["frame"], dtype=float)
+    if not len(frames):
+        return {}, {}
+    check_frame_column(frames, n_frames, path)
+    n = max(int(frames.max()) + 1, n_frames or 0)
+    cams = np.array([{"left": 0, "right": 1}.get(str(c), -1) for c in cols["camera"]])
+    if (cams < 0).any():
+        i = int(np.flatnonzero(cams < 0)[0])
+        raise StereotrackError(f"line {i + 2}: unknown camera {cols['camera'][i]!r} (expected left/right)", path)
+    names = np.asarray(cols["marker"]).astype(str)
+    keys = frames.astype(np.int64) * 2 + cams
+    many = set(groups) | {str(m) for m in np.unique(names) if len(np.unique(keys[names == m])) < (names == m).sum()}
+    single = ~np.isin(names, sorted(many))
+    obs = observations_from_columns({k: np.asarray(v)[single] for k, v in cols.items()}, n_frames, path)
+    out: dict[str, GroupDetections] = {}
+    for g in sorted(many & set(names.tolist())):
+        mine = names == g
+        table: GroupDetections = [[np.zeros((0, 2)), np.zeros((0, 2))] for _ in range(n)]
+        for k, c, u, v in zip(frames[mine].astype(int), cams[mine], np.asarray(cols["u"])[mine],
+                              np.asarray(cols["v"])[mine], strict=True):
+            table[k][c] = np.vstack([table[k][c], [u, v]])
+        out[g] = table
+    return obs, out
+
+
+def load_detections(path: str | Path, n_frames: int | None = None) -> dict[str, np.ndarray]:
+    """``detections.csv`` → per marker an array frames × 4 ``[u1, v1, u2, v2]`` (NaN = missed),
+    keeping the highest-scoring detection per frame, camera and marker.
+
+    ``n_frames`` is the clip's frame count: a row outside ``0 .. n_frames − 1`` is an error naming
+    the line, as are non-numeric or non-finite fields and unknown cameras.
+    """
+    path = Path(path)
+    cols = read_csv(path, DETECTION_COLUMNS, numeric=["area", "score"], finite=["frame", "u", "v"])
+    return observations_from_columns(cols, n_frames, path)
+
+
+def observations_from_columns(cols: dict[str, np.ndarray], n_frames: int | None, path: str | Path) -> dict[str, np.ndarray]:
+    """Detection columns (the ``detections.csv`` schema, from the file or from the detect stage
+    in memory) → per marker frames × 4 ``[u1, v1, u2, v2]``, best score per frame and camera."""
+    if len(cols["frame"]) == 0:
+        return {}
+    frames = np.asarray(cols["frame"], dtype=float)
+    check_frame_column(frames, n_frames, path)
+    n = max(int(frames.max()) + 1, n_frames or 0)
+    out: dict[str, np.ndarray] = {}
+    best: dict[tuple[str, int, int], float] = {}
+    for i, (k, cam, name, u, v, score) in enumerate(zip(frames.astype(int), cols["camera"], cols["marker"], cols["u"],
+                                                         cols["v"], cols["score"], strict=True)):
+        c = {"left": 0, "right": 1}.get(str(cam))
+        if c is None:
+            raise StereotrackError(f"line {i + 2}: unknown camera {cam!r} (expected left/right)", path)
+        score = score if np.isfinite(score) else 0.0
+        arr = out.setdefault(str(name), np.full((n, 4), np.nan))
+        key = (str(name), int(k), c)
+        if key in best and best[key] >= score:
+            continue
+        best[key] = score
+        arr[k, 2 * c : 2 * c + 2] = (u, v)
+    return out

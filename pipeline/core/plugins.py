@@ -1,0 +1,22 @@
+"""Plugins: classes that other installed packages name under an entry-point group
+(``stereotrack.estimators``, ``stereotrack.detectors``), registered with a role's registry."""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Callable
+
+
+def load_entry_points(group: str, role: str, register: Callable[[type], object]) -> None:
+    """Register every class the entry points of ``group`` name (an entry point may instead name a
+    module whose import registers its classes); one that fails to load or to register is skipped
+    with a warning naming it."""
+    from importlib.metadata import entry_points
+
+    for ep in entry_points(group=group):
+        try:
+            obj = ep.load()
+            if isinstance(obj, type):
+                register(obj)
+        except Exception as exc:
+            warnings.warn(f"{role} plugin {ep.name!r} ({ep.value}) failed to load: {exc}", stacklevel=3)
