@@ -57,6 +57,9 @@ def test_identical_markers_run_end_to_end(identical_run):
         assert ident["id_switches"] <= 2, ident
         assert res.estimate.metrics["methods"][method]["rmse"] < 0.1  # errors against the marker each track follows
     assert not [c for c in res.estimate.metrics["checks"] if not c["ok"] and c["name"] == "stereo_pairs"]
+    report = (res.out_dir / "report.md").read_text()
+    section = report.split(f"## Identity: {g}", 1)[1]  # the report's identity table, one row per method
+    assert "| IDF1 |" in section and "| triangulation |" in section and "| ekf |" in section
 
 
 @pytest.mark.slow
