@@ -140,56 +140,59 @@ class _Run:
         offers the track once updated with it: a look-alike that fits this camera but leaves the
         track nothing consistent in the next is not taken."""
         cam = self.cameras[c]
-        cost = np.full((len(self.live), len(dets)), INFEASIBLE)
-        where = np.full((len(self.live), 2), np.nan)
-        for i, t in enumerate(self.live):
-            h, _, S = self._predicted(cam, t)
-            if h is None:
-                continue
-            where[i] = h
-            nis = _nis(dets - h, S)
-            for j in np.flatnonzero(nis < self.threshold):
-                cost[i, j] = nis[j] + np.log(np.linalg.det(S))
-                if ahead is not None:
-                    cost[i, j] += self._best_next(t, c, dets[j], ahead)
+        X = np.array([t.x for t in self.live])
+        h, J, S = self._predicted_all(cam, X)  # every live track at once: T × 2, T × 2 × 3, T × 2 × 2
+        r = dets[None, :, :] - h[:, None, :]
+        Si = np.linalg.inv(S)
+        nis = np.einsum("tdi,tij,tdj->td", r, Si, r)
+        gated = (nis < self.threshold) & np.isfinite(h[:, :1])
+        cost = np.where(gated, nis + np.log(np.linalg.det(S))[:, None], INFEASIBLE)
+        K, Pn = self._gains(J, Si)
+        if ahead is not None and gated.any():
+            ti, dj = np.nonzero(gated)
+            moved = X[ti, :3] + np.einsum("kab,kb->ka", K[ti, :3], dets[dj] - h[ti])  # each pairing's updated position
+            cost[ti, dj] += self._best_next(c + 1, moved, Pn[ti], ahead)
         near = {int(j) for j in np.flatnonzero((cost < INFEASIBLE).any(axis=0))}
         if self.mode == "gnn":
-            cost[_merged_tracks(where, cost, self.cfg.merge_px)] = INFEASIBLE
+            cost[_merged_tracks(h, cost, self.cfg.merge_px)] = INFEASIBLE
         pairs = _greedy(cost) if self.mode == "greedy" else _hungarian(cost)
-        for i, d in pairs.items():
-            self._update(self.live[i], c, dets[d])
+        for i, d in pairs.items():  # the Kalman update (Joseph form), its gain and covariance made above
+            t = self.live[i]
+            t.x, t.P = X[i] + K[i] @ (dets[d] - h[i]), Pn[i]
+            t.obs[-1][2 * c : 2 * c + 2] = dets[d]
         return near
 
-    def _best_next(self, t: _Track, c: int, uv: np.ndarray, ahead: np.ndarray) -> float:
-        """The negative log-likelihood of the next camera's best gated detection for ``t`` once
-        updated with ``uv`` in camera ``c`` (a miss: the gate's value)."""
-        probe = _Track(t.x.copy(), t.P.copy(), t.born, [np.full(2 * len(self.cameras), np.nan)])
-        self._update(probe, c, uv)
-        h, _, S = self._predicted(self.cameras[c + 1], probe)
-        if h is None:
-            return 0.0
-        nis = _nis(ahead - h, S) if len(ahead) else np.zeros(0)
-        return float(min(nis.min() if len(nis) else np.inf, self.threshold)) + float(np.log(np.linalg.det(S)))
-
-    def _predicted(self, cam: Camera, t: _Track) -> tuple[np.ndarray | None, np.ndarray, np.ndarray]:
-        """The track's predicted pixel in a camera, the measurement Jacobian and ``S``; None behind it."""
-        p = t.x[:3]
-        if cam.depth(p[None])[0] <= 0:
-            return None, np.zeros((2, 6)), np.eye(2)
-        H = np.zeros((2, 6))
-        H[:, :3] = cam.jacobian(p[None])[0]
-        return cam.project(p[None])[0], H, H @ t.P @ H.T + self.R
-
-    def _update(self, t: _Track, c: int, uv: np.ndarray) -> None:
-        """The Kalman update of a track with one camera's detection (Joseph form)."""
-        h, H, S = self._predicted(self.cameras[c], t)
-        if h is None:
-            return
-        K = t.P @ H.T @ np.linalg.inv(S)
-        t.x = t.x + K @ (uv - h)
+    def _gains(self, J: np.ndarray, Si: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Every live track's Kalman gain for one camera (T × 6 × 2) and its covariance once updated
+        with a detection there, in Joseph form (T × 6 × 6): neither depends on which detection."""
+        P = np.array([t.P for t in self.live])
+        H = np.zeros((len(self.live), 2, 6))
+        H[:, :, :3] = J
+        K = P @ H.transpose(0, 2, 1) @ Si
         IKH = np.eye(6) - K @ H
-        t.P = IKH @ t.P @ IKH.T + K @ self.R @ K.T
-        t.obs[-1][2 * c : 2 * c + 2] = uv
+        return K, IKH @ P @ IKH.transpose(0, 2, 1) + K @ self.R @ K.transpose(0, 2, 1)
+
+    def _predicted_all(self, cam: Camera, X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The states ``X``' (T × 6) predicted pixels in a camera (NaN behind it), position Jacobians
+        and innovation covariances ``S = J P_pp Jᵀ + R`` (the velocity does not enter the projection)."""
+        P = np.array([t.P[:3, :3] for t in self.live])
+        h, J = cam.project(X[:, :3]), cam.jacobian(X[:, :3])
+        h[cam.depth(X[:, :3]) <= 0] = np.nan
+        return h, J, J @ P @ J.transpose(0, 2, 1) + self.R
+
+    def _best_next(self, nxt: int, X: np.ndarray, Pn: np.ndarray, ahead: np.ndarray) -> np.ndarray:
+        """For each candidate pairing, the track's position once updated with the detection (``X``,
+        k × 3) and covariance (``Pn``, k × 6 × 6): the negative log-likelihood of camera ``nxt``'s best
+        gated detection (a miss: the gate's value); 0 where the point is behind that camera."""
+        cam = self.cameras[nxt]
+        hn, Jn = cam.project(X), cam.jacobian(X)
+        Sn = Jn @ Pn[:, :3, :3] @ Jn.transpose(0, 2, 1) + self.R
+        best = np.full(len(X), self.threshold)
+        if len(ahead):
+            r = ahead[None, :, :] - hn[:, None, :]
+            best = np.minimum(np.einsum("kni,kij,knj->kn", r, np.linalg.inv(Sn), r).min(axis=1), self.threshold)
+        out = best + np.log(np.linalg.det(Sn))
+        return np.where(cam.depth(X) > 0, out, 0.0)
 
     def _births(self, k: int, left: list[np.ndarray]) -> None:
         """Tentative tracks from leftover detections that two cameras agree on."""
