@@ -73,3 +73,16 @@ def test_estimate_alone_reads_the_groups_from_detections_csv(identical_run, tmp_
     for key, value in mine.items():  # detections.csv holds the pixels to its printed precision
         assert value == pytest.approx(theirs[key], rel=1e-6, abs=1e-9), (g, key)
     assert np.isclose(a["rmse"], b["rmse"])
+
+
+@pytest.mark.slow
+def test_export_writes_one_label_per_track(identical_run, tmp_path):
+    """TRC export: one labelled marker per track of the group, never two tracks under one label."""
+    from pipeline.present.export import export_clip
+
+    clip, res = identical_run
+    names = sorted(set(read_csv(res.out_dir / "estimates" / "ekf.csv", ["marker"])["marker"]))
+    (path,) = export_clip(clip, "trc", ["ekf"], tmp_path)
+    header = path.read_text().splitlines()[3].split("\t")
+    labels = [h for h in header[2:] if h]
+    assert sorted(labels) == names and len(labels) == len(set(labels))
