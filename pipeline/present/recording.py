@@ -235,10 +235,26 @@ class Recorder:
         soon as the method has run (its tracks need not be kept for :meth:`finish`)."""
         n = _frames(est)
         self._method(est.rig, meth, per_marker, scores, n)
+        self._track_events(meth, per_marker)
         if self._ellipsoids(meth, per_marker, n):
             self.uncertain.append(meth)
         self.logged.append(meth)
         self.markers.update(per_marker)
+
+    def _track_events(self, meth: str, per_marker: dict[str, Track]) -> None:
+        """A group's tracks (``<group>#<n>``) as events on the timeline under ``/events/<method>``:
+        each track's birth (its first estimate) and end (its last), as text-log entries."""
+        import rerun as rr
+
+        events = []
+        for name, t in per_marker.items():
+            live = np.flatnonzero(np.all(np.isfinite(t.position), axis=1))
+            if "#" in name and len(live):
+                events += [(int(live[0]), f"{name} born"), (int(live[-1]), f"{name} ended")]
+        if events:
+            events.sort()
+            cols = rr.TextLog.columns(text=[e[1] for e in events], level=["INFO"] * len(events))
+            self._columns(f"events/{meth}", np.array([e[0] for e in events], dtype=np.int64), cols)
 
     def finish(self, est: EstimateResult, marker_colours: dict[str, list[int]] | None = None,
                progress: Callable[[int, int], None] | None = None, info: str | None = None) -> Path:

@@ -86,3 +86,16 @@ def test_export_writes_one_label_per_track(identical_run, tmp_path):
     header = path.read_text().splitlines()[3].split("\t")
     labels = [h for h in header[2:] if h]
     assert sorted(labels) == names and len(labels) == len(set(labels))
+
+
+@pytest.mark.slow
+def test_recording_marks_births_and_ends(identical_run):
+    """The recording's timeline carries each track's birth and end as events, per method."""
+    from tests.pipeline.test_pipeline import read_recording
+
+    _, res = identical_run
+    cols, _, _ = read_recording(res.recording)
+    texts = [t for c, v in cols.get("/events/ekf", cols.get("events/ekf", {})).items() if "Text" in c for t in v]
+    flat = [x for t in texts for x in (t if isinstance(t, list) else [t])]
+    tracks = set(read_csv(res.out_dir / "estimates" / "ekf.csv", ["marker"])["marker"])
+    assert {f"{n} born" for n in tracks} <= set(flat) and {f"{n} ended" for n in tracks} <= set(flat), flat
