@@ -143,3 +143,25 @@ def test_clip_description_written_and_derived_alike(tmp_path):
         assert Clip(clip).info == {}
         (clip / "clip.json").write_text(json.dumps(written))
     assert Clip(tmp_path / "four_point_small").info["target"]["radius"] > 0
+
+
+def test_groups_of_identical_markers():
+    """Markers of one colour form a group named after it; a `group:` names it; a group whose
+    markers differ in colour, or named like a marker, is one error naming the file."""
+    from pipeline.core.errors import StereotrackError
+    from renderers.scenario import clip_description
+
+    def obj(name, color, group=None):
+        o = {"name": name, "color": color, "motion": {"type": "constant_velocity", "start": [0, 0, 2], "velocity": [0, 0, 0]}}
+        return {**o, "group": group} if group else o
+
+    base = {"frames": 10, "rig": {"width": 640, "height": 480, "focal": 600, "baseline": 0.3}}
+    same = parse_scenario({**base, "objects": [obj("a", [240, 150, 20]), obj("b", [240, 150, 20]), obj("c", [20, 150, 240])]})
+    groups = {m["name"]: m["group"] for m in clip_description(same)["markers"]}
+    assert groups == {"a": "rgb_f09614", "b": "rgb_f09614", "c": None}
+    named = parse_scenario({**base, "objects": [obj("a", [240, 150, 20], "balls"), obj("b", [240, 150, 20], "balls")]})
+    assert {m["group"] for m in clip_description(named)["markers"]} == {"balls"}
+    with pytest.raises(StereotrackError, match=r"x.yaml: .*group 'g' have different colours"):
+        parse_scenario({**base, "objects": [obj("a", [240, 150, 20], "g"), obj("b", [20, 150, 240], "g")]}, "x.yaml")
+    with pytest.raises(StereotrackError, match=r"group 'a' is also a marker's name"):
+        parse_scenario({**base, "objects": [obj("a", [240, 150, 20], "a")]}, "x.yaml")
