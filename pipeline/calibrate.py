@@ -197,6 +197,12 @@ class Calibration:
         axis = int(np.argmax(np.abs(c[:2])))
         return (("right", "left") if axis == 0 else ("below", "above"))[int(c[axis] < 0)]
 
+    @property
+    def second_camera_phrase(self) -> str:
+        """Where the second camera sits, as a sentence says it: ``to the left of the first``, ``above the first``."""
+        side = self.second_camera_side
+        return f"{'to the ' + side + ' of' if side in ('left', 'right') else side} the first"
+
 
 def calibrate(pairs: list[tuple[str, np.ndarray, np.ndarray]], board: Board) -> Calibration:
     """Corners in every pair, per-camera then stereo calibration, outlier pairs dropped once."""
@@ -209,8 +215,10 @@ def calibrate(pairs: list[tuple[str, np.ndarray, np.ndarray]], board: Board) -> 
         cl, cr = find_corners(board, gl), find_corners(board, gr)
         both = _common(cl, cr) if cl is not None and cr is not None else None
         if both is None:
-            missing = [s for s, c in (("left", cl), ("right", cr)) if c is None] or ["both (too few in common)"]
-            rejected[name] = f"board not found in the {' and '.join(missing)} image"
+            missing = [s for s, c in (("left", cl), ("right", cr)) if c is None]
+            rejected[name] = (f"board not found in the {missing[0]} image" if len(missing) == 1 else
+                              "board not found in either image" if missing else
+                              "too few of the board's corners found in both images")
             continue
         found[name] = both
     if len(found) < 3:

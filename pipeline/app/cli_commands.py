@@ -204,7 +204,7 @@ def calibrate_cmd(
     for name, why in cal.rejected.items():
         out.print(f"left out {name}: {why}", highlight=False)
     out.print(f"{len(cal.used)} pairs; RMS left {cal.rms_left:.3f} px, right {cal.rms_right:.3f} px, stereo "
-              f"{cal.rms_stereo:.3f} px; baseline {cal.baseline:.4f} m; second camera on the {cal.second_camera_side}",
+              f"{cal.rms_stereo:.3f} px; baseline {cal.baseline:.4f} m; second camera {cal.second_camera_phrase}",
               highlight=False)
     out.print(f"wrote {output} and {report}")
 

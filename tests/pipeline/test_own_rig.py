@@ -242,7 +242,7 @@ def test_calibrate_recovers_the_rendered_rig(chessboard_pairs, chessboard_calibr
     rc, text, err = cli(monkeypatch, capsys, "calibrate", chessboard_pairs, "--board", "chessboard:9x6", "--square",
                         "25mm", "-o", out)
     assert rc == 0, err
-    assert "second camera on the left" in text and "poor calibration" in err  # 32 % coverage: said so
+    assert "second camera to the left of the first" in text and "poor calibration" in err  # 32 % coverage: said so
     rig = load_calibration(out)
     assert "units: m" in out.read_text() and rig.image_size == truth.image_size
     for est, true in zip(rig.cameras, truth.cameras, strict=True):
@@ -515,3 +515,16 @@ def test_calibrate_from_two_videos(chessboard_pairs, tmp_path):
     truth = board_rig()
     assert len(cal.used) >= 18 and abs(cal.baseline / truth.baseline - 1) < 0.005
     np.testing.assert_allclose(np.diag(cal.rig.left.K)[:2], np.diag(truth.left.K)[:2], rtol=0.005)
+
+
+def test_second_camera_said_in_words():
+    """`calibrate` says where the second camera sits as a sentence would ("below the first", not
+    "on the below")."""
+    from types import SimpleNamespace
+
+    from pipeline.calibrate import Calibration
+
+    phrase = Calibration.second_camera_phrase.fget
+    said = {side: phrase(SimpleNamespace(second_camera_side=side)) for side in ("left", "right", "above", "below")}
+    assert said == {"left": "to the left of the first", "right": "to the right of the first",
+                    "above": "above the first", "below": "below the first"}
