@@ -253,7 +253,7 @@ class Clip:
         if reader is not None and reader.fps:
             return float(reader.fps), "video header"
         warnings.warn(f"{self.path}: no frame rate given (frame folders have none): assuming 30 fps; "
-                      f"give --fps or `fps:` in {CLIP_SETTINGS}", stacklevel=2)
+                      f"give --fps or `fps:` in {CLIP_SETTINGS}", stacklevel=3)  # past functools' cached_property
         return 30.0, "default"
 
     @cached_property

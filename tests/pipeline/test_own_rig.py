@@ -63,8 +63,9 @@ def test_frame_rate_from_every_source_recorded_and_used(tmp_path):
 
 def test_frame_folders_without_a_rate_warn_and_say_so(tmp_path, monkeypatch, capsys):
     clip = frame_folders(tmp_path / "frames", 20)
-    with pytest.warns(UserWarning, match="assuming 30 fps"):
+    with pytest.warns(UserWarning, match="assuming 30 fps") as said:
         assert Clip(clip).fps == 30.0
+    assert "pipeline" in Path(said[0].filename).parts  # our line, not functools.py's: the CLI shows it as ours
     rc, out, err = cli(monkeypatch, capsys, "detect", clip, "--markers", RED, "--fps", "60")
     assert rc == 0 and "frame rate: 60 fps (dt 16.67 ms), from --fps" in out, out + err
     assert "assuming 30" not in err
