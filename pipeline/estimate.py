@@ -254,8 +254,10 @@ def _run_group(m: str, seen: Observed, group: str, config: dict | None
     if not truth:
         return tracks, score_tracks(tracks, None), None
     positions = {k: t.position for k, t in tracks.items()}
-    follows = matched_truth(truth, positions)
+    follows, markers = matched_truth(truth, positions)
     scores = {k: score_track(t, follows[k]) for k, t in tracks.items()}
+    for k, s in scores.items():
+        s.follows = markers[k]
     return tracks, scores, identity_metrics(truth, positions, MATCH_M)
 
 

@@ -227,19 +227,33 @@ def gospa(seq: list[Frame], c: float, p: float = 2.0, switch: float | None = Non
 MATCH_M = 0.25
 
 
-def matched_truth(truth: dict[str, np.ndarray], tracks: dict[str, np.ndarray],
-                  threshold: float = MATCH_M) -> dict[str, np.ndarray]:
+def matched_truth(truth: dict[str, np.ndarray], tracks: dict[str, np.ndarray], threshold: float = MATCH_M
+                  ) -> tuple[dict[str, np.ndarray], dict[str, list[str]]]:
     """Each track's truth: per frame the position of the marker CLEAR MOT matches it to (NaN where
     none), so a track's 3-D error is measured against the marker it follows in that frame and an
-    identity switch shows up as an error, not as a silent relabel."""
+    identity switch shows up as an error, not as a silent relabel; and that marker's name per frame
+    (``""`` where none)."""
     gt_names, tr_names, seq = frames(truth, tracks)
     n = len(seq)
     out = {t: np.full((n, 3), np.nan) for t in tr_names}
+    names = {t: [""] * n for t in tr_names}
     last: dict[int, int] = {}
     for k, f in enumerate(seq):
         for g, t in _clear_pairs(f, last, threshold):
             out[tr_names[t]][k] = truth[gt_names[g]][k]
+            names[tr_names[t]][k] = gt_names[g]
             last[g] = t
+    return out, names
+
+
+def switches_of(follows: list[str]) -> list[tuple[int, str, str]]:
+    """The frames at which a track starts to follow another marker than the last it followed:
+    ``(frame, was, now)`` — its identity switches, frames it follows none left out."""
+    out, last = [], ""
+    for k, name in enumerate(follows):
+        if name and last and name != last:
+            out.append((k, last, name))
+        last = name or last
     return out
 
 

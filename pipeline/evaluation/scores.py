@@ -29,6 +29,8 @@ class FrameScores:
     nees: np.ndarray | None = None
     nis: np.ndarray | None = None
     nis_dof: np.ndarray | None = None
+    #: for a track of identical markers: the truth marker it follows in each frame (``""``: none)
+    follows: list[str] | None = None
 
     def columns(self) -> np.ndarray:
         """frames × 3: NIS, its degrees of freedom, position NEES (NaN where not defined): the

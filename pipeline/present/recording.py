@@ -26,6 +26,7 @@ import numpy as np
 
 from pipeline.core.camera import StereoRig
 from pipeline.core.io import partial_beside
+from pipeline.evaluation.identity import switches_of
 from pipeline.evaluation.metrics import runaways
 from pipeline.evaluation.scores import FrameScores
 from pipeline.present.style import TRUTH_RGB_VIEWER, marker_rgb, method_rgb
@@ -235,25 +236,29 @@ class Recorder:
         soon as the method has run (its tracks need not be kept for :meth:`finish`)."""
         n = _frames(est)
         self._method(est.rig, meth, per_marker, scores, n)
-        self._track_events(meth, per_marker)
+        self._track_events(meth, per_marker, scores)
         if self._ellipsoids(meth, per_marker, n):
             self.uncertain.append(meth)
         self.logged.append(meth)
         self.markers.update(per_marker)
 
-    def _track_events(self, meth: str, per_marker: dict[str, Track]) -> None:
+    def _track_events(self, meth: str, per_marker: dict[str, Track], scores: dict[str, FrameScores]) -> None:
         """A group's tracks (``<group>#<n>``) as events on the timeline under ``/events/<method>``:
-        each track's birth (its first estimate) and end (its last), as text-log entries."""
+        each track's birth (its first estimate) and end (its last), and with truth each identity
+        switch (the track starts to follow another marker), as text-log entries."""
         import rerun as rr
 
         events = []
         for name, t in per_marker.items():
             live = np.flatnonzero(np.all(np.isfinite(t.position), axis=1))
             if "#" in name and len(live):
-                events += [(int(live[0]), f"{name} born"), (int(live[-1]), f"{name} ended")]
+                events += [(int(live[0]), "INFO", f"{name} born"), (int(live[-1]), "INFO", f"{name} ended")]
+            follows = scores[name].follows if name in scores else None
+            events += [(k, "WARN", f"{name}: identity switch, follows {now} (was {was})")
+                       for k, was, now in switches_of(follows or [])]
         if events:
             events.sort()
-            cols = rr.TextLog.columns(text=[e[1] for e in events], level=["INFO"] * len(events))
+            cols = rr.TextLog.columns(text=[e[2] for e in events], level=[e[1] for e in events])
             self._columns(f"events/{meth}", np.array([e[0] for e in events], dtype=np.int64), cols)
 
     def finish(self, est: EstimateResult, marker_colours: dict[str, list[int]] | None = None,

@@ -132,3 +132,14 @@ def test_every_metric_sees_a_broken_tracker():
     assert m[2]["gospa_m"] > m[1]["gospa_m"]
     assert m[3]["false_positives"] > m[2]["false_positives"] and m[3]["idp"] < m[2]["idp"]
     assert m[3]["hota"] < m[2]["hota"] and m[3]["gospa_m"] > m[2]["gospa_m"]
+
+
+def test_switch_events_follow_the_matched_marker():
+    """A track's identity switches, frame by frame, from the marker it follows: a gap (following
+    none) is no switch; taking another marker after it is."""
+    assert identity.switches_of(["", "m1", "m1", "", "m1", "m2", "m2", "", "m0"]) == [(5, "m1", "m2"), (8, "m2", "m0")]
+    truth, _ = fixture(0)
+    tracks = {"t0": truth["m0"].copy()}
+    tracks["t0"][60:] = truth["m1"][60:]  # the track jumps to another marker (both are present there)
+    _, names = identity.matched_truth(truth, tracks)
+    assert names["t0"][45] == "m0" and identity.switches_of(names["t0"]) == [(60, "m0", "m1")]
