@@ -91,10 +91,8 @@ class Observed:
     groups: dict[str, GroupDetections] = field(default_factory=dict)
     #: each group's association, made once and filtered by every method
     associations: dict[str, Association] = field(default_factory=dict)
-    #: a rendered clip's groups → their markers' own names (their identities, in the truth)
-    members: dict[str, list[str]] = field(default_factory=dict)
-    #: a group member → the frames it is in view of a camera (identity metrics count it there only)
-    in_view: dict[str, np.ndarray] = field(default_factory=dict)
+    #: a rendered clip's groups → their members' true positions, NaN out of view (:meth:`Clip.group_truth`)
+    group_truth: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
 
 
 def estimate_clip(clip: str | Path | Clip, settings: RunSettings | None = None, out_dir: str | Path | None = None,
@@ -173,7 +171,8 @@ def observe(clip: Clip, in_dir: Path, detections: Detections | None, settings: R
     rig, checks = _rig_for_footage(clip, footage, settings.calib_units, warn_sized=detections is None)
     ts = _timestamps(clip, settings.time_offset)
     grid = grid_length(ts, clip.fps) if ts is not None else None  # videos that dropped frames are shorter
-    truth = clip.truth(max(footage.frames, grid) if footage.frames is not None and grid is not None else footage.frames)
+    truth_frames = max(footage.frames, grid) if footage.frames is not None and grid is not None else footage.frames
+    truth = clip.truth(truth_frames)
     if detections is None:
         cols = read_csv(det_path, DETECTION_COLUMNS, numeric=["area", "score"], finite=["frame", "u", "v"])
         singles, found = split_groups(cols, footage.frames, det_path, clip.identical_groups())
@@ -192,7 +191,7 @@ def observe(clip: Clip, in_dir: Path, detections: Detections | None, settings: R
     warn_failed(new_checks)
     return Observed(rig, 1.0 / clip.fps, n, obs, aligned, sync, truth, find_target(clip, settings.target_radius, obs),
                     checks + new_checks, footage, estimate_pixel_sigma(rig, aligned), groups,
-                    members=clip.identical_groups(), in_view=_in_view(clip, n) if groups and truth is not None else {})
+                    group_truth=clip.group_truth(truth_frames) if groups else {})
 
 
 def _rig_for_footage(clip: Clip, footage: FootageInfo, calib_units: str | None,
@@ -248,9 +247,7 @@ def _run_group(m: str, seen: Observed, group: str, config: dict | None
     if group not in seen.associations:
         seen.associations[group] = associate(list(seen.rig.cameras), seen.dt, seen.groups[group])
     tracks = filter_tracks(seen.rig, seen.dt, seen.associations[group], m, group, config)
-    truth = {mk: np.where(seen.in_view.get(mk, np.ones(len(seen.truth.positions[mk]), bool))[:, None],
-                          seen.truth.positions[mk], np.nan)
-             for mk in seen.members.get(group, []) if mk in seen.truth.positions} if seen.truth is not None else {}
+    truth = seen.group_truth.get(group, {})
     if not truth:
         return tracks, score_tracks(tracks, None), None
     positions = {k: t.position for k, t in tracks.items()}
@@ -259,23 +256,6 @@ def _run_group(m: str, seen: Observed, group: str, config: dict | None
     for k, s in scores.items():
         s.follows = markers[k]
     return tracks, scores, identity_metrics(truth, positions, MATCH_M)
-
-
-def _in_view(clip: Clip, n: int) -> dict[str, np.ndarray]:
-    """Each group member's frames in view of at least one camera (``truth.csv``'s visibility)."""
-    table = clip.truth_table()
-    if table is None or "visible_left" not in table:
-        return {}
-    members = {m for names in clip.identical_groups().values() for m in names}
-    out = {}
-    for m in members:
-        mine = table["marker"] == m
-        seen = np.zeros(n, dtype=bool)
-        frames = table["frame"][mine].astype(int)
-        ok = frames < n
-        seen[frames[ok]] = ((table["visible_left"][mine] > 0) | (table["visible_right"][mine] > 0))[ok]
-        out[m] = seen
-    return out
 
 
 def _run_point(m: str, seen: Observed, config: dict | None, out_dir: Path, resolved: dict, count: _Count

@@ -228,9 +228,7 @@ class StereoRig:
 
     def fundamental(self) -> np.ndarray:
         """Fundamental matrix ``F`` with ``x_rightᵀ F x_left = 0``: ``K2⁻ᵀ [T]ₓ R K1⁻¹`` (H&Z 9.2)."""
-        T = self.T
-        Tx = np.array([[0.0, -T[2], T[1]], [T[2], 0.0, -T[0]], [-T[1], T[0], 0.0]])
-        return np.linalg.inv(self.right.K).T @ Tx @ self.R @ np.linalg.inv(self.left.K)
+        return fundamental(self.left, self.right)
 
     def epipolar_distance(self, obs: np.ndarray) -> np.ndarray:
         """Symmetric point-to-epipolar-line distance (px) of stereo observations ``[u1, v1, u2, v2]``
@@ -299,6 +297,36 @@ def triangulate(rig: StereoRig, Y: np.ndarray) -> np.ndarray:
     X[~np.isfinite(X).all(axis=1)] = np.nan
     out[ok] = X * b
     return out
+
+
+def fundamental(a: Camera, b: Camera) -> np.ndarray:
+    """``F`` with ``x_bᵀ F x_a = 0`` between two cameras (Hartley & Zisserman, eq. 9.2)."""
+    R = b.R @ a.R.T
+    t = np.ravel(b.t) - R @ np.ravel(a.t)
+    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    return np.linalg.inv(b.K).T @ tx @ R @ np.linalg.inv(a.K)
+
+
+def epipolar_distances(a: Camera, b: Camera, ua: np.ndarray, ub: np.ndarray) -> np.ndarray:
+    """Symmetric point-to-epipolar-line distances (px) of every pair of ``ua`` (m × 2) and ``ub`` (n × 2)."""
+    F = fundamental(a, b)
+    xa, xb = np.c_[ua, np.ones(len(ua))], np.c_[ub, np.ones(len(ub))]
+    lb, la = xa @ F.T, xb @ F  # lines in b of a's points, in a of b's points
+    alg = np.abs(xb @ F @ xa.T).T  # m × n
+    return 0.5 * (alg / np.hypot(lb[:, 0], lb[:, 1])[:, None] + alg / np.hypot(la[:, 0], la[:, 1])[None, :])
+
+
+def triangulate_views(cameras: list[Camera], uv: np.ndarray) -> np.ndarray:
+    """The homogeneous DLT over the cameras whose pixel (``uv``: 2·cameras, NaN missing) is given."""
+    rows = []
+    for c, cam in enumerate(cameras):
+        u, v = uv[2 * c : 2 * c + 2]
+        if np.isfinite(u) and np.isfinite(v):
+            rows += [u * cam.P[2] - cam.P[0], v * cam.P[2] - cam.P[1]]
+    if len(rows) < 4:
+        return np.full(3, np.nan)
+    X = np.linalg.svd(np.array(rows))[2][-1]
+    return X[:3] / X[3]
 
 
 def rectifying_frame(rig: StereoRig) -> tuple[np.ndarray, np.ndarray]:

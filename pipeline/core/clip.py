@@ -204,6 +204,26 @@ class Clip:
                 out.setdefault(m.group, []).append(m.name)
         return out
 
+    def group_truth(self, n_frames: int | None = None) -> dict[str, dict[str, np.ndarray]]:
+        """Each group of identical markers → its members' true positions, NaN in the frames a member
+        is in view of neither camera (``truth.csv``'s visibility): what a group's tracks are matched
+        to and scored against. Empty for real footage or a clip without groups."""
+        groups, truth = self.identical_groups(), self.truth(n_frames)
+        if not groups or truth is None:
+            return {}
+        table = self.truth_table()
+        out: dict[str, dict[str, np.ndarray]] = {}
+        for g, names in groups.items():
+            out[g] = {}
+            for m in names:
+                if m not in truth.positions:
+                    continue
+                P = truth.positions[m].copy()
+                if table is not None and "visible_left" in table:
+                    P[~_seen(table, m, len(P))] = np.nan
+                out[g][m] = P
+        return out
+
     @cached_property
     def settings(self) -> ClipSettings:
         """``clip.yaml``: the user's settings for this clip (today its frame rate), or defaults."""
@@ -444,3 +464,13 @@ def read_timestamps(path: str | Path) -> dict[str, np.ndarray]:
     if not len(out["left"]) or not len(out["right"]):
         raise StereotrackError("needs rows for both cameras (left and right)", path)
     return out
+
+
+def _seen(table: dict[str, np.ndarray], marker: str, n: int) -> np.ndarray:
+    """The frames (of ``n``) ``marker`` is in view of at least one camera, from ``truth.csv``'s columns."""
+    mine = table["marker"] == marker
+    seen = np.zeros(n, dtype=bool)
+    frames = table["frame"][mine].astype(int)
+    ok = frames < n
+    seen[frames[ok]] = ((table["visible_left"][mine] > 0) | (table["visible_right"][mine] > 0))[ok]
+    return seen

@@ -31,7 +31,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.optimize import linear_sum_assignment
 from scipy.special import chdtri
 
-from pipeline.core.camera import Camera, StereoRig
+from pipeline.core.camera import Camera, StereoRig, epipolar_distances, triangulate_views
 from pipeline.estimators.base import Track, transition, white_noise_acceleration
 from pipeline.estimators.registration import create
 
@@ -234,11 +234,6 @@ class _Run:
         return out
 
 
-def _nis(r: np.ndarray, S: np.ndarray) -> np.ndarray:
-    """``rᵀ S⁻¹ r`` of each row of ``r``."""
-    return np.einsum("ni,ij,nj->n", r, np.linalg.inv(S), r)
-
-
 def _merged_tracks(where: np.ndarray, cost: np.ndarray, merge_px: float) -> np.ndarray:
     """Tracks whose images lie within ``merge_px`` of another's and that, together, gate fewer
     detections than they are: their blobs have merged, and a merged blob is no one's position (the
@@ -266,36 +261,6 @@ def _greedy(cost: np.ndarray) -> dict[int, int]:
         if free:
             taken[i] = int(free[0])
     return taken
-
-
-def fundamental(a: Camera, b: Camera) -> np.ndarray:
-    """``F`` with ``x_bᵀ F x_a = 0`` between two cameras (Hartley & Zisserman, eq. 9.2)."""
-    R = b.R @ a.R.T
-    t = np.ravel(b.t) - R @ np.ravel(a.t)
-    tx = np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
-    return np.linalg.inv(b.K).T @ tx @ R @ np.linalg.inv(a.K)
-
-
-def epipolar_distances(a: Camera, b: Camera, ua: np.ndarray, ub: np.ndarray) -> np.ndarray:
-    """Symmetric point-to-epipolar-line distances (px) of every pair of ``ua`` (m × 2) and ``ub`` (n × 2)."""
-    F = fundamental(a, b)
-    xa, xb = np.c_[ua, np.ones(len(ua))], np.c_[ub, np.ones(len(ub))]
-    lb, la = xa @ F.T, xb @ F  # lines in b of a's points, in a of b's points
-    alg = np.abs(xb @ F @ xa.T).T  # m × n
-    return 0.5 * (alg / np.hypot(lb[:, 0], lb[:, 1])[:, None] + alg / np.hypot(la[:, 0], la[:, 1])[None, :])
-
-
-def triangulate_views(cameras: list[Camera], uv: np.ndarray) -> np.ndarray:
-    """The homogeneous DLT over the cameras whose pixel (``uv``: 2·cameras, NaN missing) is given."""
-    rows = []
-    for c, cam in enumerate(cameras):
-        u, v = uv[2 * c : 2 * c + 2]
-        if np.isfinite(u) and np.isfinite(v):
-            rows += [u * cam.P[2] - cam.P[0], v * cam.P[2] - cam.P[1]]
-    if len(rows) < 4:
-        return np.full(3, np.nan)
-    X = np.linalg.svd(np.array(rows))[2][-1]
-    return X[:3] / X[3]
 
 
 def _stereo_points(cameras: list[Camera], dets: list[np.ndarray], gate_px: float) -> list[tuple[np.ndarray, np.ndarray]]:

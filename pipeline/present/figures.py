@@ -11,7 +11,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from pipeline.evaluation.scores import errors_per_frame
 from pipeline.present.report_data import ReportData
 from pipeline.present.style import TRUTH_STYLE, marker_rgb, method_colour, method_linestyle
 
@@ -110,7 +109,9 @@ def fig_trajectories(data: ReportData, plt) -> tuple[object, str] | None:
     if not data.point:
         return None
     fig, axes = plt.subplots(1, 2, figsize=(12, 5))
-    markers = sorted({mk for per in data.point.values() for mk in per})
+    drawn = {mk for per in data.point.values() for mk in per}
+    markers = sorted(drawn | {name for g, names in data.groups.items() if any(mk.startswith(g + "#") for mk in drawn)
+                              for name in names})
     keep = data.tracking()
     for ax, i in zip(axes, (0, 1), strict=True):
         for mk in markers:
@@ -135,13 +136,12 @@ def fig_trajectories(data: ReportData, plt) -> tuple[object, str] | None:
 
 def fig_error(data: ReportData, plt) -> tuple[object, str] | None:
     """3-D error per frame (mean over markers), log scale, each method its colour."""
-    if data.truth is None or not data.point:
+    if not any(data.errors.values()):
         return None
     fig, ax = plt.subplots(figsize=(12, 4.5))
     errs = {}
-    for meth, per in data.point.items():
-        e = [errors_per_frame(per[mk], data.truth[mk]) for mk in per if mk in data.truth]
-        if e:
+    for meth, per in data.errors.items():
+        if e := list(per.values()):
             n = min(len(x) for x in e)
             with np.errstate(all="ignore"), warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)

@@ -16,8 +16,9 @@ from pipeline.core.detections import load_detections
 from pipeline.core.errors import StereotrackError
 from pipeline.core.io import check_frame_column, read_csv, read_json_mapping
 from pipeline.core.outputs import Outputs
+from pipeline.evaluation.identity import matched_truth
 from pipeline.evaluation.metrics import runaways
-from pipeline.evaluation.scores import FrameScores
+from pipeline.evaluation.scores import FrameScores, errors_per_frame
 
 if TYPE_CHECKING:
     from pipeline.estimate import EstimateResult
@@ -36,6 +37,11 @@ class ReportData:
     target_truth: dict[str, np.ndarray] | None = None
     obs: dict[str, np.ndarray] = field(default_factory=dict)
     marker_colours: dict[str, list[int]] = field(default_factory=dict)
+    #: method → track → 3-D error (m) per frame of the drawn positions (NaN where hidden): against
+    #: its marker's truth, or for a track of identical markers the marker it follows in that frame
+    errors: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    #: groups of identical markers → their members' names (whose truth the tracks are drawn beside)
+    groups: dict[str, list[str]] = field(default_factory=dict)
 
     @property
     def runaways(self) -> list[str]:
@@ -46,6 +52,10 @@ class ReportData:
         series, from its tracks and their scores in memory."""
         self.point[m] = {mk: t.position.copy() for mk, t in per.items()}
         _hide_behind(est.rig, {m: self.point[m]})
+        self.errors[m] = {}
+        for mk, P in self.point[m].items():
+            if (e := scores[mk].error) is not None:
+                self.errors[m][mk] = np.where(np.isnan(P[: len(e)]).any(axis=1), np.nan, e)
         if (s := _track_filter_series(scores)) is not None:
             self.filters[m] = s
 
@@ -97,10 +107,13 @@ def load_report_data(clip: Clip, src: Path, out_dir: Path) -> ReportData:
         data.point[m] = positions_from_columns(cols)[0]
         if (s := _filter_series(cols)) is not None:
             data.filters[m] = s
-    if data.point and clip.has_calibration:
-        _hide_behind(clip.rig(metrics.get("calibration_units")), data.point)
     truth = clip.truth()
     data.truth = truth.positions if truth is not None else None
+    data.groups = clip.identical_groups()
+    refs = {m: _references(per, data.truth, clip.group_truth()) for m, per in data.point.items()}
+    if data.point and clip.has_calibration:
+        _hide_behind(clip.rig(metrics.get("calibration_units")), data.point)
+    data.errors = {m: {mk: errors_per_frame(data.point[m][mk], T) for mk, T in ref.items()} for m, ref in refs.items()}
     if (clip.folder / "target_truth.csv").is_file() and data.target:
         data.target_truth = read_csv(clip.folder / "target_truth.csv", ["t", "alpha", "distance"],
                                      numeric=["t", "alpha", "distance"])
@@ -109,6 +122,17 @@ def load_report_data(clip: Clip, src: Path, out_dir: Path) -> ReportData:
     if src_out.detect_info.is_file():
         data.marker_colours = read_json_mapping(src_out.detect_info, "detect record").get("marker_colours", {})
     return data
+
+
+def _references(per: dict[str, np.ndarray], truth: dict[str, np.ndarray] | None,
+                groups: dict[str, dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """Each track's true positions, in the tracks' order: its marker's, or for a track of identical
+    markers (``<group>#<n>``) the marker it follows frame by frame, as the estimate stage scored it."""
+    refs = {mk: truth[mk] for mk in per if truth is not None and mk in truth}
+    for g, members in groups.items():
+        if mine := {mk: P for mk, P in per.items() if mk.startswith(g + "#")}:
+            refs.update(matched_truth(members, mine)[0])
+    return {mk: refs[mk] for mk in per if mk in refs}
 
 
 def _track_filter_series(scores: dict[str, FrameScores]) -> tuple[np.ndarray, np.ndarray, float] | None:
@@ -127,7 +151,7 @@ def report_data(clip: Clip, est: EstimateResult, marker_colours: dict[str, list[
     :meth:`ReportData.add_method` already took of methods whose tracks were not kept."""
     data = data or ReportData(clip.folder.name, out_dir, {})
     data.name, data.out_dir, data.metrics = clip.folder.name, out_dir, est.metrics
-    data.truth = est.truth_positions
+    data.truth, data.groups = est.truth_positions, clip.identical_groups()
     data.obs, data.marker_colours = dict(est.observations), dict(marker_colours)
     for m, per in est.tracks.items():
         if m not in data.point:

@@ -99,3 +99,33 @@ def test_recording_marks_births_and_ends(identical_run):
     flat = [x for t in texts for x in (t if isinstance(t, list) else [t])]
     tracks = set(read_csv(res.out_dir / "estimates" / "ekf.csv", ["marker"])["marker"])
     assert {f"{n} born" for n in tracks} <= set(flat) and {f"{n} ended" for n in tracks} <= set(flat), flat
+
+
+@pytest.mark.slow
+def test_report_figures_score_and_draw_the_group(identical_run):
+    """The report of identical markers: each track's error per frame is against the marker it
+    follows (read back from the stage files, its RMS is the metrics' RMSE), the error figure draws
+    every method, and the trajectories draw every member's truth beside the tracks."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from pipeline.core.clip import Clip
+    from pipeline.present.figures import FIGURES
+    from pipeline.present.report_data import load_report_data
+
+    clip, res = identical_run
+    data = load_report_data(Clip.open(clip), res.out_dir, res.out_dir)
+    for method in ("triangulation", "ekf"):
+        e = np.concatenate(list(data.errors[method].values()))
+        rms = float(np.sqrt(np.nanmean(e**2)))
+        # the CSV keeps 10 significant digits of each position
+        assert rms == pytest.approx(res.estimate.metrics["methods"][method]["rmse"], rel=1e-6)
+    figs = dict(FIGURES)
+    fig, _ = figs["error"](data, plt)
+    assert {ln.get_label() for ln in fig.axes[0].get_lines()} >= {"triangulation", "ekf"}
+    fig, _ = figs["trajectories"](data, plt)
+    truth_lines = [ln for ln in fig.axes[0].get_lines() if ln.get_label() == "truth"]
+    assert len(truth_lines) == len(data.groups[next(iter(data.groups))]) == 4
+    plt.close("all")

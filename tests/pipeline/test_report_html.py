@@ -115,6 +115,7 @@ def test_runaways_are_clipped_and_named(e2e_run, tmp_path):  # noqa: F811
     data = load_report_data(Clip.open(e2e_run.clip), e2e_run.out_dir, e2e_run.out_dir)
     T = data.truth["red"]
     data.point["runaway"] = {"red": T + np.array([0.0, 0.0, 5.0])}  # 5 m off every frame
+    data.errors["runaway"] = {"red": np.full(len(T), 5.0)}
     data.metrics["methods"]["runaway"] = {"rmse": 5.0}
     fig, caption = dict(FIGURES)["error"](data, plt)
     assert "runaway (RMSE 5e+03 mm)" in caption and fig.axes[0].get_ylim()[1] < 1000  # mm
