@@ -13,7 +13,7 @@ from pipeline.core.errors import StereotrackError, first_line
 
 # isort: off
 # the commands register with the app as their modules load, in this order (``--help`` lists them so)
-from pipeline.app import cli_commands, cli_batch  # noqa: F401
+from pipeline.app import cli_commands, cli_batch, cli_rig  # noqa: F401
 # isort: on
 from pipeline.app.cli_common import app, console
 

@@ -105,9 +105,6 @@ def _read_storage(path: Path) -> dict:
     return data
 
 
-_STORAGE_KEYS = ("K1", "K2", "M1", "M2", "D1", "D2", "R", "T", "image_width", "image_height", "image_size", "units")
-
-
 def _read_xml_storage(path: Path) -> dict:
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
@@ -117,12 +114,14 @@ def _read_xml_storage(path: Path) -> dict:
         raise CalibrationError("not a readable OpenCV FileStorage file", path)
     try:
         out: dict = {}
-        for key in _STORAGE_KEYS:
+        for key in fs.root().keys():
             node = fs.getNode(key)
             if node.empty():
                 continue
             if node.isString():
                 out[key] = node.string()
+            elif node.isInt():
+                out[key] = int(node.real())
             elif node.isSeq():
                 out[key] = [node.at(i).real() for i in range(node.size())]
             elif node.isMap():

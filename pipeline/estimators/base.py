@@ -32,7 +32,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from pipeline.core.camera import StereoMeasurementModel, StereoRig
+from pipeline.core.camera import Rig, StereoMeasurementModel, StereoRig
 from pipeline.core.errors import StereotrackError
 from pipeline.estimators.gating import plausible_residual, plausible_triangulation, reprojection_errors
 
@@ -272,7 +272,7 @@ class Initiator:
         the observations of the frames up to and including ``frame``, oldest first): a line through
         the plausible triangulations among them, so the new track starts with the velocity of what it
         now follows; None when this frame's detections do not triangulate plausibly."""
-        Y = np.asarray(recent, dtype=float).reshape(-1, 4)
+        Y = np.asarray(recent, dtype=float).reshape(-1, self.model.ndim_meas)
         X = self.model.inverse_function(Y)
         ok = self._valid(X, Y)
         if not ok[-1]:
@@ -336,10 +336,16 @@ class Estimator(ABC):
     models_time_offset: ClassVar[bool] = False
     #: whether a target method takes the rendered target's dynamics (its ``config``) as settings
     models_target_dynamics: ClassVar[bool] = False
+    #: whether the method takes a :class:`~pipeline.core.camera.Rig` of any number of cameras (its
+    #: observations 2N wide); the others take a two-camera :class:`StereoRig`
+    any_cameras: ClassVar[bool] = False
 
-    def __init__(self, rig: StereoRig, dt: float, config: EstimatorConfig | dict[str, Any] | None = None,
+    def __init__(self, rig: StereoRig | Rig, dt: float, config: EstimatorConfig | dict[str, Any] | None = None,
                  time_offset: float = 0.0) -> None:
         rig.check()
+        if not (self.any_cameras or isinstance(rig, StereoRig)):
+            raise StereotrackError(f"{self.name} takes a stereo pair; with {rig.n} cameras use one of "
+                                   f"{', '.join(n_camera_methods())}")
         if not dt > 0:
             raise StereotrackError(f"time step must be positive, got {dt}")
         self.rig = rig
@@ -398,9 +404,11 @@ class Estimator(ABC):
     def check(self, Y: np.ndarray, source: str = "observations") -> np.ndarray:
         """Validate a clip's observations for this method's kind (NaN = missing, inf = error)."""
         Y = np.asarray(Y, dtype=float)
-        want = (4,) if self.kind == "point" else (4, 4)
+        m = self.model.ndim_meas
+        want = (m,) if self.kind == "point" else (4, m)
         if Y.ndim != 1 + len(want) or Y.shape[1:] != want:
-            what = "frames × 4 observations [u1, v1, u2, v2]" if self.kind == "point" else "frames × 4 points × 4"
+            what = (f"frames × {m} observations [u1, v1, u2, v2, …]" if self.kind == "point"
+                    else f"frames × 4 points × {m}")
             raise StereotrackError(f"{source}: expected {what}, got shape {Y.shape}")
         if np.isinf(Y).any():
             raise StereotrackError(f"{source}: infinite pixel coordinates")
@@ -466,6 +474,13 @@ class Estimator(ABC):
         """Positions of many tracks (tracks × frames × obs → tracks × frames × 3), each from a fresh
         state. This version loops over :meth:`run`; vectorised cores override it."""
         return np.stack([self.run(y).position for y in np.asarray(Y, dtype=float)])
+
+
+def n_camera_methods() -> list[str]:
+    """The registered methods that take a rig of any number of cameras."""
+    from pipeline.estimators.registration import registry
+
+    return sorted(name for name, cls in registry().items() if cls.any_cameras)
 
 
 def not_started() -> Step:

@@ -47,9 +47,10 @@ from pipeline.estimators.registration import register
 
 @register
 class EKFEstimator(GatedFilter, Estimator):
-    """Extended Kalman filter on the 4-D stereo reprojection (white-noise acceleration)."""
+    """Extended Kalman filter on the stereo (or N-camera) reprojection (white-noise acceleration)."""
 
     name = "ekf"
+    any_cameras = True
     Config = KalmanConfig
     config: KalmanConfig  # the validated settings, of this method's own type
     models_time_offset = True
@@ -107,7 +108,7 @@ class EKFEstimator(GatedFilter, Estimator):
 
     def _update(self, x, P, y, rows, h_all, H_all, PHt_all, S_all):
         """The Joseph-form update on the rows present: (x, P, innovation, S, NIS)."""
-        if len(rows) == 4:
+        if len(rows) == len(h_all):
             H, r, R, PHt, S = H_all, y - h_all, self.R, PHt_all, S_all
         else:
             H, r = H_all[rows], y[rows] - h_all[rows]
@@ -127,7 +128,7 @@ class EKFEstimator(GatedFilter, Estimator):
         repeated :meth:`step`; the kernels compiled or loaded before the timing starts), or step by
         step where compiling would not pay (:func:`~pipeline.estimators.base.use_compiled`)."""
         Y = self.check(Y)
-        if not use_compiled(len(Y)):
+        if not use_compiled(len(Y)) or self.rig.n != 2:  # the compiled core is written for two cameras
             return Estimator.run(self, Y)
         import pipeline.estimators.compiled as kernels
 
@@ -175,7 +176,7 @@ class EKFEstimator(GatedFilter, Estimator):
         """What the compiled core takes of the filter (an ``EKFModel`` of ``kernels``): both cameras'
         3 × 4 matrices, the time offset, the noises and the gate's threshold (inf: no gate)."""
         threshold = self.gate_threshold() if self.config.gate > 0 else np.inf
-        return kernels.EKFModel(np.stack([self.rig.left.P, self.rig.right.P]), self.model.time_offset, self.dt, self.Q,
+        return kernels.EKFModel(np.stack([c.P for c in self.rig.cameras]), self.model.time_offset, self.dt, self.Q,
                                 self.R, threshold, self.config.restart_after)
 
     def run_batch(self, Y: np.ndarray) -> np.ndarray:
@@ -184,6 +185,8 @@ class EKFEstimator(GatedFilter, Estimator):
         restart (the initiator is Python) runs again on its own through :meth:`_compiled`."""
         import pipeline.estimators.compiled as kernels
 
+        if self.rig.n != 2:
+            return Estimator.run_batch(self, Y)
         Y = np.asarray(Y, dtype=float)
         self.reset()
         M, n = Y.shape[:2]

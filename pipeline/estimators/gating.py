@@ -10,7 +10,7 @@ from collections import deque
 
 import numpy as np
 
-from pipeline.core.camera import StereoMeasurementModel, StereoRig
+from pipeline.core.camera import Rig, StereoMeasurementModel, StereoRig
 
 
 def plausible_residual(sigma: float, gate: float) -> float:
@@ -37,11 +37,16 @@ def stereo_consistent(model: StereoMeasurementModel, y: np.ndarray, sigma: float
 
 
 def plausible_triangulation(model: StereoMeasurementModel, X: np.ndarray, Y: np.ndarray, limit: float) -> np.ndarray:
-    """Which triangulations ``X`` (…×3) of ``Y`` (…×4) are finite, in front of both cameras and
-    reproject within ``limit`` px² (:func:`plausible_residual`)."""
+    """Which triangulations ``X`` (…×3) of ``Y`` (…×2N) are finite, in front of every camera that
+    observes them and reproject within ``limit`` px² (:func:`plausible_residual`)."""
     ok = np.all(np.isfinite(X), axis=-1)
     depth = np.where(ok[..., None], model.rig.depths(np.where(ok[..., None], X, 1.0)), -1.0)
-    return ok & np.all(depth > 0, axis=-1) & (reprojection_residual(model, X, Y) <= limit)
+    if model.rig.n == 2:
+        front = np.all(depth > 0, axis=-1)
+    else:
+        seen = np.isfinite(Y).reshape(*np.shape(Y)[:-1], model.rig.n, 2).all(axis=-1)
+        front = np.all((depth > 0) | ~seen, axis=-1)
+    return ok & front & (reprojection_residual(model, X, Y) <= limit)
 
 
 def camera_gate(gate: float) -> float:
@@ -81,18 +86,20 @@ class RobustNISScale:
 
 
 def reprojection_residual(model: StereoMeasurementModel, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
-    """Summed squared pixel residual ``‖h(X) − y‖²`` of triangulations ``X`` (…×3) of ``Y`` (…×4)."""
+    """Summed squared pixel residual ``‖h(X) − y‖²`` of triangulations ``X`` (…×3) of ``Y`` (…×2N),
+    over the cameras that observe them."""
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.sum((model.function(np.nan_to_num(X)) - Y) ** 2, axis=-1)
+        r2 = (model.function(np.nan_to_num(X)) - Y) ** 2
+        return np.sum(r2, axis=-1) if model.rig.n == 2 else np.nansum(r2, axis=-1)
 
 
 def camera_nis(model: StereoMeasurementModel, x: np.ndarray, P: np.ndarray, Y: np.ndarray,
                R: np.ndarray | None = None, h: np.ndarray | None = None, H: np.ndarray | None = None,
                S: np.ndarray | None = None) -> np.ndarray:
-    """Each camera's normalized innovation squared ``rᵀ S⁻¹ r`` (…×2; NaN where it has no
+    """Each camera's normalized innovation squared ``rᵀ S⁻¹ r`` (…×N; NaN where it has no
     observation), ``r = y_c − h_c(x)``, ``S = H_c P H_cᵀ + R_c`` at the predicted state ``x`` (…×d)
-    and covariance ``P`` (…×d×d); ``R`` (4×4) defaults to the model's ``σ² I``; ``h``, ``H``, ``S``:
-    the model at ``x`` and the 4×4 innovation covariance when the caller has them already."""
+    and covariance ``P`` (…×d×d); ``R`` (2N×2N) defaults to the model's ``σ² I``; ``h``, ``H``,
+    ``S``: the model at ``x`` and the 2N×2N innovation covariance when the caller has them already."""
     R = model.covar() if R is None else R
     h = model.function(x) if h is None else h
     H = model.jacobian(x) if H is None else H
@@ -102,8 +109,9 @@ def camera_nis(model: StereoMeasurementModel, x: np.ndarray, P: np.ndarray, Y: n
         return _camera_nis_one(S, Y - h)
     with np.errstate(invalid="ignore"):
         r = Y - h
-    out = np.full((*np.shape(Y)[:-1], 2), np.nan)
-    for c in range(2):
+    n = np.shape(Y)[-1] // 2
+    out = np.full((*np.shape(Y)[:-1], n), np.nan)
+    for c in range(n):
         i = 2 * c
         a, b, d = S[..., i, i], S[..., i, i + 1], S[..., i + 1, i + 1]
         u, v = r[..., i], r[..., i + 1]
@@ -113,9 +121,10 @@ def camera_nis(model: StereoMeasurementModel, x: np.ndarray, P: np.ndarray, Y: n
 
 def _camera_nis_one(S: np.ndarray, r: np.ndarray) -> np.ndarray:
     """:func:`camera_nis` of one track in Python floats (the same closed form; NaN stays NaN)."""
-    s, (u1, v1, u2, v2) = S.tolist(), r.tolist()
+    s, rr = S.tolist(), r.tolist()
     out = []
-    for i, u, v in ((0, u1, v1), (2, u2, v2)):
+    for i in range(0, len(rr), 2):
+        u, v = rr[i], rr[i + 1]
         a, b, d = s[i][i], s[i][i + 1], s[i + 1][i + 1]
         out.append((d * u * u - 2.0 * b * u * v + a * v * v) / (a * d - b * b))
     return np.array(out)
@@ -124,15 +133,15 @@ def _camera_nis_one(S: np.ndarray, r: np.ndarray) -> np.ndarray:
 def gated_cameras(model: StereoMeasurementModel, x: np.ndarray, P: np.ndarray, Y: np.ndarray,
                   threshold: float, R: np.ndarray | None = None, h: np.ndarray | None = None,
                   H: np.ndarray | None = None, S: np.ndarray | None = None) -> np.ndarray:
-    """Which cameras' observations fall outside the χ² gate (…×2 booleans), each camera on its own
-    (a bad blob in one camera never discards the other's): :func:`camera_nis` above ``threshold``."""
+    """Which cameras' observations fall outside the χ² gate (…×N booleans), each camera on its own
+    (a bad blob in one camera never discards the others'): :func:`camera_nis` above ``threshold``."""
     if not np.isfinite(threshold):
-        return np.zeros((*np.shape(Y)[:-1], 2), dtype=bool)
+        return np.zeros((*np.shape(Y)[:-1], np.shape(Y)[-1] // 2), dtype=bool)
     with np.errstate(invalid="ignore"):
         return camera_nis(model, x, P, Y, R, h, H, S) > threshold
 
 
-def reprojection_errors(rig: StereoRig, positions: np.ndarray, Y: np.ndarray, velocities: np.ndarray | None = None,
+def reprojection_errors(rig: StereoRig | Rig, positions: np.ndarray, Y: np.ndarray, velocities: np.ndarray | None = None,
                         time_offset: float = 0.0) -> np.ndarray:
     """Per-frame RMS pixel distance between ``h(position)`` and the available observations (with a
     time offset, the right camera sees ``position + velocity·δ``)."""

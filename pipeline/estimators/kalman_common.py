@@ -41,9 +41,8 @@ def available_rows(y: np.ndarray) -> np.ndarray:
     """Indices of the observation rows present (both coordinates of a camera go together)."""
     ok = np.isfinite(y)
     if ok.all():
-        return _ALL_ROWS
-    ok[:2] = ok[:2].all()
-    ok[2:] = ok[2:].all()
+        return _ALL_ROWS if len(ok) == 4 else np.arange(len(ok))
+    ok = np.repeat(ok.reshape(-1, 2).all(axis=1), 2)
     return np.flatnonzero(ok)
 
 
@@ -93,7 +92,7 @@ class GatedFilter(Estimator):
         frame's detections (when they triangulate plausibly). ``h``, ``H``, ``S``: the model at
         ``x`` and the innovation covariance under the gate's noise, when the caller has them."""
         g = gated_cameras(self.model, x, P, y, self.gate_threshold(), self.gate_covariance(), h, H, S)
-        gated = bool(g[0] or g[1])
+        gated = bool(g.any())
         kept = y
         if gated:
             kept = y.copy()

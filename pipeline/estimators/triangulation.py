@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.core.camera import triangulate_robust
 from pipeline.estimators.base import NAN3, Estimator, Step
-from pipeline.estimators.gating import plausible_residual, reprojection_residual
+from pipeline.estimators.gating import GATE_FLOOR_PX, camera_gate, plausible_residual, reprojection_residual
 from pipeline.estimators.registration import register
 
 
@@ -21,9 +22,13 @@ class TriangulationEstimator(Estimator):
     Through a gap it holds the last point (flagged ``predicted``) so that it never emits NaN after
     its first fix. A frame whose reprojection residual is implausible for the pixel noise (χ², one
     degree of freedom, at ``gate``: a detection off the epipolar line) is marked gated and
-    treated as a gap."""
+    treated as a gap. With more than two cameras a frame keeps the largest set of cameras that
+    agree (each within the per-camera χ² gate, two degrees of freedom, of a noise of
+    ``max(pixel_sigma, 1 px)``): one camera's outlier drops that camera, not the frame
+    (:func:`~pipeline.core.camera.triangulate_robust`); ``extra["cameras"]`` counts the cameras used."""
 
     name = "triangulation"
+    any_cameras = True
 
     def reset(self) -> None:
         super().reset()
@@ -32,10 +37,21 @@ class TriangulationEstimator(Estimator):
 
     def _fix(self, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Triangulations (…×3, NaN where implausible) and which frames were gated (…)."""
+        if self.rig.n > 2:
+            return self._fix_views(Y)[:2]
         X = self.model.inverse_function(Y)
         gated = np.all(np.isfinite(X), axis=-1) & (reprojection_residual(self.model, X, Y) > self.max_residual)
         X[gated] = np.nan
         return X, gated
+
+    def _fix_views(self, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """N cameras: the robust subset triangulation; (points, frames gated, cameras used)."""
+        shape = Y.shape[:-1]
+        limit = max(self.config.pixel_sigma, GATE_FLOOR_PX) * float(np.sqrt(camera_gate(self.config.gate)))
+        X, used = triangulate_robust(self.rig, Y.reshape(-1, Y.shape[-1]), limit)
+        seen = np.isfinite(Y.reshape(-1, self.rig.n, 2)).all(axis=2).sum(axis=1) >= 2
+        gated = seen & ~np.isfinite(X).all(axis=1)
+        return X.reshape(*shape, 3), gated.reshape(shape), used.sum(axis=1).reshape(shape)
 
     def _step(self, y: np.ndarray) -> Step:
         Xs, gated_all = self._fix(y[None])
