@@ -15,13 +15,14 @@ from detectors import check_detector, create_detector
 from detectors.blob import BlobDetector, MarkerColor
 from detectors.markers import resolve_marker_specs
 from pipeline.core.camera import StereoRig
-from pipeline.core.checks import Check, colour_checks, rig_for_frames, warn_failed
+from pipeline.core.checks import Check, check_view_sizes, colour_checks, rig_for_frames, warn_failed
 from pipeline.core.clip import CLIP_INFO, DETECTION_COLUMNS, MARKERS_FILE, Clip, FootageInfo
 from pipeline.core.detections import Detections, GroupDetections, split_groups
 from pipeline.core.errors import StereotrackError
 from pipeline.core.frames import CameraReader, StereoFrameSource
 from pipeline.core.io import write_csv, write_json
 from pipeline.core.outputs import Outputs
+from pipeline.core.rig import Rig
 from pipeline.core.settings import RunHooks, RunSettings
 
 #: The detect stage's record beside detections.csv: frames, frame size, markers used, checks.
@@ -125,20 +126,25 @@ def detect_clip(clip: str | Path | Clip, settings: RunSettings | None = None, ou
     settings, hooks = settings or RunSettings(), hooks or RunHooks()
     check_detector(settings.detector)
     clip_ = Clip.open(clip, settings.fps)
-    source = StereoFrameSource(clip_.path, allow_unequal=settings.allow_unequal, fps=clip_.fps)
+    source = StereoFrameSource(clip_.path, allow_unequal=settings.allow_unequal, fps=clip_.fps, cameras=clip_.cameras)
     out_dir = Outputs.of(clip_.folder, out_dir).folder
-    rig: StereoRig | None = None
+    rig: StereoRig | Rig | None = None
     checks: list[Check] = []
     if clip_.has_calibration:
-        rig, size_check = rig_for_frames(clip_.rig(settings.calib_units), source.size, clip_.path)
-        checks += [size_check] if size_check else []
+        found = clip_.rig(settings.calib_units)
+        if isinstance(found, Rig):
+            check_view_sizes(found, source.sizes, clip_.folder / clip_.calibration_name)
+            rig = found
+        else:
+            rig, size_check = rig_for_frames(found, source.size, clip_.path)
+            checks += [size_check] if size_check else []
     learned: dict[str, str] = {}
     specs = resolve_marker_specs(clip_.path, list(settings.markers) if settings.markers else None)
     markers, groups = markers_for_clip(clip_, specs, lambda k: _left_frame(source, k), learned, settings.force_window)
     identical = set(clip_.identical_groups()) & set(groups)
     targets = {g: names for g, names in groups.items() if g not in identical}
     finders = [create_detector(settings.detector, markers, targets, settings.roi, identical)
-               for _ in range(2 if source.stereo else 1)]
+               for _ in range(len(source.readers))]
     scan = _scan(source, finders, rig, markers, {n for names in groups.values() for n in names} | set(groups),
                  hooks.frame, hooks.progress)
     checks += colour_checks(scan.samples)
@@ -152,7 +158,8 @@ class DetectionTable:
     """Detections as the scan finds them, in compact columns (a long clip has tens of thousands;
     as Python tuples each row weighs about 200 bytes, and the memory stays with the process)."""
 
-    def __init__(self) -> None:
+    def __init__(self, cameras: tuple[str, ...] = CAMERAS) -> None:
+        self.cameras = cameras
         self.frame, self.camera, self.marker = array("q"), array("b"), array("h")
         self.u, self.v, self.area, self.score = array("d"), array("d"), array("d"), array("d")
         self.names: list[str] = []
@@ -171,7 +178,7 @@ class DetectionTable:
     def __len__(self) -> int:
         return len(self.frame)
 
-    def undistort(self, rig: StereoRig) -> None:
+    def undistort(self, rig: StereoRig | Rig) -> None:
         """Each camera's pixel coordinates undistorted in place, all of them in one call (the same
         per-point iteration as one call per detection, without its overhead)."""
         cams = np.frombuffer(self.camera, dtype=np.int8)
@@ -185,7 +192,7 @@ class DetectionTable:
         """The ``detections.csv`` columns as arrays (camera and marker names as strings)."""
         names = np.array(self.names, dtype=object)
         return {"frame": np.frombuffer(self.frame, dtype=np.int64).astype(float),
-                "camera": np.array(CAMERAS, dtype=object)[np.frombuffer(self.camera, dtype=np.int8)],
+                "camera": np.array(self.cameras, dtype=object)[np.frombuffer(self.camera, dtype=np.int8)],
                 "marker": names[np.frombuffer(self.marker, dtype=np.int16)],
                 **{k: np.frombuffer(getattr(self, k), dtype=float) for k in ("u", "v", "area", "score")}}
 
@@ -194,7 +201,7 @@ class DetectionTable:
         (``detections.csv``)."""
         for k, c, m, u, v, a, sc in zip(self.frame, self.camera, self.marker, self.u, self.v, self.area, self.score,
                                         strict=True):
-            yield k, CAMERAS[c], self.names[m], u, v, a, sc
+            yield k, self.cameras[c], self.names[m], u, v, a, sc
 
 
 @dataclass
@@ -225,7 +232,7 @@ class _CameraScan:
         return self.finder.detect(img)
 
 
-def _scan(source: StereoFrameSource, finders: list, rig: StereoRig | None, markers: list[MarkerColor],
+def _scan(source: StereoFrameSource, finders: list, rig: StereoRig | Rig | None, markers: list[MarkerColor],
           unsampled: set[str], frame_sink: Callable | None, progress: Callable[[int, int], None] | None) -> _Scanned:
     """Every frame through each camera's detector, with whole-frame colour samples from a few frames
     for the colour checks; coordinates undistorted at the end when there is a calibration. Each
@@ -233,11 +240,12 @@ def _scan(source: StereoFrameSource, finders: list, rig: StereoRig | None, marke
     detection overlaps."""
     total = len(source)
     sample_at = set(np.linspace(0, max(total - 1, 0), min(CHECK_SAMPLES, max(total, 1))).astype(int).tolist())
-    out = _Scanned(DetectionTable(), {}, 0, len(finders))
-    cams = [_CameraScan(f, markers, CAMERAS[c], sample_at, unsampled) for c, f in enumerate(finders)]
+    names = source.cameras if len(finders) > 1 else CAMERAS[:1]
+    out = _Scanned(DetectionTable(tuple(names)), {}, 0, len(finders))
+    cams = [_CameraScan(f, markers, names[c], sample_at, unsampled) for c, f in enumerate(finders)]
     for fr in source.frames(cams):
         if frame_sink is not None:
-            frame_sink(fr.index, fr.left, fr.right)
+            frame_sink(fr.index, *fr.images)
         for c, found in enumerate(fr.found):
             for d in found or ():
                 out.rows.add(fr.index, c, d.marker, d.u, d.v, d.area, d.score)
@@ -258,7 +266,7 @@ def _write_detections(out_dir: Path, clip: Clip, source: StereoFrameSource, scan
     write_csv(path, DETECTION_COLUMNS, scan.rows)
     cols = scan.rows.columns()
     summaries = summarize(cols, clip, scan.frames, scan.cameras)
-    observations, groups = split_groups(cols, scan.frames, path, clip.identical_groups())
+    observations, groups = split_groups(cols, scan.frames, path, clip.identical_groups(), clip.cameras)
     cameras = [asdict(s) for s in summaries]
     write_json(Outputs(out_dir).detect_info, {
         "clip": str(clip.path), "frames": scan.frames, "frame_size": list(source.size), "stereo": source.stereo,
@@ -313,7 +321,7 @@ def summarize(cols: dict[str, np.ndarray], clip: Clip, n_frames: int, n_cams: in
     out = []
     grid = _footage_to_grid(clip) if truth is not None else None
     for c in range(n_cams):
-        cam = CAMERAS[c]
+        cam = clip.cameras[c] if n_cams > 1 else CAMERAS[0]
         mine = {k: v[cols["camera"] == cam] for k, v in cols.items()}
         s = CameraSummary(cam, n_frames, len(mine["frame"]))
         if truth is not None:

@@ -28,6 +28,7 @@ from pipeline.core.detections import Detections, GroupDetections, split_groups
 from pipeline.core.errors import StereotrackError, first_line
 from pipeline.core.io import read_csv, write_csv, write_json
 from pipeline.core.outputs import Outputs
+from pipeline.core.rig import Rig
 from pipeline.core.settings import RunHooks, RunSettings
 from pipeline.core.sync import SyncEstimate, grid_length, resolve_sync
 from pipeline.core.version import stereotrack_version
@@ -44,7 +45,7 @@ from pipeline.evaluation.scores import FrameScores, score_track, score_tracks
 @dataclass
 class EstimateResult:
     out_dir: Path
-    rig: StereoRig
+    rig: StereoRig | Rig
     dt: float
     n_frames: int
     observations: dict[str, np.ndarray]
@@ -76,7 +77,7 @@ class Observed:
     each marker's observations (as detected, and with the right camera aligned to the left's
     times), the time offset, truth, the target, the pixel noise estimated and the input checks."""
 
-    rig: StereoRig
+    rig: StereoRig | Rig
     dt: float
     n: int
     obs: dict[str, np.ndarray]
@@ -124,6 +125,8 @@ def estimate_clip(clip: str | Path | Clip, settings: RunSettings | None = None, 
             raise StereotrackError(f"unknown method {m!r} (known: {', '.join(reg)})")
     seen = observe(clip_, Path(in_dir) if in_dir else out_dir, detections, settings)
     methods = methods or registered_methods("point") + (registered_methods("target") if seen.target else [])
+    if isinstance(seen.rig, Rig):  # N cameras: the methods that take them (asked-for others: an error naming them)
+        methods = [m for m in methods if reg[m].any_cameras] if not settings.methods else methods
     point = [m for m in methods if reg[m].kind == "point"]
     target = [m for m in methods if reg[m].kind == "target"]
     if target and seen.target is None:
@@ -175,19 +178,26 @@ def observe(clip: Clip, in_dir: Path, detections: Detections | None, settings: R
     truth = clip.truth(truth_frames)
     if detections is None:
         cols = read_csv(det_path, DETECTION_COLUMNS, numeric=["area", "score"], finite=["frame", "u", "v"])
-        singles, found = split_groups(cols, footage.frames, det_path, clip.identical_groups())
+        singles, found = split_groups(cols, footage.frames, det_path, clip.identical_groups(), clip.cameras)
         detections = Detections(singles, footage, found)
     obs, groups = detections.observations, detections.groups
     if not obs and not groups:
         raise StereotrackError("no detections in this clip", det_path)
     lengths = [len(v) for v in obs.values()] + [len(v) for v in groups.values()]
     n = max([*lengths, grid or 0, truth.n_frames if truth is not None else 0])
-    obs = {k: np.vstack([v, np.full((n - len(v), 4), np.nan)]) for k, v in obs.items()}
-    groups = {g: [*v, *([[np.zeros((0, 2)), np.zeros((0, 2))]] * (n - len(v)))] for g, v in groups.items()}
-    sync, aligned = resolve_sync(settings.time_offset if obs else "off", rig, obs, clip.fps, ts)
+    width = 2 * len(rig.cameras)
+    obs = {k: np.vstack([v, np.full((n - len(v), width), np.nan)]) for k, v in obs.items()}
+    groups = {g: [*v, *([[np.zeros((0, 2)) for _ in rig.cameras]] * (n - len(v)))] for g, v in groups.items()}
+    if isinstance(rig, Rig):  # N cameras: their offsets are the rig's (sync estimation is for a pair)
+        ts = None
+        sync, aligned = SyncEstimate(0.0, None, False, "off"), obs
+    else:
+        sync, aligned = resolve_sync(settings.time_offset if obs else "off", rig, obs, clip.fps, ts)
     new_checks = [_sync_check(sync)]
-    if obs:  # the pair checks read single markers (a group's detections pair up only through the association)
+    if obs and isinstance(rig, StereoRig):  # the pair checks read single markers (groups pair up only when associated)
         new_checks += [*stereo_checks(rig, aligned, clip.calibration_name), *jump_checks(obs, rig.image_size[0] or 640)]
+    elif obs:
+        new_checks += jump_checks(obs, rig.image_size[0] or 640)
     warn_failed(new_checks)
     return Observed(rig, 1.0 / clip.fps, n, obs, aligned, sync, truth, find_target(clip, settings.target_radius, obs),
                     checks + new_checks, footage, estimate_pixel_sigma(rig, aligned), groups,
@@ -195,11 +205,13 @@ def observe(clip: Clip, in_dir: Path, detections: Detections | None, settings: R
 
 
 def _rig_for_footage(clip: Clip, footage: FootageInfo, calib_units: str | None,
-                     warn_sized: bool) -> tuple[StereoRig, list[Check]]:
+                     warn_sized: bool) -> tuple[StereoRig | Rig, list[Check]]:
     """The calibration as the frames need it (scaled as the detect stage did, or checked against
     the footage's size when it did not say) and the checks so far."""
     rig = clip.rig(calib_units)
     checks = list(footage.checks)
+    if isinstance(rig, Rig):  # every camera's size was checked by the detect stage, which has them all
+        return rig, checks
     sized = [c for c in checks if c.name in ("image_size", "calibration_size")]  # the detect stage's verdict
     if footage.frame_size is not None and not sized:
         rig, size_check = rig_for_frames(rig, footage.frame_size, clip.path)

@@ -26,12 +26,16 @@ from pipeline.core.clip import CLIP_INFO, TIMESTAMPS
 from pipeline.core.errors import StereotrackError
 from pipeline.core.io import write_json, write_text
 from pipeline.core.outputs import OUT
+from pipeline.core.rig import Rig
+from pipeline.core.rigfiles import save_rig
 from renderers.motion import Truth, simulate_truth
 from renderers.scenario import CalibrationErrorSpec, Scenario, clip_description
 from renderers.truth import frame_times, project_truth, write_target_truth, write_timestamps, write_truth
 from renderers.writers import BackgroundWriter, Format, FrameWriter, SensorNoise, writer_threaded
 
 CAMERA_NAMES = ("left", "right")
+#: an N-camera clip's calibration (a stereo clip's is calib.yaml)
+RIG_FILE = "rig.json"
 
 
 @dataclass
@@ -41,6 +45,7 @@ class RenderResult:
     clip_dir: Path
     frames: int
     warnings: list[str]
+    cameras: tuple[str, ...] = ("left", "right")
 
 
 def render_camera(
@@ -54,7 +59,7 @@ def render_camera(
     marker (frames × markers, from a segmentation render); else None."""
     from renderers.scene import StereoScene, create_offscreen_renderer, set_multisample
 
-    rig = scenario.rig.build()
+    rig = scenario.rig.build_any()
     truth = truth if truth is not None else simulate_truth(scenario)
     times = frame_times(scenario)
     scene = StereoScene(scenario, rig, truth)
@@ -64,10 +69,11 @@ def render_camera(
     set_multisample(renderer, scenario.render.multisample)
     counts = np.zeros((scenario.frames, len(truth.names)), dtype=np.int64) if scenario.distractors else None
     try:
-        w, h = rig.image_size
+        w, h = size = rig.sizes[cam_index]
         rs = scenario.render
         noise = SensorNoise((h, w, 3), rs.noise_std, scenario.seed, cam_index)
-        writer = BackgroundWriter(lambda: FrameWriter(clip_dir, CAMERA_NAMES[cam_index], fmt, scenario.fps, rig.image_size),
+        name = scenario.rig.camera_names()[cam_index]
+        writer = BackgroundWriter(lambda: FrameWriter(clip_dir, name, fmt, scenario.fps, size),
                                   rs.blur_sigma, noise, threaded=writer_threaded(renderer))
         try:
             for k in range(scenario.frames):
@@ -170,10 +176,22 @@ def _staging_dir(clip_dir: Path) -> Path:
 #: scenario.yaml): only such a folder, or an empty one, is ever re-rendered.
 RENDERED_MARK = (CLIP_INFO, "scenario.yaml")
 #: What a render puts in a clip folder; a re-render replaces exactly these (and the stale ``out/``).
-RENDERED = ("calib.yaml", "calib_true.yaml", CLIP_INFO, "scenario.yaml", "truth.csv", "target_truth.csv", TIMESTAMPS,
-            "left", "right", "left.mp4", "right.mp4", OUT)
+RENDERED = ("calib.yaml", "calib_true.yaml", RIG_FILE, CLIP_INFO, "scenario.yaml", "truth.csv", "target_truth.csv",
+            TIMESTAMPS, "left", "right", "left.mp4", "right.mp4", OUT)
 #: A marker counts as visible when at least this share of its unoccluded image area shows.
 VISIBLE_SHARE = 0.4
+
+
+def _rendered_cameras(clip_dir: Path) -> list[str]:
+    """The camera files (``NAME.mp4``, ``NAME/``) an N-camera clip rendered here holds, by its clip.json."""
+    import json
+
+    try:
+        names = json.loads((clip_dir / CLIP_INFO).read_text()).get("cameras") or []
+    except (OSError, ValueError, AttributeError):
+        return []
+    return [f for n in names if isinstance(n, str) and n.replace("_", "").replace("-", "").isalnum()
+            for f in (n, f"{n}.mp4")]
 
 
 def _commit(staging: Path, clip_dir: Path) -> None:
@@ -183,13 +201,13 @@ def _commit(staging: Path, clip_dir: Path) -> None:
     if not clip_dir.exists():
         staging.rename(clip_dir)
         return
-    for name in RENDERED:
+    for name in (*RENDERED, *_rendered_cameras(clip_dir)):
         p = clip_dir / name
         if p.is_dir():
             shutil.rmtree(p)
         elif p.exists():
             p.unlink()
-    for p in sorted(staging.iterdir(), key=lambda p: p.name == "calib.yaml"):
+    for p in sorted(staging.iterdir(), key=lambda p: p.name in ("calib.yaml", RIG_FILE)):
         p.rename(clip_dir / p.name)
     staging.rmdir()
 
@@ -199,17 +217,21 @@ def _write_clip_files(scenario: Scenario, staging: Path, truth: Truth, fmt: Form
     """Truth, timestamps, scenario, description and calibration beside the frames (the user's
     calibration, perturbed when a calibration error is asked for, with the true one beside it);
     returns notes (markers never in view)."""
-    rig = scenario.rig.build()
+    rig = scenario.rig.build_any()
+    names = scenario.rig.camera_names()
     proj = project_truth(rig, scenario, truth, distractors=all(c is None for c in counts))
     for c, cnt in enumerate(counts):
         if cnt is not None:  # the rendered image decides: occluded or cut by the frame ⇒ not visible
             proj.visible[:, :, c] &= cnt >= VISIBLE_SHARE * expected_areas(rig.cameras[c], truth, proj, c)
-    notes = [f"marker '{name}' is never visible in either camera" for i, name in enumerate(truth.names)
-             if not proj.visible[:, i, :].any()]
+    notes = [f"marker '{name}' is never visible in {'either camera' if len(names) == 2 else 'any camera'}"
+             for i, name in enumerate(truth.names) if not proj.visible[:, i, :].any()]
     write_text(staging / "scenario.yaml", scenario.to_yaml())
     write_json(staging / CLIP_INFO, clip_description(scenario))
-    write_truth(staging / "truth.csv", truth, proj)
-    write_timestamps(staging / TIMESTAMPS, proj.times, fmt)
+    write_truth(staging / "truth.csv", truth, proj, names)
+    write_timestamps(staging / TIMESTAMPS, proj.times, fmt, names)
+    if isinstance(rig, Rig):  # N cameras: the rig file of its own format (no stereo calib.yaml)
+        save_rig(rig, staging / RIG_FILE)
+        return notes
     if truth.targets:
         write_target_truth(staging / "target_truth.csv", truth, proj)
     if scenario.calibration_error is not None:
@@ -272,7 +294,7 @@ def _finish_clip(scenario: Scenario, staging: Path, clip_dir: Path, fmt: Format,
     _commit(staging, clip_dir)
     for msg in notes:
         warnings.warn(f"{clip_dir}: {msg}", stacklevel=3)
-    return RenderResult(clip_dir, scenario.frames, notes)
+    return RenderResult(clip_dir, scenario.frames, notes, scenario.rig.camera_names())
 
 
 def render_clips(
@@ -321,11 +343,12 @@ def _render_here(jobs: Sequence[tuple[Scenario, str | Path]], stagings: list[Pat
         for j, (scen, _) in enumerate(jobs):
             truth = simulate_truth(scen)
             counts = []
-            for c in range(2):
+            cams = scen.rig.n_cameras
+            for c in range(cams):
 
-                def tick(k: int, c: int = c, base: int = done, n: int = scen.frames) -> None:
+                def tick(k: int, c: int = c, base: int = done, n: int = scen.frames, cams: int = cams) -> None:
                     if progress is not None:
-                        progress(base + (k + 1 + c * n) // 2, total)
+                        progress(base + (k + 1 + c * n) // cams, total)
 
                 counts.append(render_camera(scen, c, stagings[j], fmt, tick, renderer, truth))
             done += scen.frames
@@ -349,13 +372,13 @@ def _render_pool(jobs: Sequence[tuple[Scenario, str | Path]], stagings: list[Pat
     pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
                                   initargs=(os.getpid(), q))
     frames_done: dict[tuple[int, int], int] = {}
-    counts: list[list] = [[None, None] for _ in jobs]
+    counts: list[list] = [[None] * scen.rig.n_cameras for scen, _ in jobs]
     cams_done = [0] * len(jobs)
     results: list[RenderResult | None] = [None] * len(jobs)
     try:
         with signals_deferred(), child_environment({"LP_NUM_THREADS": "1"}):  # submitting spawns the workers
             futs = {pool.submit(_render_job, scen.model_dump_json(), c, str(stagings[j]), fmt, j): (j, c)
-                    for j, (scen, _) in enumerate(jobs) for c in range(2)}
+                    for j, (scen, _) in enumerate(jobs) for c in range(scen.rig.n_cameras)}
         pending = set(futs)
         while pending:
             finished, pending = cf.wait(pending, timeout=0.2, return_when=cf.FIRST_COMPLETED)
@@ -365,14 +388,15 @@ def _render_pool(jobs: Sequence[tuple[Scenario, str | Path]], stagings: list[Pat
                 try:
                     counts[j][c] = f.result()
                 except cf.process.BrokenProcessPool:
-                    raise StereotrackError(f"the render worker for the {CAMERA_NAMES[c]} camera of {dirs[j]} died "
+                    cam = jobs[j][0].rig.camera_names()[c]
+                    raise StereotrackError(f"the render worker for the {cam} camera of {dirs[j]} died "
                                            "(killed, or out of memory)") from None
                 frames_done[(j, c)] = jobs[j][0].frames
                 cams_done[j] += 1
-                if cams_done[j] == 2:
+                if cams_done[j] == jobs[j][0].rig.n_cameras:
                     results[j] = _finish_clip(jobs[j][0], stagings[j], dirs[j], fmt, counts[j])
             if progress is not None:
-                progress(sum(frames_done.values()) // 2, total)
+                progress(int(sum(k / jobs[jc[0]][0].rig.n_cameras for jc, k in frames_done.items())), total)
     except BaseException:
         end_pool(pool)
         raise

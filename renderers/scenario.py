@@ -12,137 +12,27 @@ from typing import Annotated, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 
-from pipeline.core.camera import StereoRig
 from pipeline.core.errors import ScenarioError
 from pipeline.core.io import read_yaml_mapping
-
-Vec3 = tuple[float, float, float]
-Color = tuple[int, int, int]
+from renderers.rigspec import (  # noqa: F401  (a scenario's rig, named here for its readers)
+    CalibrationErrorSpec,
+    CameraPose,
+    Color,
+    RigMatrices,
+    RigSpec,
+    RingSpec,
+    Vec3,
+    ViewSpec,
+    _Model,
+    _resolve_calibration,
+    _resolve_ring,
+    _rotation_xyz,
+)
 
 #: Folder of built-in scenarios (``data/scenarios`` at the repository root).
 BUILTIN_DIR = Path(__file__).resolve().parent.parent / "data" / "scenarios"
-
-
-class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class CameraPose(_Model):
-    """Where the second camera sits relative to the first: its centre (m) in the first camera's frame
-    (x right, y down, z forward) and its orientation, as rotations of its axes about the first
-    camera's x, y and z axes (degrees, applied in that order). ``[0.3, 0, 0]`` with no rotation is the
-    usual side-by-side rig; ``[-0.3, 0, 0]`` has the second camera on the left, ``[0, -0.3, 0]`` above."""
-
-    position: Vec3
-    rotation_deg: Vec3 = (0.0, 0.0, 0.0)
-
-    @field_validator("position")
-    @classmethod
-    def _apart(cls, v: Vec3) -> Vec3:
-        if math.hypot(*v) < 1e-6:
-            raise ValueError("the two cameras coincide: give the second camera a position away from the first")
-        return v
-
-
-class RigMatrices(_Model):
-    """A rig spelled out (what ``rig.calibration`` is read into, so a clip's scenario.yaml stands alone)."""
-
-    K1: tuple[Vec3, Vec3, Vec3]
-    D1: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
-    K2: tuple[Vec3, Vec3, Vec3]
-    D2: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
-    R: tuple[Vec3, Vec3, Vec3]
-    T: Vec3
-
-
-class RigSpec(_Model):
-    """Stereo rig: resolution, focal length(s) in px, principal point, baseline (m), toe-in (deg);
-    or a calibration file (``calibration``, relative to the scenario file); or a free layout of the
-    second camera (``right``). Lens distortion (OpenCV's 4–14 coefficients) and the rig's timing:
-    ``sync_offset_s`` (the right camera's frame k is exposed at ``k/fps + offset``), rolling shutter
-    (``line_delay_s`` per image row), frame-time ``jitter_s`` (std, per camera and frame) and dropped
-    frames (``drop_rate``, one value or [left, right])."""
-
-    width: int = Field(640, gt=0, le=8192)
-    height: int = Field(480, gt=0, le=8192)
-    focal: float | tuple[float, float] = 600.0
-    principal_point: tuple[float, float] | None = None
-    baseline: float = Field(0.3, gt=0)
-    toe_in_deg: float = Field(0.0, ge=-45, le=45)
-    calibration: str | None = None
-    matrices: RigMatrices | None = None
-    right: CameraPose | None = None
-    distortion: tuple[float, ...] | None = None
-    distortion_right: tuple[float, ...] | None = None
-    sync_offset_s: float = 0.0
-    line_delay_s: float = Field(0.0, ge=0)
-    jitter_s: float = Field(0.0, ge=0)
-    drop_rate: float | tuple[float, float] = 0.0
-
-    @field_validator("focal")
-    @classmethod
-    def _positive_focal(cls, v: float | tuple[float, float]) -> float | tuple[float, float]:
-        vals = (v,) if isinstance(v, (int, float)) else v
-        if any(f <= 0 for f in vals):
-            raise ValueError("focal length must be positive")
-        return v
-
-    @field_validator("distortion", "distortion_right")
-    @classmethod
-    def _dist_length(cls, v: tuple[float, ...] | None) -> tuple[float, ...] | None:
-        if v is not None and len(v) not in (4, 5, 8, 12, 14):
-            raise ValueError(f"OpenCV distortion has 4, 5, 8, 12 or 14 coefficients, not {len(v)}")
-        return v
-
-    @field_validator("drop_rate")
-    @classmethod
-    def _rate(cls, v: float | tuple[float, float]) -> float | tuple[float, float]:
-        if any(not 0 <= r < 1 for r in ((v,) if isinstance(v, (int, float)) else v)):
-            raise ValueError("a drop rate lies in [0, 1)")
-        return v
-
-    @model_validator(mode="after")
-    def _one_layout(self) -> RigSpec:
-        if self.calibration is not None and self.right is not None:
-            raise ValueError("give either 'calibration' or 'right', not both")
-        if self.line_delay_s * self.height > 1.0:
-            raise ValueError("line_delay_s × height exceeds one second: a rolling shutter reads a frame within its period")
-        return self
-
-    @property
-    def drop_rates(self) -> tuple[float, float]:
-        r = self.drop_rate
-        return (float(r), float(r)) if isinstance(r, (int, float)) else (float(r[0]), float(r[1]))
-
-    def build(self) -> StereoRig:
-        """The rig that renders the clip (``calib_true.yaml`` when a calibration error is asked for)."""
-        from pipeline.core.camera import Camera
-
-        if self.matrices is not None:
-            m = self.matrices
-            return StereoRig(Camera(np.array(m.K1), D=np.array(m.D1)),
-                             Camera(np.array(m.K2), np.array(m.R), np.array(m.T), np.array(m.D2)),
-                             (self.width, self.height))
-        rig = StereoRig.from_parameters(self.width, self.height, self.focal, self.principal_point, self.baseline,
-                                        self.toe_in_deg)
-        K = rig.left.K
-        R, T = rig.R, rig.T
-        if self.right is not None:
-            R_wc = _rotation_xyz(self.right.rotation_deg)  # second camera → first camera's frame
-            R = R_wc.T
-            T = -R @ np.array(self.right.position, float)
-        D1 = np.array(self.distortion if self.distortion is not None else (0.0,) * 5, float)
-        D2 = np.array(self.distortion_right if self.distortion_right is not None else D1, float)
-        return StereoRig(Camera(K.copy(), D=D1), Camera(K.copy(), R, T, D2), rig.image_size)
-
-
-def _rotation_xyz(deg: Vec3) -> np.ndarray:
-    """Rotation about x, then y, then z (degrees): ``Rz @ Ry @ Rx``."""
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_euler("xyz", deg, degrees=True).as_matrix()
 
 
 class ConstantVelocity(_Model):
@@ -258,20 +148,6 @@ class Distractor(_Model):
     roughness: float = Field(0.9, ge=0.0, le=1.0)
 
 
-class CalibrationErrorSpec(_Model):
-    """What the user's calibration gets wrong (std devs, drawn once per clip from ``seed``): focal
-    lengths (relative), principal points (px), baseline length (relative), the second camera's
-    rotation (deg, per axis) and distortion (absolute, on k1 and k2). The clip's calib.yaml is the
-    perturbed rig; calib_true.yaml the one that rendered it."""
-
-    focal: float = Field(0.0, ge=0, le=0.5)
-    principal_point: float = Field(0.0, ge=0, le=100)
-    baseline: float = Field(0.0, ge=0, le=0.5)
-    rotation_deg: float = Field(0.0, ge=0, le=10)
-    distortion: float = Field(0.0, ge=0, le=1)
-    seed: int | None = Field(None, ge=0)
-
-
 class RenderSpec(_Model):
     """How frames look: shading, sensor noise (grey levels), blur (px), background."""
 
@@ -302,7 +178,7 @@ class Scenario(_Model):
     rig: RigSpec = RigSpec()
     render: RenderSpec = RenderSpec()
     objects: list[ObjectSpec] = Field(min_length=1)
-    distractors: list[Distractor] = []
+    distractors: list[Distractor] = Field(default_factory=list)
     calibration_error: CalibrationErrorSpec | None = None
 
     @model_validator(mode="after")
@@ -325,6 +201,9 @@ class Scenario(_Model):
         if self.render.exposure_s > 1.0 / self.fps:
             raise ValueError(f"render.exposure_s {self.render.exposure_s:g} s is longer than the frame period "
                              f"{1.0 / self.fps:g} s")
+        if self.rig.views is not None and (any(o.is_target for o in self.objects) or self.calibration_error):
+            raise ValueError("a four-point target and calibration_error need a stereo pair, not a rig of "
+                             f"{self.rig.n_cameras} cameras")
         if self.rig.line_delay_s * self.rig.height > 1.0 / self.fps:
             raise ValueError("rig.line_delay_s × height is longer than the frame period: the sensor could not read a frame")
         return self
@@ -334,6 +213,8 @@ class Scenario(_Model):
         """What this clip's rig and scene do that an ideal rig does not (recorded in clip.json)."""
         r = self.rig
         out: dict[str, object] = {}
+        if r.views is not None:
+            return self._view_imperfections()
         rig = r.build()
         if r.calibration is not None:
             out["calibration"] = r.calibration
@@ -352,6 +233,23 @@ class Scenario(_Model):
             out["exposure_samples"] = self.render.exposure_samples
         if self.calibration_error is not None:
             out["calibration_error"] = self.calibration_error.model_dump()
+        return out
+
+    def _view_imperfections(self) -> dict[str, object]:
+        """:attr:`imperfections` of an N-camera rig: per camera where it differs from ideal."""
+        r, out = self.rig, {}
+        views = r.views or []
+        if any(np.any(v.D) for v in views):
+            out["distortion"] = {v.name: list(v.D) for v in views}
+        if any(r.time_offsets()):
+            out["time_offsets_s"] = dict(zip(r.camera_names(), r.time_offsets(), strict=True))
+        if any(r.camera_drop_rates()):
+            out["drop_rate"] = dict(zip(r.camera_names(), r.camera_drop_rates(), strict=True))
+        for key in ("line_delay_s", "jitter_s"):
+            if getattr(r, key):
+                out[key] = getattr(r, key)
+        if self.render.exposure_s > 0:
+            out["exposure_s"] = self.render.exposure_s
         return out
 
     @property
@@ -413,38 +311,9 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
     return parse_scenario(data, path)
 
 
-def _resolve_calibration(data: dict, source: str | Path) -> dict:
-    """``rig.calibration: FILE`` (relative to the scenario file) read into ``rig.matrices`` and the
-    image size, so that the rig is spelled out wherever the scenario travels (render workers, the
-    clip's own scenario.yaml). A file that does not load is an error naming the scenario and field."""
-    rig = data.get("rig") if isinstance(data, dict) else None
-    if not isinstance(rig, dict) or not isinstance(rig.get("calibration"), str) or rig.get("matrices") is not None:
-        return data
-    from pipeline.core.calibration import load_calibration
-    from pipeline.core.errors import StereotrackError
-
-    base = Path(source).parent if Path(str(source)).is_file() else Path(".")
-    path = base / rig["calibration"]
-    try:
-        import warnings
-
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            cal = load_calibration(path)
-    except StereotrackError as exc:
-        raise ScenarioError(f"rig.calibration: {exc}", source) from None
-    if caught:
-        raise ScenarioError(f"rig.calibration: {caught[0].message}", source)
-    if cal.image_size == (0, 0):
-        raise ScenarioError(f"rig.calibration: {path} records no image size; add image_width/image_height", source)
-    mats = {"K1": cal.left.K.tolist(), "D1": cal.left.D.tolist(), "K2": cal.right.K.tolist(), "D2": cal.right.D.tolist(),
-            "R": cal.R.tolist(), "T": cal.T.tolist()}
-    return {**data, "rig": {**rig, "matrices": mats, "width": cal.image_size[0], "height": cal.image_size[1]}}
-
-
 def parse_scenario(data: dict, source: str | Path = "<scenario>") -> Scenario:
     """Validate a scenario mapping; pydantic errors become one-line ``ScenarioError``s."""
-    data = _resolve_calibration(data, source)
+    data = _resolve_ring(_resolve_calibration(data, source), source)
     try:
         return Scenario.model_validate(data)
     except ValidationError as exc:
@@ -487,6 +356,8 @@ def clip_description(scenario: Scenario) -> dict:
                       "config": {"a_alpha": m.alpha_matrix[1][1], "alpha_feedback": [-m.alpha_matrix[1][0], 0.0],
                                  "a_z": m.a_z}}
     out = {"fps": scenario.fps, "frames": scenario.frames, "markers": markers, "target": target}
+    if scenario.rig.views is not None:
+        out["cameras"] = list(scenario.rig.camera_names())
     if scenario.imperfections:
         out["imperfections"] = scenario.imperfections
     return out

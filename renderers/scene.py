@@ -10,6 +10,7 @@ import numpy as np
 
 from pipeline.core.camera import Camera, StereoRig
 from pipeline.core.errors import RenderBackendError, first_line
+from pipeline.core.rig import Rig
 from renderers.motion import Truth, distractor_positions
 from renderers.scenario import Scenario
 
@@ -187,7 +188,7 @@ class StereoScene:
     """All geometry of a scenario, posed per frame (or at any time, per camera); renders either
     camera of the rig through its :class:`RenderView`."""
 
-    def __init__(self, scenario: Scenario, rig: StereoRig, truth: Truth) -> None:
+    def __init__(self, scenario: Scenario, rig: StereoRig | Rig, truth: Truth) -> None:
         ensure_gl_platform()
         import pyrender
         import trimesh
@@ -227,7 +228,7 @@ class StereoScene:
         self._background = None
         if rs.background == "textured":
             self._background = self.scene.add(self._background_mesh(), pose=np.eye(4))
-        self.views = [render_view(cam, rig.image_size) for cam in rig.cameras]
+        self.views = [render_view(cam, size) for cam, size in zip(rig.cameras, rig.sizes, strict=True)]
         self._camera_nodes = []
         for cam, view in zip(rig.cameras, self.views, strict=True):
             fx, fy, cx, cy = Camera(view.K, cam.R, cam.t).gl_intrinsics()
@@ -253,7 +254,7 @@ class StereoScene:
         rs = self.scenario.render
         D = rs.background_distance
         w, h = self.rig.image_size
-        K = self.rig.left.K
+        K = self.rig.cameras[0].K
         half_w = D * max(K[0, 2], w - K[0, 2]) / K[0, 0] * 1.8 + self.rig.baseline + D * 0.5
         half_h = D * max(K[1, 2], h - K[1, 2]) / K[1, 1] * 1.8
         nx, ny = 64, 48
@@ -282,7 +283,7 @@ class StereoScene:
         skew across one small object is left out)."""
         from renderers.truth import seen_at
 
-        cam, ld, h = self.rig.cameras[camera], self.scenario.rig.line_delay_s, self.rig.image_size[1]
+        cam, ld, h = self.rig.cameras[camera], self.scenario.rig.line_delay_s, self.rig.sizes[camera][1]
         n = len(self._marker_nodes)
         pos, nrm = np.empty((n, 3)), np.empty((n, 3))
         for i in range(n):
@@ -291,16 +292,17 @@ class StereoScene:
             pos[i], nrm[i] = p[0, 0], nn[0, 0]
         plates = []
         for tp in self.truth.target_paths:
-            t = self._row_time(cam, lambda t, tp=tp: tp.points_at(t)[3], t0)
+            t = self._row_time(cam, lambda t, tp=tp: tp.points_at(t)[3], t0, h)
             _, _, normal, center, _ = tp.points_at(t)
             plates.append((center[0], normal[0]))
         dist = [distractor_positions(self.scenario, self._row_time(
-            cam, lambda t, j=j: distractor_positions(self.scenario, t)[:, j], t0))[0, j] for j in range(len(self._distractors))]
+            cam, lambda t, j=j: distractor_positions(self.scenario, t)[:, j], t0, h))[0, j]
+            for j in range(len(self._distractors))]
         self._pose(pos, nrm, plates, dist)
 
-    def _row_time(self, cam: Camera, where, t0: float) -> np.ndarray:
+    def _row_time(self, cam: Camera, where, t0: float, h: int) -> np.ndarray:
         """When the row imaging ``where(t)`` (a centre) is exposed, from ``t0`` (fixed point)."""
-        ld, h = self.scenario.rig.line_delay_s, self.rig.image_size[1]
+        ld = self.scenario.rig.line_delay_s
         t = np.array([t0])
         for _ in range(4 if ld > 0 else 0):
             v = cam.project_distorted(where(t))[:, 1]

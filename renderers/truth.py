@@ -19,8 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.core.camera import Camera, StereoRig
-from pipeline.core.clip import TARGET_TRUTH_COLUMNS, TIMESTAMP_COLUMNS, TRUTH_COLUMNS, TRUTH_EXTRA_COLUMNS
+from pipeline.core.clip import TARGET_TRUTH_COLUMNS, TIMESTAMP_COLUMNS, truth_columns, truth_extra_columns
 from pipeline.core.io import write_csv
+from pipeline.core.rig import Rig
 from renderers.motion import Truth, distractor_positions
 from renderers.scenario import Scenario
 
@@ -48,12 +49,12 @@ def frame_times(scenario: Scenario) -> FrameTimes:
     never dropped, so both videos start together."""
     n, rig = scenario.frames, scenario.rig
     base = np.arange(n) * scenario.dt
-    t = np.stack([base, base + rig.sync_offset_s])
-    present = np.ones((2, n), dtype=bool)
-    for c in range(2):
+    t = np.stack([base + off for off in rig.time_offsets()])
+    present = np.ones((rig.n_cameras, n), dtype=bool)
+    for c in range(rig.n_cameras):
         if rig.jitter_s > 0:
             t[c] = t[c] + np.random.default_rng([scenario.seed, 40_000 + c]).normal(0.0, rig.jitter_s, n)
-        rate = rig.drop_rates[c]
+        rate = rig.camera_drop_rates()[c]
         if rate > 0:
             present[c] = np.random.default_rng([scenario.seed, 41_000 + c]).random(n) >= rate
             present[c, 0] = True
@@ -99,14 +100,14 @@ def _occluders(scenario: Scenario, truth: Truth, t: np.ndarray,
     return occ
 
 
-def _visible(rig: StereoRig, scenario: Scenario, truth: Truth, c: int, i: int, p: np.ndarray, uv: np.ndarray,
+def _visible(rig: StereoRig | Rig, scenario: Scenario, truth: Truth, c: int, i: int, p: np.ndarray, uv: np.ndarray,
              t: np.ndarray, distractors: bool = True) -> np.ndarray:
     """In front of camera ``c``, inside the image, facing it (flat target markers) and not hidden
     behind another object (markers, distractors as bounding spheres unless the rendered image
     decides for them, the target plate)."""
     cam = rig.cameras[c]
     C = cam.center
-    vis = (cam.depth(p) > NEAR) & rig.in_image(uv)
+    vis = (cam.depth(p) > NEAR) & rig.in_image(uv, camera=c)
     nrm = truth.at(t, [i])[2][:, 0]
     if np.all(np.isfinite(nrm)):
         vis &= np.einsum("ij,ij->i", nrm, C - p) > 0
@@ -131,7 +132,7 @@ def _visible(rig: StereoRig, scenario: Scenario, truth: Truth, c: int, i: int, p
     return vis
 
 
-def project_truth(rig: StereoRig, scenario: Scenario, truth: Truth, times: FrameTimes | None = None,
+def project_truth(rig: StereoRig | Rig, scenario: Scenario, truth: Truth, times: FrameTimes | None = None,
                   distractors: bool = True) -> ProjectedTruth:
     """Project every marker into both cameras, each at its own exposure time (sync offset, jitter,
     rolling shutter), and decide its visibility (dropped frames are not visible). ``distractors``:
@@ -139,12 +140,13 @@ def project_truth(rig: StereoRig, scenario: Scenario, truth: Truth, times: Frame
     decides instead."""
     times = times if times is not None else frame_times(scenario)
     n, m = truth.positions.shape[:2]
-    uv, uvp = np.empty((n, m, 4)), np.empty((n, m, 4))
-    t_seen = np.empty((n, m, 2))
-    visible = np.zeros((n, m, 2), dtype=bool)
+    N = len(rig.cameras)
+    uv, uvp = np.empty((n, m, 2 * N)), np.empty((n, m, 2 * N))
+    t_seen = np.empty((n, m, N))
+    visible = np.zeros((n, m, N), dtype=bool)
     for c, cam in enumerate(rig.cameras):
         for i in range(m):
-            t = seen_at(cam, truth, i, times.t[c], scenario.rig.line_delay_s, rig.image_size[1])
+            t = seen_at(cam, truth, i, times.t[c], scenario.rig.line_delay_s, rig.sizes[c][1])
             p = truth.at(t, [i])[0][:, 0]
             t_seen[:, i, c] = t
             uv[:, i, 2 * c : 2 * c + 2] = cam.project_distorted(p)
@@ -154,10 +156,10 @@ def project_truth(rig: StereoRig, scenario: Scenario, truth: Truth, times: Frame
     return ProjectedTruth(uv, uvp, t_seen, visible, times)
 
 
-def write_truth(path: Path, truth: Truth, proj: ProjectedTruth) -> None:
-    """Write ``truth.csv`` (long format, one row per frame per marker): the 3-D state at the left
+def write_truth(path: Path, truth: Truth, proj: ProjectedTruth, cameras: tuple[str, ...] = ("left", "right")) -> None:
+    """Write ``truth.csv`` (long format, one row per frame per marker): the 3-D state at the first
     camera's frame time, each camera's pixels at its own time, visibility, the pinhole pixels and
-    the times each camera saw the marker."""
+    the times each camera saw the marker (columns named by ``cameras``)."""
     t_left = proj.times.t[0]
     pos, vel = (truth.positions, truth.velocities) if np.array_equal(t_left, truth.t) else truth.at(t_left)[:2]
 
@@ -166,19 +168,19 @@ def write_truth(path: Path, truth: Truth, proj: ProjectedTruth) -> None:
             for i, name in enumerate(truth.names):
                 yield (
                     k, t_left[k], name, *pos[k, i], *vel[k, i],
-                    *proj.uv[k, i], int(proj.visible[k, i, 0]), int(proj.visible[k, i, 1]),
+                    *proj.uv[k, i], *proj.visible[k, i].astype(int).tolist(),
                     *proj.uv_pinhole[k, i], *proj.t_seen[k, i],
                 )
 
-    write_csv(path, TRUTH_COLUMNS + TRUTH_EXTRA_COLUMNS, rows())
+    write_csv(path, truth_columns(cameras) + truth_extra_columns(cameras), rows())
 
 
-def write_timestamps(path: Path, times: FrameTimes, fmt: str) -> None:
+def write_timestamps(path: Path, times: FrameTimes, fmt: str, cameras: tuple[str, ...] = ("left", "right")) -> None:
     """``timestamps.csv``: per camera, each frame of its footage (numbered as the footage numbers
     it: a video's position, a PNG's file number) and the time its row 0 was exposed."""
 
     def rows():
-        for c, cam in enumerate(("left", "right")):
+        for c, cam in enumerate(cameras):
             index = times.footage_index(c) if fmt == "mp4" else np.arange(times.t.shape[1])
             for k in np.flatnonzero(times.present[c]):
                 yield (int(index[k]), cam, times.t[c, k])

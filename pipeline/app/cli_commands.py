@@ -118,7 +118,8 @@ def render_cmd(
                                  progress=lambda done, total: bar.update(task, completed=done))
     for w in caught:
         console.print(f"[yellow]warning:[/] {w.message}")
-    out.print(f"wrote {result.frames} stereo frames to {result.clip_dir}")
+    what = "stereo frames" if len(result.cameras) == 2 else f"frames of each of {len(result.cameras)} cameras"
+    out.print(f"wrote {result.frames} {what} to {result.clip_dir}")
 
 
 @app.command("detect")

@@ -77,8 +77,8 @@ def run_description(clip: Path, detector: str, metrics: dict) -> str:
 def _process_clip(clip_: Clip, out_dir: Path, settings: RunSettings, hooks: RunHooks, keep_tracks: bool) -> RunResult:
     t0 = time.perf_counter()
     clip = clip_.path  # the clip is read once, handed to every stage
-    recorder = Recorder(Outputs(out_dir).recording, 1.0 / clip_.fps, name=f"stereotrack run {clip.name}") \
-        if settings.recording else None
+    recorder = Recorder(Outputs(out_dir).recording, 1.0 / clip_.fps, name=f"stereotrack run {clip.name}",
+                        cameras=clip_.cameras) if settings.recording else None
     try:
         hooks.say("detect (frame pairs)")
         sink = recorder.log_frame if recorder is not None and settings.images else None

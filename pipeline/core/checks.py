@@ -15,6 +15,7 @@ import numpy as np
 
 from pipeline.core.camera import StereoRig
 from pipeline.core.errors import ClipError
+from pipeline.core.rig import Rig
 
 #: Median epipolar distance (px) of matched detections above which the cameras' detections are
 #: taken not to correspond (a rendered clip gives ~0.1 px, a good real rig well under 1 px).
@@ -70,6 +71,14 @@ def rig_for_frames(rig: StereoRig, frame_size: tuple[int, int], calib: str | Pat
     msg = (f"{calib}: the calibration is for {cw}×{ch} images but the frames are {fw}×{fh}; "
            f"scaled K by {fw / cw:g} (same aspect ratio)")
     return rig.scaled_to((fw, fh)), Check("image_size", False, msg, fw / cw, str(calib))
+
+
+def check_view_sizes(rig: Rig, frame_sizes: list[tuple[int, int]], calib: str | Path) -> None:
+    """An N-camera rig against its footage: each camera's calibrated image size must be its
+    frames' size (an error naming the camera and both sizes)."""
+    for name, (cw, ch), (fw, fh) in zip(rig.names, rig.sizes, frame_sizes, strict=True):
+        if (cw, ch) != (fw, fh):
+            raise ClipError(f"camera {name}: the calibration is for {cw}×{ch} images but its frames are {fw}×{fh}", calib)
 
 
 def unsized_calibration_check(rig: StereoRig, frame_size: tuple[int, int], calib: str | Path) -> Check | None:

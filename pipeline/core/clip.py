@@ -27,90 +27,34 @@ from pipeline.core.camera import StereoRig
 from pipeline.core.checks import Check
 from pipeline.core.errors import ClipError, StereotrackError
 from pipeline.core.frames import CameraReader, StereoFrameSource, find_camera_source
-from pipeline.core.io import Schema, check_frame_column, read_csv, read_json_mapping
+from pipeline.core.io import check_frame_column, read_csv, read_json_mapping
 from pipeline.core.outputs import Outputs
+from pipeline.core.rig import Rig
+from pipeline.core.rigfiles import RIG_NAMES, find_rig, load_rig
+from pipeline.core.schemas import (  # noqa: F401  (the clip's tables, named here for every reader)
+    DETECTION_COLUMNS,
+    DETECTIONS,
+    ESTIMATE_COLUMNS,
+    ESTIMATES,
+    SCHEMAS,
+    STEREO,
+    TARGET_COLUMNS,
+    TARGET_ESTIMATES,
+    TARGET_TRUTH,
+    TARGET_TRUTH_COLUMNS,
+    TIMESTAMP_COLUMNS,
+    TIMESTAMPS,
+    TIMESTAMPS_SCHEMA,
+    TRUTH,
+    TRUTH_COLUMNS,
+    TRUTH_EXTRA_COLUMNS,
+    truth_columns,
+    truth_extra_columns,
+)
 
 CLIP_INFO = "clip.json"
 MARKERS_FILE = "markers.yaml"
 CLIP_SETTINGS = "clip.yaml"
-
-# -- table schemas ------------------------------------------------------------------------------
-_FRAME = "frame index, from 0"
-_XYZ = dict.fromkeys("xyz", "position in the world frame (the left camera's: x right, y down, z forward), m")
-_VXYZ = dict.fromkeys(("vx", "vy", "vz"), "velocity, m/s")
-_TARGET_PX = {f"{c}{i}_{cam}": "pixel (u, v) of target point i (1–4) in the named camera, as its lens images it, px"
-              for cam in ("left", "right") for i in range(1, 5) for c in ("u", "v")}
-
-_TRUTH = {
-    "frame": _FRAME,
-    "t": "the left camera's frame time, s",
-    "marker": "the marker's name",
-    **_XYZ, **_VXYZ,
-    **{f"{c}_{cam}": f"pixel in the {cam} camera, as its lens images the marker at that camera's own time, px"
-       for cam in ("left", "right") for c in "uv"},
-    **{f"visible_{cam}": f"1 where the marker is in the {cam} camera's image and not hidden, else 0"
-       for cam in ("left", "right")},
-}
-#: written by the renderer after the columns readers ask for: each camera's pixels without lens
-#: distortion and the time each camera saw the marker
-_TRUTH_EXTRA = {
-    **{f"{c}_{cam}_pinhole": f"pixel in the {cam} camera without lens distortion (what undistorted detections "
-       "are compared with), px" for cam in ("left", "right") for c in "uv"},
-    **{f"t_{cam}": f"when the {cam} camera saw the marker: its frame time plus, with a rolling shutter, the delay "
-       "of the row that imaged it, s" for cam in ("left", "right")},
-}
-TRUTH = Schema("truth.csv", "one marker at one frame", "render", {**_TRUTH, **_TRUTH_EXTRA})
-TIMESTAMPS = "timestamps.csv"
-TIMESTAMPS_SCHEMA = Schema(TIMESTAMPS, "one frame of one camera's footage (a dropped frame has no row)",
-                           "render, or you (real footage)", {
-    "frame": "the footage's own frame number: a video's position, a PNG's file number",
-    "camera": "left or right",
-    "t": "when the camera exposed the frame's first row, s",
-})
-TARGET_TRUTH = Schema("target_truth.csv", "one frame of the four-point target", "render", {
-    "frame": _FRAME,
-    "t": "the left camera's frame time, s",
-    "alpha": "the plate's tilt α about its axis, rad",
-    "alpha_dot": "dα/dt, rad/s",
-    "distance": "the plate centre's distance along the optical axis, m",
-    "distance_dot": "its rate, m/s",
-    "axis_angle": "the tilt axis's in-image rotation about the optical axis, rad",
-    **_TARGET_PX,
-})
-DETECTIONS = Schema("out/detections.csv", "one detection (a camera may have none for a marker at a frame)", "detect", {
-    "frame": _FRAME,
-    "camera": "left or right",
-    "marker": "the marker's name",
-    "u": "pixel, undistorted by the calibration, px",
-    "v": "pixel, undistorted by the calibration, px",
-    "area": "the blob's area, px²",
-    "score": "the detector's confidence in [0, 1]: the blob's roundness, or the tracker's share of the colour mass",
-})
-ESTIMATES = Schema("out/estimates/<method>.csv", "one marker at one frame", "estimate", {
-    "frame": _FRAME,
-    "t": "the frame time, s",
-    "marker": "the marker's name",
-    **_XYZ, **_VXYZ,
-    "nis": "normalised innovation squared of the frame's update (filters; empty otherwise)",
-    "nis_dof": "its degrees of freedom: the number of measured values the update used (2 per camera for pixel filters)",
-    "nees": "position NEES against the truth (filters on rendered clips; empty otherwise)",
-    "predicted": "1 where the method used no measurement (a gap, a gated frame, before its start: the position "
-                 "is held or coasted), 0 where it did",
-})
-TARGET_ESTIMATES = Schema("out/estimates/<four-point method>.csv", "one frame (marker: the target's name)", "estimate", {
-    "alpha": "the estimated tilt α, rad",
-    "distance": "the estimated distance of the plate centre, m",
-}, extends=ESTIMATES)
-SCHEMAS = (TRUTH, TIMESTAMPS_SCHEMA, TARGET_TRUTH, DETECTIONS, ESTIMATES, TARGET_ESTIMATES)
-
-TRUTH_COLUMNS = list(_TRUTH)
-TRUTH_EXTRA_COLUMNS = list(_TRUTH_EXTRA)
-TIMESTAMP_COLUMNS = TIMESTAMPS_SCHEMA.names
-TARGET_TRUTH_COLUMNS = TARGET_TRUTH.names
-DETECTION_COLUMNS = DETECTIONS.names
-ESTIMATE_COLUMNS = ESTIMATES.names
-TARGET_COLUMNS = TARGET_ESTIMATES.names
-
 
 class ClipSettings(BaseModel):
     """``clip.yaml`` in a clip folder: what the footage cannot say about itself."""
@@ -160,7 +104,7 @@ class Clip:
         if fps is not None and not (np.isfinite(fps) and fps > 0):
             raise StereotrackError(f"--fps must be a positive number of frames per second, not {fps:g}")
         self.given_fps = fps  # --fps: wins over everything the clip says
-        self._rigs: dict[str | None, StereoRig] = {}
+        self._rigs: dict[str | None, StereoRig | Rig] = {}
         self._truth: dict[int | None, ClipTruth | None] = {}
 
     @classmethod
@@ -219,8 +163,8 @@ class Clip:
                 if m not in truth.positions:
                     continue
                 P = truth.positions[m].copy()
-                if table is not None and "visible_left" in table:
-                    P[~_seen(table, m, len(P))] = np.nan
+                if table is not None and f"visible_{self.cameras[0]}" in table:
+                    P[~_seen(table, m, len(P), self.cameras)] = np.nan
                 out[g][m] = P
         return out
 
@@ -266,7 +210,7 @@ class Clip:
         if stamped is not None:
             return stamped, TIMESTAMPS
         try:
-            reader = CameraReader(self.camera_source("left") if self.path.is_dir() else self.path)
+            reader = CameraReader(self.camera_source(self.cameras[0]) if self.path.is_dir() else self.path)
             reader.close()
         except StereotrackError:
             reader = None
@@ -284,13 +228,13 @@ class Clip:
         if not (self.path.is_dir() and path.is_file()):
             return None
 
-        return read_timestamps(path)
+        return read_timestamps(path, self.cameras)
 
     def _timestamps_rate(self) -> float | None:
         """1 / the median period between consecutive left frames in timestamps.csv, if any."""
         if self.timestamps is None:
             return None
-        t = self.timestamps["left"]
+        t = self.timestamps[self.cameras[0]]
         frames = np.flatnonzero(np.isfinite(t))
         if len(frames) < 2:
             return None
@@ -304,7 +248,7 @@ class Clip:
     # -- calibration and truth -----------------------------------------------------------------
     @property
     def has_calibration(self) -> bool:
-        return has_calibration(self.path)
+        return has_calibration(self.path) or (self.path.is_dir() and find_rig(self.folder) is not None)
 
     @property
     def calibration_name(self) -> str:
@@ -312,12 +256,45 @@ class Clip:
         for name in (*CALIB_NAMES, *EXTRINSICS_NAMES):
             if (self.folder / name).is_file():
                 return name
-        return "the calibration"
+        found = find_rig(self.folder) if self.path.is_dir() else None
+        return found.name if found is not None else "the calibration"
 
-    def rig(self, units: str | None = None) -> StereoRig:
-        """The calibration (loaded once per unit override)."""
+    @cached_property
+    def _rig_file(self) -> Path | None:
+        """An N-camera rig file (rig.json, calib.toml, *.qca.txt, …) when the clip has no stereo
+        calib.yaml and its footage is not left/right."""
+        if not self.path.is_dir() or has_calibration(self.path):
+            return None
+        return find_rig(self.folder)
+
+    @cached_property
+    def cameras(self) -> tuple[str, ...]:
+        """The clip's camera names, its footage's file names: ``left``, ``right`` for a stereo clip;
+        an N-camera clip's from its clip.json (rendered) or its rig file (``cam0``… or the names
+        the file gives). A rig file of two cameras with ``left``/``right`` footage is a stereo clip."""
+        named = self.info.get("cameras")
+        if isinstance(named, list) and len(named) >= 2 and all(isinstance(n, str) for n in named):
+            return tuple(named)
+        if self._rig_file is not None:
+            names = load_rig(self._rig_file).names
+            if not (len(names) == 2 and all(_has_source(self.folder, n) for n in STEREO)):
+                return names
+        return STEREO
+
+    @property
+    def stereo(self) -> bool:
+        """Whether this is a two-camera clip with left/right footage (every method applies)."""
+        return self.cameras == STEREO
+
+    def rig(self, units: str | None = None) -> StereoRig | Rig:
+        """The calibration (loaded once per unit override): a :class:`StereoRig` for a stereo
+        clip, else the :class:`Rig` of its cameras in its first camera's frame."""
         if units not in self._rigs:
-            self._rigs[units] = load_calibration(self.path, units)
+            if self._rig_file is None:
+                self._rigs[units] = load_calibration(self.path, units)
+            else:
+                rig = load_rig(self._rig_file, units)
+                self._rigs[units] = rig.stereo(0, 1) if self.stereo else rig.in_frame_of(0)
         return self._rigs[units]
 
     def truth_table(self) -> dict[str, np.ndarray] | None:
@@ -325,7 +302,7 @@ class Clip:
         each call, not kept: the detect stage's summary needs it once, and a long clip's table is
         megabytes (:meth:`truth` keeps the positions the later stages use)."""
         path = self.folder / "truth.csv"
-        return read_csv(path, TRUTH_COLUMNS) if self.path.is_dir() and path.is_file() else None
+        return read_csv(path, truth_columns(self.cameras)) if self.path.is_dir() and path.is_file() else None
 
     def truth(self, n_frames: int | None = None) -> ClipTruth | None:
         """``truth.csv`` (loaded once per frame count), or None for real footage."""
@@ -367,8 +344,8 @@ def footage_info(clip: Path, out_dir: Path) -> FootageInfo:
 
 
 #: Files of a clip folder that a run reads besides the footage (each only where present).
-INPUT_FILES = (*CALIB_NAMES, *INTRINSICS_NAMES, *EXTRINSICS_NAMES, MARKERS_FILE, CLIP_SETTINGS, CLIP_INFO, "scenario.yaml",
-               TIMESTAMPS, "truth.csv", "target_truth.csv")
+INPUT_FILES = (*CALIB_NAMES, *INTRINSICS_NAMES, *EXTRINSICS_NAMES, *RIG_NAMES, MARKERS_FILE, CLIP_SETTINGS, CLIP_INFO,
+               "scenario.yaml", TIMESTAMPS, "truth.csv", "target_truth.csv")
 
 
 def input_files(clip: str | Path) -> dict[str, Path]:
@@ -379,7 +356,7 @@ def input_files(clip: str | Path) -> dict[str, Path]:
     if clip.is_file():  # a single video
         return {clip.name: clip}
     found: dict[str, Path] = {}
-    for cam in ("left", "right"):
+    for cam in Clip(clip).cameras:
         try:
             src = find_camera_source(clip, cam)
         except ClipError:
@@ -448,12 +425,12 @@ def find_target(clip: Clip, target_radius: float | None, obs: dict[str, np.ndarr
     return info
 
 
-def read_timestamps(path: str | Path) -> dict[str, np.ndarray]:
+def read_timestamps(path: str | Path, cameras: tuple[str, ...] = STEREO) -> dict[str, np.ndarray]:
     """``timestamps.csv`` → per camera an array of times indexed by frame (NaN where the camera has
     no such frame); errors name the line."""
     cols = read_csv(path, TIMESTAMP_COLUMNS, finite=["frame", "t"])
     out: dict[str, np.ndarray] = {}
-    for cam in ("left", "right"):
+    for cam in cameras:
         sel = cols["camera"] == cam
         frames = cols["frame"][sel]
         if np.any(frames < 0) or np.any(frames != np.round(frames)):
@@ -461,16 +438,24 @@ def read_timestamps(path: str | Path) -> dict[str, np.ndarray]:
         t = np.full(int(frames.max()) + 1 if len(frames) else 0, np.nan)
         t[frames.astype(int)] = cols["t"][sel]
         out[cam] = t
-    if not len(out["left"]) or not len(out["right"]):
-        raise StereotrackError("needs rows for both cameras (left and right)", path)
+    if any(not len(v) for v in out.values()):
+        raise StereotrackError(f"needs rows for every camera ({', '.join(cameras)})", path)
     return out
 
 
-def _seen(table: dict[str, np.ndarray], marker: str, n: int) -> np.ndarray:
+def _seen(table: dict[str, np.ndarray], marker: str, n: int, cameras: tuple[str, ...] = STEREO) -> np.ndarray:
     """The frames (of ``n``) ``marker`` is in view of at least one camera, from ``truth.csv``'s columns."""
     mine = table["marker"] == marker
     seen = np.zeros(n, dtype=bool)
     frames = table["frame"][mine].astype(int)
     ok = frames < n
-    seen[frames[ok]] = ((table["visible_left"][mine] > 0) | (table["visible_right"][mine] > 0))[ok]
+    seen[frames[ok]] = np.any([table[f"visible_{c}"][mine] > 0 for c in cameras], axis=0)[ok]
     return seen
+
+
+def _has_source(folder: Path, name: str) -> bool:
+    try:
+        find_camera_source(folder, name)
+    except ClipError:
+        return False
+    return True

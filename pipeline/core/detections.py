@@ -28,8 +28,22 @@ class Detections:
     groups: dict[str, GroupDetections] = field(default_factory=dict)
 
 
+STEREO = ("left", "right")
+
+
+def _camera_index(cols: dict[str, np.ndarray], cameras: tuple[str, ...], path: str | Path) -> np.ndarray:
+    """Each row's camera as its index in ``cameras`` (an unknown name: an error naming the line)."""
+    index = {name: c for c, name in enumerate(cameras)}
+    cams = np.array([index.get(str(c), -1) for c in cols["camera"]], dtype=int)
+    if (cams < 0).any():
+        i = int(np.flatnonzero(cams < 0)[0])
+        raise StereotrackError(f"line {i + 2}: unknown camera {cols['camera'][i]!r} (expected {'/'.join(cameras)})", path)
+    return cams
+
+
 def split_groups(cols: dict[str, np.ndarray], n_frames: int | None, path: str | Path,
-                 groups: Collection[str] = ()) -> tuple[dict[str, np.ndarray], dict[str, GroupDetections]]:
+                 groups: Collection[str] = (), cameras: tuple[str, ...] = STEREO
+                 ) -> tuple[dict[str, np.ndarray], dict[str, GroupDetections]]:
     """Detection columns → (single markers' observations, as :func:`observations_from_columns`;
     groups' detections). A name is a group when ``groups`` declares it or when it has several rows
     in one frame and camera (identical markers: the detector reports every blob of their colour)."""
@@ -38,19 +52,16 @@ def split_groups(cols: dict[str, np.ndarray], n_frames: int | None, path: str | 
         return {}, {}
     check_frame_column(frames, n_frames, path)
     n = max(int(frames.max()) + 1, n_frames or 0)
-    cams = np.array([{"left": 0, "right": 1}.get(str(c), -1) for c in cols["camera"]])
-    if (cams < 0).any():
-        i = int(np.flatnonzero(cams < 0)[0])
-        raise StereotrackError(f"line {i + 2}: unknown camera {cols['camera'][i]!r} (expected left/right)", path)
+    cams = _camera_index(cols, cameras, path)
     names = np.asarray(cols["marker"]).astype(str)
-    keys = frames.astype(np.int64) * 2 + cams
+    keys = frames.astype(np.int64) * len(cameras) + cams
     many = set(groups) | {str(m) for m in np.unique(names) if len(np.unique(keys[names == m])) < (names == m).sum()}
     single = ~np.isin(names, sorted(many))
-    obs = observations_from_columns({k: np.asarray(v)[single] for k, v in cols.items()}, n_frames, path)
+    obs = observations_from_columns({k: np.asarray(v)[single] for k, v in cols.items()}, n_frames, path, cameras)
     out: dict[str, GroupDetections] = {}
     for g in sorted(many & set(names.tolist())):
         mine = names == g
-        table: GroupDetections = [[np.zeros((0, 2)), np.zeros((0, 2))] for _ in range(n)]
+        table: GroupDetections = [[np.zeros((0, 2)) for _ in cameras] for _ in range(n)]
         for k, c, u, v in zip(frames[mine].astype(int), cams[mine], np.asarray(cols["u"])[mine],
                               np.asarray(cols["v"])[mine], strict=True):
             table[k][c] = np.vstack([table[k][c], [u, v]])
@@ -58,7 +69,8 @@ def split_groups(cols: dict[str, np.ndarray], n_frames: int | None, path: str | 
     return obs, out
 
 
-def load_detections(path: str | Path, n_frames: int | None = None) -> dict[str, np.ndarray]:
+def load_detections(path: str | Path, n_frames: int | None = None, cameras: tuple[str, ...] = STEREO
+                    ) -> dict[str, np.ndarray]:
     """``detections.csv`` → per marker an array frames × 4 ``[u1, v1, u2, v2]`` (NaN = missed),
     keeping the highest-scoring detection per frame, camera and marker.
 
@@ -67,12 +79,14 @@ def load_detections(path: str | Path, n_frames: int | None = None) -> dict[str, 
     """
     path = Path(path)
     cols = read_csv(path, DETECTION_COLUMNS, numeric=["area", "score"], finite=["frame", "u", "v"])
-    return observations_from_columns(cols, n_frames, path)
+    return observations_from_columns(cols, n_frames, path, cameras)
 
 
-def observations_from_columns(cols: dict[str, np.ndarray], n_frames: int | None, path: str | Path) -> dict[str, np.ndarray]:
+def observations_from_columns(cols: dict[str, np.ndarray], n_frames: int | None, path: str | Path,
+                              cameras: tuple[str, ...] = STEREO) -> dict[str, np.ndarray]:
     """Detection columns (the ``detections.csv`` schema, from the file or from the detect stage
-    in memory) → per marker frames × 4 ``[u1, v1, u2, v2]``, best score per frame and camera."""
+    in memory) → per marker frames × 2N ``[u1, v1, u2, v2, …]`` (N = ``cameras``), best score per
+    frame and camera."""
     if len(cols["frame"]) == 0:
         return {}
     frames = np.asarray(cols["frame"], dtype=float)
@@ -80,13 +94,11 @@ def observations_from_columns(cols: dict[str, np.ndarray], n_frames: int | None,
     n = max(int(frames.max()) + 1, n_frames or 0)
     out: dict[str, np.ndarray] = {}
     best: dict[tuple[str, int, int], float] = {}
-    for i, (k, cam, name, u, v, score) in enumerate(zip(frames.astype(int), cols["camera"], cols["marker"], cols["u"],
-                                                         cols["v"], cols["score"], strict=True)):
-        c = {"left": 0, "right": 1}.get(str(cam))
-        if c is None:
-            raise StereotrackError(f"line {i + 2}: unknown camera {cam!r} (expected left/right)", path)
+    index = _camera_index(cols, cameras, path)
+    for k, c, name, u, v, score in zip(frames.astype(int), index.tolist(), cols["marker"], cols["u"], cols["v"],
+                                       cols["score"], strict=True):
         score = score if np.isfinite(score) else 0.0
-        arr = out.setdefault(str(name), np.full((n, 4), np.nan))
+        arr = out.setdefault(str(name), np.full((n, 2 * len(cameras)), np.nan))
         key = (str(name), int(k), c)
         if key in best and best[key] >= score:
             continue

@@ -202,6 +202,8 @@ class StereoFrame:
     left: np.ndarray | None  # None: this camera's frame is missing (a gap in a frame folder)
     right: np.ndarray | None
     found: tuple = ()
+    #: every camera's frame, in the clip's camera order (left, right for a stereo clip)
+    images: tuple = ()
 
 
 #: per-camera work on each of its frames (None: a missing frame), in frame order
@@ -222,15 +224,16 @@ class StereoFrameSource:
     A path to a single video is a one-camera clip."""
 
     def __init__(self, clip: str | Path, allow_unequal: bool = False, fps: float | None = None,
-                 prefetch: bool = True) -> None:
+                 prefetch: bool = True, cameras: Sequence[str] = ("left", "right")) -> None:
         clip = Path(clip)
+        self.cameras = tuple(cameras)
         self.prefetch = prefetch
         if not clip.exists():
             raise ClipError("no such clip folder or video", clip)
         if clip.is_file():
             self.readers = [CameraReader(clip)]
         else:
-            srcs = [find_camera_source(clip, "left"), find_camera_source(clip, "right")]
+            srcs = [find_camera_source(clip, name) for name in self.cameras]
             first = None
             if all(s.is_dir() for s in srcs):  # both folders number frames from the same origin
                 first = min(min(index_frame_files(s) or [0]) for s in srcs)
@@ -241,21 +244,24 @@ class StereoFrameSource:
         self.clip = clip
         self.allow_unequal = allow_unequal
         counts = [r.count for r in self.readers]
-        self.keep_all = len(self.readers) == 2 and clip.is_dir() and (clip / "timestamps.csv").is_file()
+        self.keep_all = len(self.readers) >= 2 and clip.is_dir() and (clip / "timestamps.csv").is_file()
         self.count = max(counts) if self.keep_all else min(counts)
-        if len(self.readers) == 2 and counts[0] != counts[1] and min(counts) > 0 and not self.keep_all:
+        if len(self.readers) >= 2 and len(set(counts)) > 1 and min(counts) > 0 and not self.keep_all:
             self._unequal(counts)
         self.fps = fps or self.readers[0].fps or 30.0
         self.size = self.readers[0].size
+        #: every camera's frame size (an N-camera rig may mix them)
+        self.sizes = [r.size for r in self.readers]
         if len(self.readers) == 2 and self.readers[1].size != self.size:
-            raise ClipError(f"left frames are {self.size}, right frames {self.readers[1].size}", clip)
+            raise ClipError(f"{self.cameras[0]} frames are {self.size}, {self.cameras[1]} frames {self.readers[1].size}",
+                            clip)
 
     @property
     def stereo(self) -> bool:
         return len(self.readers) == 2
 
     def _unequal(self, counts: list[int]) -> None:
-        msg = f"left has {counts[0]} frames, right has {counts[1]}"
+        msg = ", ".join(f"{name} has {n} frames" for name, n in zip(self.cameras, counts, strict=True))
         if not self.allow_unequal:
             raise ClipError(msg + " (use --allow-unequal to truncate to the shorter)", self.clip)
         warnings.warn(f"{self.clip}: {msg}; truncating to {min(counts)}", stacklevel=3)
@@ -286,11 +292,11 @@ class StereoFrameSource:
                 if any(i is end for i in got) and not self.keep_all:
                     n_left = k if got[0] is end else k + 1
                     if not self.allow_unequal:
-                        raise ClipError(f"left and right videos end at different frames (around frame {n_left})", self.clip)
+                        raise ClipError(f"the cameras' videos end at different frames (around frame {n_left})", self.clip)
                     break
                 imgs = [None if i is end else i[0] for i in got]
                 found = tuple(None if i is end else i[1] for i in got)
-                yield StereoFrame(k, k / self.fps, imgs[0], imgs[1] if len(imgs) > 1 else None, found)
+                yield StereoFrame(k, k / self.fps, imgs[0], imgs[1] if len(imgs) > 1 else None, found, tuple(imgs))
                 k += 1
         finally:
             for it in its:  # stop the decode-ahead threads before releasing their captures

@@ -36,9 +36,10 @@ from pipeline.core.calibration import (
     load_calibration,
     save_calibration,
 )
-from pipeline.core.camera import Camera, Rig
+from pipeline.core.camera import Camera
 from pipeline.core.errors import CalibrationError
 from pipeline.core.io import atomic_path
+from pipeline.core.rig import Rig
 
 #: What :func:`save_rig` and ``stereotrack rig convert`` write, by the output's name.
 FORMATS = {"toml": "Anipose/Pose2Sim TOML", "qca": "Qualisys .qca.txt", "json": "JSON rig",
@@ -94,7 +95,7 @@ def load_rig(path: str | Path, units: str | None = None) -> Rig:
     fmt = format_of(path)
     if fmt == "calib" or (fmt == "yaml" and "K1" in _read_storage(path)):
         stereo = load_calibration(path, units)
-        return stereo.as_rig()
+        return Rig.from_stereo(stereo)
     reader = {"toml": _read_toml, "qca": _read_qca, "json": _read_json, "yaml": _read_yaml_rig,
               "folder": _read_folder}[fmt]
     rig, declared = reader(path)

@@ -32,8 +32,9 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from pipeline.core.camera import Rig, StereoMeasurementModel, StereoRig
+from pipeline.core.camera import StereoMeasurementModel, StereoRig
 from pipeline.core.errors import StereotrackError
+from pipeline.core.rig import Rig
 from pipeline.estimators.gating import plausible_residual, plausible_triangulation, reprojection_errors
 
 Kind = Literal["point", "target"]
@@ -355,6 +356,11 @@ class Estimator(ABC):
         self.model = StereoMeasurementModel(rig, sigma, time_offset=float(time_offset) if self.models_time_offset else 0.0)
         self.reset()
 
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if cls.__dict__.get("any_cameras", cls.any_cameras) and "name" in cls.__dict__:
+            _N_CAMERA_METHODS.add(cls.name)
+
     @classmethod
     def description(cls) -> str:
         """One line: the first line of the class docstring."""
@@ -476,11 +482,12 @@ class Estimator(ABC):
         return np.stack([self.run(y).position for y in np.asarray(Y, dtype=float)])
 
 
-def n_camera_methods() -> list[str]:
-    """The registered methods that take a rig of any number of cameras."""
-    from pipeline.estimators.registration import registry
+_N_CAMERA_METHODS: set[str] = set()
 
-    return sorted(name for name, cls in registry().items() if cls.any_cameras)
+
+def n_camera_methods() -> list[str]:
+    """The methods (every class defined so far) that take a rig of any number of cameras."""
+    return sorted(_N_CAMERA_METHODS)
 
 
 def not_started() -> Step:

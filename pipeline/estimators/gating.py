@@ -10,7 +10,8 @@ from collections import deque
 
 import numpy as np
 
-from pipeline.core.camera import Rig, StereoMeasurementModel, StereoRig
+from pipeline.core.camera import StereoMeasurementModel, StereoRig
+from pipeline.core.rig import Rig
 
 
 def plausible_residual(sigma: float, gate: float) -> float:

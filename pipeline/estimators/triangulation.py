@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.core.camera import triangulate_robust
+from pipeline.core.rig import triangulate_robust
 from pipeline.estimators.base import NAN3, Estimator, Step
 from pipeline.estimators.gating import GATE_FLOOR_PX, camera_gate, plausible_residual, reprojection_residual
 from pipeline.estimators.registration import register

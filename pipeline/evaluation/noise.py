@@ -6,14 +6,44 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.core.camera import StereoRig
+from pipeline.core.rig import Rig
 
 
-def estimate_pixel_sigma(rig: StereoRig, observations: dict[str, np.ndarray]) -> float | None:
+def estimate_view_sigma(rig: Rig, observations: dict[str, np.ndarray]) -> float | None:
+    """Detection noise (px) of a :class:`Rig`'s cameras: the DLT over the k cameras that see a point leaves
+    ``2k − 3`` degrees of freedom, so the summed squared reprojection residual is ``σ² χ²(2k − 3)``.
+    Over the frames with the commonest k, σ̂² is the residuals' median over χ²(2k − 3)'s median: a
+    median, so that one camera's outliers (a fifth of the frames, say) do not inflate it."""
+    from scipy.stats import chi2
+
+    per_k: dict[int, list[np.ndarray]] = {}
+    for Y in observations.values():
+        seen = np.isfinite(Y).reshape(len(Y), rig.n, 2).all(axis=2)
+        k = seen.sum(axis=1)
+        ok = k >= 2
+        if not ok.any():
+            continue
+        X = rig.triangulate(Y[ok])
+        with np.errstate(invalid="ignore"):
+            r2 = np.nansum((rig.project(X) - Y[ok]) ** 2, axis=1)
+        good = np.all(np.isfinite(X), axis=1)
+        for kk in np.unique(k[ok][good]):
+            per_k.setdefault(int(kk), []).append(r2[good][k[ok][good] == kk])
+    if not per_k:
+        return None
+    k = max(per_k, key=lambda kk: sum(len(a) for a in per_k[kk]))
+    r2 = np.concatenate(per_k[k])
+    return float(max(np.sqrt(np.median(r2) / chi2.median(2 * k - 3)), 0.02))
+
+
+def estimate_pixel_sigma(rig: StereoRig | Rig, observations: dict[str, np.ndarray]) -> float | None:
     """Detection noise (px) from the data: the DLT leaves one degree of freedom of the four
     stereo coordinates, so the squared reprojection residual of a triangulated point is
     ``σ² χ²(1)``; σ̂² is its mean over all frames and markers. None without stereo frames."""
     from pipeline.core.camera import triangulate
 
+    if isinstance(rig, Rig):
+        return estimate_view_sigma(rig, observations)
     sq = []
     for Y in observations.values():
         ok = np.all(np.isfinite(Y), axis=1)

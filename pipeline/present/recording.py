@@ -26,6 +26,7 @@ import numpy as np
 
 from pipeline.core.camera import StereoRig
 from pipeline.core.io import partial_beside
+from pipeline.core.rig import Rig
 from pipeline.evaluation.identity import switches_of
 from pipeline.evaluation.metrics import runaways
 from pipeline.evaluation.scores import FrameScores
@@ -82,7 +83,8 @@ def _batches(tracks: list[np.ndarray], n: int, finite: bool = True) -> _Batches:
 
 
 def blueprint(fps: float = 30.0, target: bool = False, info: bool = False, markers: list[str] | None = None,
-              hidden: list[str] | None = None, uncertain: list[str] | None = None):
+              hidden: list[str] | None = None, uncertain: list[str] | None = None,
+              cameras: tuple[str, ...] = ("left", "right")):
     """3-D view (paths: every point from the start to the cursor) beside the two camera views;
     below, per marker, the 3-D and reprojection errors with one line per method, and the
     four-point target's α and z when the run has the target; the run's description when given.
@@ -102,9 +104,11 @@ def blueprint(fps: float = 30.0, target: bool = False, info: bool = False, marke
                   rrb.TimeSeriesView(name="target z (m)", origin="/metrics/target/distance")]
     side: list[rrb.Spatial2DView | rrb.TextDocumentView] = [rrb.Spatial2DView(name=f"{c} camera", origin=f"/world/{c}",
                               overrides=_hidden([f"/world/{c}/estimates/{m}" for m in hidden]) or None)
-            for c in ("left", "right")]
+            for c in cameras]
     if info:
         side.append(rrb.TextDocumentView(name="this run", origin="/run"))
+    if len(cameras) > 2:  # N cameras: a grid of camera views beside the 3-D view
+        side = [rrb.Grid(*side)]
     off = [f"/world/estimates/{m}" for m in hidden] + [f"/world/uncertainty/{m}" for m in uncertain or []]
     view3d = rrb.Spatial3DView(name="3-D", origin="/world", time_ranges=[trail], overrides=_hidden(off) or None)
     return rrb.Blueprint(
@@ -139,10 +143,10 @@ class Recorder:
     (or an exception inside ``with``) leaves no file behind."""
 
     def __init__(self, path: str | Path, dt: float, jpeg_quality: int = 80, image_every: int = 1,
-                 name: str | None = None) -> None:
+                 name: str | None = None, cameras: tuple[str, ...] = ("left", "right")) -> None:
         import rerun as rr
 
-        self.path, self.dt, self.name = Path(path), float(dt), name
+        self.path, self.dt, self.name, self.cameras = Path(path), float(dt), name, tuple(cameras)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.tmp = partial_beside(self.path)  # readable like every other output once renamed
         self.quality, self.image_every = int(jpeg_quality), max(1, int(image_every))
@@ -168,15 +172,16 @@ class Recorder:
         self.rec.set_time("frame", sequence=k)
         self.rec.set_time("time", duration=k * self.dt)
 
-    def log_frame(self, k: int, left: np.ndarray | None, right: np.ndarray | None) -> None:
-        """Both cameras' images of frame ``k`` as JPEG (a missing frame is skipped)."""
+    def log_frame(self, k: int, *images: np.ndarray | None) -> None:
+        """Every camera's image of frame ``k`` as JPEG, in :attr:`cameras`' order (a missing frame
+        is skipped)."""
         import cv2
         import rerun as rr
 
         if k % self.image_every:
             return
         self._time(k)
-        for img, name in ((left, "left"), (right, "right")):
+        for img, name in zip(images, self.cameras, strict=False):
             if img is not None:
                 ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, self.quality])
                 if ok:
@@ -286,19 +291,19 @@ class Recorder:
         if progress is not None:
             progress(len(todo), len(todo))  # the bar completes (it stopped at n − 1 of n)
         self.rec.send_blueprint(blueprint(1.0 / self.dt, bool(est.target_tracks), bool(info), sorted(self.markers),
-                                          runaways(est.metrics), self.uncertain), make_active=True, make_default=True)
+                                          runaways(est.metrics), self.uncertain, est.rig.names), make_active=True,
+                            make_default=True)
         self.rec.flush()
         self.rec.disconnect()
         os.replace(self.tmp, self.path)
         return self.path
 
-    def _rig(self, rig: StereoRig) -> None:
-        """Both cameras as static transforms and pinholes in OpenCV's axes."""
+    def _rig(self, rig: StereoRig | Rig) -> None:
+        """Every camera as a static transform and pinhole in OpenCV's axes."""
         import rerun as rr
 
         self.rec.log("world", rr.ViewCoordinates.RDF, static=True)  # x right, y down, z forward
-        w, h = rig.image_size
-        for cam, name in zip(rig.cameras, ("left", "right"), strict=True):
+        for cam, name, (w, h) in zip(rig.cameras, rig.names, rig.sizes, strict=True):
             self.rec.log(f"world/{name}", rr.Transform3D(translation=cam.center, mat3x3=cam.R.T), static=True)
             self.rec.log(f"world/{name}", rr.Pinhole(image_from_camera=cam.K, width=w or None, height=h or None,
                                                     camera_xyz=rr.ViewCoordinates.RDF), static=True)
@@ -309,7 +314,7 @@ class Recorder:
         mcol = np.array([marker_rgb(colours, m, i) for i, m in enumerate(markers)], dtype=np.uint8).reshape(-1, 3)
         there = [m for m in markers if truth is not None and m in truth]
         tp = _batches([truth[m] for m in there], n, finite=False) if truth is not None else None
-        for c, name in enumerate(("left", "right")):
+        for c, name in enumerate(est.rig.names):
             det = _batches([obs[m][:, 2 * c : 2 * c + 2] for m in markers], n)
             self._points(f"world/{name}/detections", det, mcol[det.which], [markers[j] for j in det.which], "2d", 3.0)
             if tp is not None:
@@ -320,7 +325,7 @@ class Recorder:
                          [there[j] for j in tp.which], "3d", TRUTH_RADIUS)
             self._paths("world/truth/path", [truth[m] for m in markers if m in truth], TRUTH_RGB_VIEWER)
 
-    def _method(self, rig: StereoRig, meth: str, per_marker: dict, scores: dict[str, FrameScores], n: int) -> None:
+    def _method(self, rig: StereoRig | Rig, meth: str, per_marker: dict, scores: dict[str, FrameScores], n: int) -> None:
         """A method's labelled points in 3-D and through each camera, its path, and its error
         series per marker (``/metrics/<kind>/<marker>/<method>``, named and coloured)."""
         rgb = list(method_rgb(meth))
@@ -328,7 +333,7 @@ class Recorder:
         cur = _batches([per_marker[m].position for m in names], n)
         colours, labels = np.tile(rgb, (len(cur.points), 1)), [names[j] for j in cur.which]
         self._points(f"world/estimates/{meth}/points", cur, colours, labels, "3d", POINT_RADIUS, show_labels=False)
-        for c, cam in enumerate(("left", "right")):  # the estimates seen through each camera
+        for c, cam in enumerate(rig.names):  # the estimates seen through each camera
             seen = _Batches(cur.frames, cur.lengths, rig.cameras[c].project(cur.points), cur.which)
             self._points(f"world/{cam}/estimates/{meth}", seen, colours, labels, "2d", 2.5, show_labels=False)
         self._paths(f"world/estimates/{meth}/path", [t.position for t in per_marker.values()], rgb)

@@ -118,7 +118,7 @@ def load_report_data(clip: Clip, src: Path, out_dir: Path) -> ReportData:
         data.target_truth = read_csv(clip.folder / "target_truth.csv", ["t", "alpha", "distance"],
                                      numeric=["t", "alpha", "distance"])
     if src_out.detections.is_file():
-        data.obs = load_detections(src_out.detections)
+        data.obs = load_detections(src_out.detections, cameras=clip.cameras)
     if src_out.detect_info.is_file():
         data.marker_colours = read_json_mapping(src_out.detect_info, "detect record").get("marker_colours", {})
     return data

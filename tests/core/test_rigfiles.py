@@ -12,8 +12,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
-from pipeline.core.camera import Camera, Rig, StereoRig, look_at, ring_rig
+from pipeline.core.camera import Camera, StereoRig
 from pipeline.core.errors import CalibrationError
+from pipeline.core.rig import Rig, look_at, ring_rig
 from pipeline.core.rigfiles import find_rig, load_rig, save_rig
 
 
@@ -52,9 +53,9 @@ def test_every_format_round_trips_exactly(tmp_path, name, units):
 
 def test_two_camera_calib_yaml_is_a_rig_of_two(tmp_path):
     stereo = StereoRig.from_parameters(640, 480, 600.0, baseline=0.3, toe_in_deg=3.0)
-    save_rig(stereo.as_rig(), tmp_path / "calib.yaml")
+    save_rig(Rig.from_stereo(stereo), tmp_path / "calib.yaml")
     back = load_rig(tmp_path)
-    assert back.names == ("left", "right") and _max_difference(stereo.as_rig(), back) < 1e-12
+    assert back.names == ("left", "right") and _max_difference(Rig.from_stereo(stereo), back) < 1e-12
     pair = back.stereo(0, 1)
     assert isinstance(pair, StereoRig) and abs(pair.baseline - 0.3) < 1e-12
 

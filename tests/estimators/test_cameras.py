@@ -9,8 +9,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.core.camera import Camera, Rig, look_at, ring_rig, triangulate_robust
+from pipeline.core.camera import Camera
 from pipeline.core.errors import StereotrackError
+from pipeline.core.rig import Rig, look_at, ring_rig, triangulate_robust
 from pipeline.estimators.registration import create
 
 
@@ -134,7 +135,7 @@ def test_two_cameras_of_a_rig_are_the_stereo_pair(compiled, monkeypatch):
     X = _lissajous(120, 1 / 30)
     X0 = X @ rig.cameras[0].R.T + rig.cameras[0].t
     Y = pair.project(X0) + np.random.default_rng(5).normal(0, 1, (120, 4))
-    as_rig = pair.as_rig()
+    as_rig = Rig.from_stereo(pair)
     for name in ("triangulation", "ekf"):
         a = create(name, pair, 1 / 30, {"pixel_sigma": 1.0}).run(Y).position
         b = create(name, as_rig, 1 / 30, {"pixel_sigma": 1.0}).run(Y).position
