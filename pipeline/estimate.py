@@ -190,7 +190,7 @@ def observe(clip: Clip, in_dir: Path, detections: Detections | None, settings: R
     groups = {g: [*v, *([[np.zeros((0, 2)) for _ in rig.cameras]] * (n - len(v)))] for g, v in groups.items()}
     if isinstance(rig, Rig):  # N cameras: their offsets are the rig's (sync estimation is for a pair)
         ts = None
-        sync, aligned = SyncEstimate(0.0, None, False, "off"), obs
+        sync, aligned = SyncEstimate(0.0, None, False, "cameras"), obs
     else:
         sync, aligned = resolve_sync(settings.time_offset if obs else "off", rig, obs, clip.fps, ts)
     new_checks = [_sync_check(sync)]

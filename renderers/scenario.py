@@ -237,7 +237,7 @@ class Scenario(_Model):
 
     def _view_imperfections(self) -> dict[str, object]:
         """:attr:`imperfections` of an N-camera rig: per camera where it differs from ideal."""
-        r, out = self.rig, {}
+        r, out = self.rig, dict[str, object]()
         views = r.views or []
         if any(np.any(v.D) for v in views):
             out["distortion"] = {v.name: list(v.D) for v in views}

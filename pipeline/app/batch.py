@@ -27,12 +27,14 @@ from pipeline.core.errors import StereotrackError, first_line
 from pipeline.core.io import check_replaceable, ensure_dir, write_json
 from pipeline.core.lifeline import OutputLock, die_with_parent, ignore_sigint, still_parented
 from pipeline.core.outputs import DETECT_INFO, ESTIMATES, FIGURES, MANIFEST, OUT, Outputs
+from pipeline.core.rigfiles import find_rig
 from pipeline.core.settings import RunHooks, RunSettings
 from pipeline.present.summary import ClipOutcome, write_summary
 
 
 def find_clips(input_dir: str | Path, skip: Path | None = None) -> list[Path]:
-    """Clip folders under ``input_dir``: folders holding a calibration and left/right footage. A
+    """Clip folders under ``input_dir``: folders holding a calibration (a stereo calib.yaml, or an
+    N-camera rig file) or left/right footage. A
     clip's own sub-folders are its own (frames, outputs), never further clips; ``skip`` (the batch's
     output folder, when it lies inside the input) is not searched."""
     input_dir = Path(input_dir)
@@ -44,7 +46,8 @@ def find_clips(input_dir: str | Path, skip: Path | None = None) -> list[Path]:
         dirs[:] = sorted(n for n in dirs if not n.startswith(".") and n not in (OUT, "left", "right", ESTIMATES, FIGURES)
                          and (skip is None or (d / n).resolve() != skip))
         has_left = any(n.startswith("left") for n in (*files, *dirs))
-        if has_calibration(d) or (has_left and any(n.startswith("right") for n in (*files, *dirs))):
+        if has_calibration(d) or find_rig(d) is not None or (has_left and any(n.startswith("right")
+                                                                                for n in (*files, *dirs))):
             clips.append(d)
             dirs[:] = []
     return sorted(clips)

@@ -67,7 +67,9 @@ def run_description(clip: Path, detector: str, metrics: dict) -> str:
              f"(from {t.get('source', '?')})", f"- detector: {detector}",
              f"- methods: {', '.join(metrics.get('methods', {}))}"]
     sync = metrics.get("sync") or {}
-    if sync:
+    if sync.get("source") == "cameras":
+        lines.append("- time offsets: not estimated for more than two cameras")
+    elif sync:
         lines.append(f"- time offset: {1000 * sync.get('offset_s', 0.0):+.2f} ms, "
                      f"{'applied' if sync.get('applied') else 'not applied'} ({sync.get('source', '?')})")
     lines += ["", "## Checks", "", *([f"- {m}" for m in failed] or ["- all input checks passed"])]

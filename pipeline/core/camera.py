@@ -32,9 +32,10 @@ class Views(Protocol):
     """What the measurement model asks of a set of cameras: a :class:`StereoRig`, or the N-camera
     :class:`~pipeline.core.rig.Rig`."""
 
-    cameras: tuple[Camera, ...]
-    names: tuple[str, ...]
-
+    @property
+    def cameras(self) -> tuple[Camera, ...]: ...
+    @property
+    def names(self) -> tuple[str, ...]: ...
     @property
     def n(self) -> int: ...
     @property

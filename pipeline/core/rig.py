@@ -138,7 +138,7 @@ def ring_rig(n: int = 4, radius: float = 2.0, height: float = -0.8, size: tuple[
         a = 2 * math.pi * k / n
         R, t = look_at(c + np.array([radius * math.sin(a), height, -radius * math.cos(a)]), c)
         cams.append(Camera(K.copy(), R, t))
-    return Rig(tuple(cams), tuple(f"cam{k}" for k in range(n)), (tuple(size),) * n)
+    return Rig(tuple(cams), tuple(f"cam{k}" for k in range(n)), ((int(size[0]), int(size[1])),) * n)
 
 
 def _check_camera(cam: Camera, name: str, source: str | Path | None) -> None:

@@ -55,7 +55,7 @@ TIMESTAMPS = "timestamps.csv"
 TIMESTAMPS_SCHEMA = Schema(TIMESTAMPS, "one frame of one camera's footage (a dropped frame has no row)",
                            "render, or you (real footage)", {
     "frame": "the footage's own frame number: a video's position, a PNG's file number",
-    "camera": "left or right",
+    "camera": "left or right (an N-camera clip: the camera's name in its rig file)",
     "t": "when the camera exposed the frame's first row, s",
 })
 TARGET_TRUTH = Schema("target_truth.csv", "one frame of the four-point target", "render", {
@@ -70,7 +70,7 @@ TARGET_TRUTH = Schema("target_truth.csv", "one frame of the four-point target", 
 })
 DETECTIONS = Schema("out/detections.csv", "one detection (a camera may have none for a marker at a frame)", "detect", {
     "frame": _FRAME,
-    "camera": "left or right",
+    "camera": "left or right (an N-camera clip: the camera's name in its rig file)",
     "marker": "the marker's name",
     "u": "pixel, undistorted by the calibration, px",
     "v": "pixel, undistorted by the calibration, px",

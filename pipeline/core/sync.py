@@ -57,6 +57,8 @@ class SyncEstimate:
         """One line for the terminal and the report."""
         if self.source == "off":
             return "sync offset: not estimated (--time-offset off)"
+        if self.source == "cameras":
+            return "sync offsets: not estimated for more than two cameras (the frames are taken as simultaneous)"
         if self.source == "timestamps":
             return f"sync offset: from timestamps.csv, median {1000 * self.offset_s:+.2f} ms (right camera late when +)"
         if self.source == "given":

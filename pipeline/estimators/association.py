@@ -32,6 +32,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.special import chdtri
 
 from pipeline.core.camera import Camera, StereoRig, epipolar_distances, triangulate_views
+from pipeline.core.rig import Rig
 from pipeline.estimators.base import Track, transition, white_noise_acceleration
 from pipeline.estimators.registration import create
 
@@ -327,7 +328,7 @@ def _epipolar_baseline(cameras: list[Camera], detections: list[list[np.ndarray]]
     return out
 
 
-def track_group(rig: StereoRig, dt: float, detections: list[list[np.ndarray]], method: str = "ekf",
+def track_group(rig: StereoRig | Rig, dt: float, detections: list[list[np.ndarray]], method: str = "ekf",
                 group: str = "marker", config: AssociationConfig | None = None,
                 method_config: dict | None = None, mode: Mode = "gnn") -> dict[str, Track]:
     """A group of identical markers seen by a stereo rig: the association's tracks (``<group>#<n>``,
@@ -337,7 +338,7 @@ def track_group(rig: StereoRig, dt: float, detections: list[list[np.ndarray]], m
                          method_config)
 
 
-def filter_tracks(rig: StereoRig, dt: float, assoc: Association, method: str, group: str = "marker",
+def filter_tracks(rig: StereoRig | Rig, dt: float, assoc: Association, method: str, group: str = "marker",
                   method_config: dict | None = None) -> dict[str, Track]:
     """Each associated track filtered by ``method`` from its own observations (``<group>#<n>``),
     NaN before its birth and after its end: one association, any filter."""

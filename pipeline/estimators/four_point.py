@@ -204,6 +204,7 @@ class TargetConfig(EstimatorConfig):
 class TargetEstimator(Estimator):
     """Four-point angle α and distance z measured frame by frame (Soifer et al.), no filter."""
 
+    rig: StereoRig  # a stereo pair only (any_cameras is False: the base refuses a Rig)
     name = "four_point"
     #: whether the method takes the target's known dynamics (the clip's target ``config``): the
     #: raw measurement does not; the filters built on the target's model do

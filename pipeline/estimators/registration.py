@@ -8,6 +8,7 @@ import warnings
 from pipeline.core.camera import StereoRig
 from pipeline.core.errors import StereotrackError
 from pipeline.core.plugins import load_entry_points
+from pipeline.core.rig import Rig
 from pipeline.estimators.base import Estimator, EstimatorConfig, Kind
 
 ENTRY_POINT_GROUP = "stereotrack.estimators"
@@ -58,7 +59,7 @@ def methods(kind: Kind | None = None) -> list[str]:
     return [n for n, c in registry().items() if kind is None or c.kind == kind]
 
 
-def create(name: str, rig: StereoRig, dt: float, config: EstimatorConfig | dict | None = None,
+def create(name: str, rig: StereoRig | Rig, dt: float, config: EstimatorConfig | dict | None = None,
            time_offset: float = 0.0) -> Estimator:
     """Build a registered estimator by name (``time_offset``: δ of the rig, for the methods that
     model it; see :attr:`Estimator.models_time_offset`)."""

@@ -29,6 +29,7 @@ import time
 import numpy as np
 from pydantic import Field
 
+from pipeline.core.camera import StereoRig
 from pipeline.estimators.base import Estimator, EstimatorConfig, InitConfig, Start, Step, Track, not_started, use_compiled
 from pipeline.estimators.registration import register
 
@@ -105,6 +106,7 @@ def delta_sequence(seed: int, count: int, dim: int) -> np.ndarray:
 class SPSAEstimator(Estimator):
     """Algorithm 1 (SPSA with linear prediction and the projection rule)."""
 
+    rig: StereoRig  # a stereo pair only (any_cameras is False: the base refuses a Rig)
     name = "spsa"
     min_frames = 2
     Config = SPSAConfig

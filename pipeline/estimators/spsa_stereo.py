@@ -89,7 +89,7 @@ from typing import Any
 import numpy as np
 from pydantic import Field
 
-from pipeline.core.camera import disparity_maps, rectifying_frame
+from pipeline.core.camera import StereoRig, disparity_maps, rectifying_frame
 from pipeline.estimators.base import Estimator, EstimatorConfig, InitConfig, Step, Track, not_started, use_compiled
 from pipeline.estimators.gating import RobustNISScale, camera_gate, stereo_consistent
 from pipeline.estimators.registration import register
@@ -138,6 +138,7 @@ def max_memory(alpha: float) -> float:
 class SPSAStereoEstimator(Estimator):
     """SPSA on each frame's cost in image/disparity coordinates, decreasing gains (tracks)."""
 
+    rig: StereoRig  # a stereo pair only (any_cameras is False: the base refuses a Rig)
     name = "spsa_stereo"
     min_frames = 2
     Config = SPSAStereoConfig

@@ -10,6 +10,7 @@ import numpy as np
 
 from pipeline.core.camera import StereoRig
 from pipeline.core.clip import ClipTruth, TargetInfo
+from pipeline.core.rig import Rig
 from pipeline.estimators.base import Track
 from pipeline.evaluation import consistency
 from pipeline.evaluation.scores import FrameScores, errors_per_frame, score_tracks
@@ -20,7 +21,7 @@ class Estimates(Protocol):
 
     n_frames: int
     dt: float
-    rig: StereoRig
+    rig: StereoRig | Rig
     tracks: dict[str, dict[str, Track]]
     truth: ClipTruth | None
     target: TargetInfo | None

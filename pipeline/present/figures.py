@@ -162,12 +162,18 @@ def fig_image_tracks(data: ReportData, plt) -> tuple[object, str] | None:
     """Each camera's detections, one colour per marker (the marker's own)."""
     if not data.obs:
         return None
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    n = len(data.cameras)
+    cols = min(n, 2) if n <= 4 else 3
+    rows = -(-n // cols)
+    fig, grid = plt.subplots(rows, cols, figsize=(12, 4.5 * rows), squeeze=False)
+    axes = list(grid.ravel()[:n])
+    for ax in grid.ravel()[n:]:
+        ax.remove()
     for c, ax in enumerate(axes):
         for i, (mk, Y) in enumerate(sorted(data.obs.items())):
             ax.plot(*_thin(Y[:, 2 * c], Y[:, 2 * c + 1]), ".", ms=2, label=mk,
                     color=np.array(marker_rgb(data.marker_colours, mk, i)) / 255)
-        ax.set(xlabel="u (px)", ylabel="v (px)", title=("left", "right")[c] + " camera: detections (px)")
+        ax.set(xlabel="u (px)", ylabel="v (px)", title=f"{data.cameras[c]} camera: detections (px)")
         ax.invert_yaxis()
         ax.set_aspect("equal", adjustable="datalim")
         ax.grid(alpha=0.3)

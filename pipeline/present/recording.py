@@ -102,7 +102,7 @@ def blueprint(fps: float = 30.0, target: bool = False, info: bool = False, marke
     if target:
         plots += [rrb.TimeSeriesView(name="target α (rad)", origin="/metrics/target/alpha"),
                   rrb.TimeSeriesView(name="target z (m)", origin="/metrics/target/distance")]
-    side: list[rrb.Spatial2DView | rrb.TextDocumentView] = [rrb.Spatial2DView(name=f"{c} camera", origin=f"/world/{c}",
+    side: list[rrb.Spatial2DView | rrb.TextDocumentView | rrb.Grid] = [rrb.Spatial2DView(name=f"{c} camera", origin=f"/world/{c}",
                               overrides=_hidden([f"/world/{c}/estimates/{m}" for m in hidden]) or None)
             for c in cameras]
     if info:

@@ -16,6 +16,7 @@ from pipeline.core.detections import load_detections
 from pipeline.core.errors import StereotrackError
 from pipeline.core.io import check_frame_column, read_csv, read_json_mapping
 from pipeline.core.outputs import Outputs
+from pipeline.core.rig import Rig
 from pipeline.evaluation.identity import matched_truth
 from pipeline.evaluation.metrics import runaways
 from pipeline.evaluation.scores import FrameScores, errors_per_frame
@@ -42,6 +43,8 @@ class ReportData:
     errors: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     #: groups of identical markers → their members' names (whose truth the tracks are drawn beside)
     groups: dict[str, list[str]] = field(default_factory=dict)
+    #: the clip's cameras, in the observations' order
+    cameras: tuple[str, ...] = ("left", "right")
 
     @property
     def runaways(self) -> list[str]:
@@ -64,7 +67,7 @@ class ReportData:
         return [m for m in self.point if m not in self.runaways]
 
 
-def _hide_behind(rig: StereoRig, est: dict[str, dict[str, np.ndarray]]) -> None:
+def _hide_behind(rig: StereoRig | Rig, est: dict[str, dict[str, np.ndarray]]) -> None:
     """Points behind either camera set to NaN: counted in the metrics and the Checks section,
     never drawn as if they were metres in front of the rig."""
     for per in est.values():
@@ -110,6 +113,7 @@ def load_report_data(clip: Clip, src: Path, out_dir: Path) -> ReportData:
     truth = clip.truth()
     data.truth = truth.positions if truth is not None else None
     data.groups = clip.identical_groups()
+    data.cameras = clip.cameras
     refs = {m: _references(per, data.truth, clip.group_truth()) for m, per in data.point.items()}
     if data.point and clip.has_calibration:
         _hide_behind(clip.rig(metrics.get("calibration_units")), data.point)
@@ -151,7 +155,7 @@ def report_data(clip: Clip, est: EstimateResult, marker_colours: dict[str, list[
     :meth:`ReportData.add_method` already took of methods whose tracks were not kept."""
     data = data or ReportData(clip.folder.name, out_dir, {})
     data.name, data.out_dir, data.metrics = clip.folder.name, out_dir, est.metrics
-    data.truth, data.groups = est.truth_positions, clip.identical_groups()
+    data.truth, data.groups, data.cameras = est.truth_positions, clip.identical_groups(), est.rig.names
     data.obs, data.marker_colours = dict(est.observations), dict(marker_colours)
     for m, per in est.tracks.items():
         if m not in data.point:

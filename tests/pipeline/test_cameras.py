@@ -1,0 +1,123 @@
+"""More than two cameras, end to end: a clip rendered from a Qualisys rig file, its truth against
+OpenCV's projection in every camera, and the run a user makes on it."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from pipeline.app.run import process_clip
+from pipeline.core.camera import Camera
+from pipeline.core.clip import Clip, read_csv
+from pipeline.core.rig import Rig, look_at
+from pipeline.core.rigfiles import load_rig, save_rig
+from pipeline.core.settings import RunSettings
+from renderers.render import render_clip
+from renderers.scenario import load_scenario
+
+CENTRE_LAB = np.array([0.1, -0.2, 0.9])  # the working volume's centre in the lab (z up), m
+
+
+def _lab_rig() -> Rig:
+    """Four cameras of a real rig's magnitude (3–3.5 m from the volume, 1.9–2.4 m high, f ≈ 1000 px
+    at 1280×720, k1 ≈ −0.2 with k3), in the lab frame a Qualisys calibration uses."""
+    cams = []
+    for k, a in enumerate(np.deg2rad([30, 125, 210, 300])):
+        centre = np.array([3.0 * np.cos(a) + 0.1, 3.2 * np.sin(a), 1.9 + 0.15 * k])
+        R, t = look_at(centre, CENTRE_LAB, up=(0.0, 0.0, 1.0))
+        K = np.array([[1000.0 + 30 * k, 0.0, 639.5 + 3 * k], [0.0, 1000.0 + 30 * k, 359.5 - 2 * k], [0.0, 0.0, 1.0]])
+        cams.append(Camera(K, R, t, np.array([-0.2 + 0.01 * k, 0.06, 2e-4, -1e-4, -0.01])))
+    return Rig(tuple(cams), tuple(f"Miqus_{k + 1}" for k in range(4)), ((1280, 720),) * 4)
+
+
+@pytest.fixture(scope="module")
+def qualisys_clip(tmp_path_factory):
+    """A 4-camera clip rendered from a .qca.txt: three markers around the volume's centre."""
+    root = tmp_path_factory.mktemp("qualisys")
+    lab = _lab_rig()
+    save_rig(lab, root / "lab.qca.txt")
+    c0 = lab.cameras[0]
+    centre = c0.R @ CENTRE_LAB + c0.t  # scenarios are written in the first camera's frame
+    objects = [{"name": name, "color": color, "radius": 0.03,
+                "motion": {"type": "sinusoid", "center": (centre + offset).tolist(), "amplitude": [0.25, 0.15, 0.2],
+                           "frequency_hz": [0.5, 0.4, 0.3], "phase": [k, 2 * k, 0.5 * k]}}
+               for k, (name, color, offset) in enumerate([("red", [230, 30, 30], [0.0, 0.0, 0.0]),
+                                                          ("blue", [40, 60, 230], [0.2, 0.1, 0.0]),
+                                                          ("green", [30, 200, 40], [-0.2, 0.0, 0.1])])]
+    scenario = {"frames": 24, "fps": 30, "seed": 2, "rig": {"calibration": "lab.qca.txt"},
+                "render": {"noise_std": 2.0, "blur_sigma": 0.6, "background": "plain"}, "objects": objects}
+    (root / "mocap.yaml").write_text(yaml.safe_dump(scenario))
+    clip = root / "clip"
+    render_clip(load_scenario(root / "mocap.yaml"), clip, fmt="mp4", workers=2)
+    return root, clip
+
+
+def test_truth_pixels_equal_opencv_in_every_camera(qualisys_clip):
+    """Acceptance: truth.csv's pixels are cv2.projectPoints of its points through the Qualisys rig
+    (lab frame, distortion with k3) in every camera, to 1e-6 px."""
+    root, clip = qualisys_clip
+    lab = load_rig(root / "lab.qca.txt")
+    info = json.loads((clip / "clip.json").read_text())
+    assert info["cameras"] == list(lab.names)
+    assert sorted(p.name for p in clip.glob("*.mp4")) == [f"{n}.mp4" for n in lab.names]
+    cols = [f"{c}_{n}" for n in lab.names for c in "uv"]
+    truth = read_csv(clip / "truth.csv", ["x", "y", "z", *cols], numeric=["x", "y", "z", *cols])
+    X0 = np.column_stack([truth["x"], truth["y"], truth["z"]])  # the first camera's frame
+    c0 = lab.cameras[0]
+    X_lab = (X0 - c0.t) @ c0.R  # back to the lab: X = Rᵀ (X₀ − t)
+    for n, cam in zip(lab.names, lab.cameras, strict=True):
+        ref = cv2.projectPoints(X_lab, cv2.Rodrigues(cam.R)[0], cam.t, cam.K, cam.D)[0].reshape(-1, 2)
+        np.testing.assert_allclose(np.column_stack([truth[f"u_{n}"], truth[f"v_{n}"]]), ref, atol=1e-6)
+
+
+@pytest.mark.slow
+def test_a_four_camera_clip_runs_end_to_end(qualisys_clip):
+    """`run` with its defaults: every camera detected, the methods that take N cameras run, each
+    marker within a few millimetres of the truth; the rig the clip holds is the rendered one."""
+    _, clip = qualisys_clip
+    res = process_clip(clip, settings=RunSettings(images=False))
+    assert Clip(clip).cameras == ("Miqus_1", "Miqus_2", "Miqus_3", "Miqus_4")
+    det = read_csv(res.out_dir / "detections.csv", ["camera"])
+    assert set(det["camera"]) == set(Clip(clip).cameras)
+    methods = res.estimate.metrics["methods"]
+    assert set(methods) == {"triangulation", "ekf", "ekf_rts"}
+    for m, entry in methods.items():
+        assert entry["rmse"] < 0.004, (m, entry["rmse"])
+    assert (res.out_dir / "run.rrd").is_file() and (res.out_dir / "report.html").is_file()
+
+
+def test_the_ring_scenario_names_its_cameras():
+    scen = load_scenario("ring")
+    rig = scen.rig.build_any()
+    assert scen.rig.camera_names() == ("cam0", "cam1", "cam2", "cam3")
+    np.testing.assert_allclose(rig.cameras[0].R, np.eye(3), atol=1e-12)  # the world: the first camera's frame
+    centre = np.array([0.0, 0.0, 2.15])
+    assert np.all(rig.depths(centre) > 1.5)  # every camera sees the volume from 2 m
+    for c in range(rig.n):
+        assert rig.in_image(rig.cameras[c].project(centre), camera=c)
+
+
+def test_a_batch_finds_n_camera_clips_beside_stereo_ones(qualisys_clip, tmp_path):
+    import shutil
+
+    from pipeline.app.batch import find_clips
+
+    _, clip = qualisys_clip
+    shutil.copytree(clip, tmp_path / "mocap", ignore=shutil.ignore_patterns("out"))
+    (tmp_path / "pair").mkdir()
+    for name in ("left.mp4", "right.mp4"):
+        (tmp_path / "pair" / name).write_bytes(b"")
+    assert find_clips(tmp_path) == [tmp_path / "mocap", tmp_path / "pair"]
+
+
+def test_stereo_only_methods_are_refused_on_n_cameras_by_name(qualisys_clip):
+    from pipeline.core.errors import StereotrackError
+
+    _, clip = qualisys_clip
+    with pytest.raises(StereotrackError, match="spsa_stereo takes a stereo pair; with 4 cameras use one of ekf"):
+        process_clip(clip, clip / "out_spsa", settings=RunSettings(methods=("spsa_stereo",), images=False,
+                                                                  recording=False, figures=False))
