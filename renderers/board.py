@@ -18,6 +18,7 @@ import numpy as np
 from pipeline.core.board import Board
 from pipeline.core.camera import UNDISTORT_CRITERIA, Camera, StereoRig
 from pipeline.core.io import atomic_path, ensure_dir
+from pipeline.core.rig import Rig
 
 SUPERSAMPLE = 3  # samples per pixel and axis (anti-aliasing of the square edges)
 BACKGROUND = 110  # grey level around the board
@@ -114,4 +115,71 @@ def render_board_pairs(rig: StereoRig, board: Board, out_dir: str | Path, pairs:
             with atomic_path(path) as tmp:
                 cv2.imwrite(str(tmp), render_view(cam, r, board, tex, pose, noise, rng))
             written.append(path)
+    return written
+
+
+def view_pose(rig: Rig, board: Board, rng: np.random.Generator, centre: np.ndarray, spread: float) -> tuple:
+    """A board pose for an N-camera rig: centre within ``spread`` m of ``centre``, facing the mean
+    direction of one camera or two neighbours (chosen at random) within 25°, turned in its plane."""
+    W, H = board.size
+    n = rig.n
+    first = int(rng.integers(n))
+    chosen = [first, (first + 1) % n] if rng.random() < 0.6 else [first]
+    c = np.asarray(centre, dtype=float) + rng.uniform(-spread, spread, 3)
+    toward = np.mean([(rig.cameras[k].center - c) / np.linalg.norm(rig.cameras[k].center - c) for k in chosen], axis=0)
+    toward /= np.linalg.norm(toward)
+    z = -toward  # the board's z axis points away from the cameras that see its face
+    x = np.cross(rig.cameras[first].R[1], z)  # level with the first camera's image rows
+    x /= np.linalg.norm(x)
+    Rb = np.column_stack([x, np.cross(z, x), z]) @ _rotation(*np.radians(rng.uniform(-25, 25, 3)))
+    return Rb, c - Rb @ [W / 2, H / 2, 0.0]
+
+
+def _sees(cam: Camera, board: Board, pose: tuple, size: tuple[int, int]) -> bool:
+    """Whether ``cam`` sees the board's printed face, every outer corner inside its image (5 %
+    margin), at less than 70° from face-on."""
+    Rb, tb = pose
+    W, H = board.size
+    corners = np.array([[0, 0, 0], [W, 0, 0], [W, H, 0], [0, H, 0]], dtype=float) @ Rb.T + tb
+    centre = corners.mean(axis=0)
+    ray = (cam.center - centre) / np.linalg.norm(cam.center - centre)
+    return bool(-ray @ Rb[:, 2] > math.cos(math.radians(70))) and _inside(cam, corners, *size)
+
+
+def close_pose(rig: Rig, c: int, board: Board, rng: np.random.Generator, depth: tuple[float, float]) -> tuple:
+    """A pose filling much of camera ``c``'s view (as :func:`random_pose` draws for a stereo pair):
+    what a user shows one camera to calibrate its lens."""
+    pair = StereoRig(rig.cameras[c], rig.cameras[(c + 1) % rig.n], rig.sizes[c])
+    one = StereoRig(pair.left, pair.left, pair.image_size)
+    return random_pose(one, board, rng, depth)
+
+
+def render_board_views(rig: Rig, board: Board, out_dir: str | Path, views: int = 30, seed: int = 0,
+                       centre: tuple[float, float, float] = (0.0, 0.0, 2.15), spread: float = 0.3,
+                       noise: float = 2.0, close: int = 0, close_depth: tuple[float, float] = (0.8, 1.4)
+                       ) -> dict[str, list[Path]]:
+    """``views`` poses of ``board`` around ``centre`` (the first camera's frame), each rendered by
+    every camera of ``rig`` that sees its face — any subset, at least one — as
+    ``out_dir/<camera>/NN.png`` (the same number in every camera that saw it: simultaneous); then
+    ``close`` poses per camera ``close_depth`` m in front of it (its lens calibration), numbered on."""
+    out = ensure_dir(out_dir)
+    rng = np.random.default_rng(seed)
+    tex = board.texture()
+    rays = [_rays(cam, size) for cam, size in zip(rig.cameras, rig.sizes, strict=True)]
+    written: dict[str, list[Path]] = {name: [] for name in rig.names}
+    k = 0
+    plan = [None] * views + [c for c in range(rig.n) for _ in range(close)]
+    while k < len(plan):
+        c0 = plan[k]
+        pose = (view_pose(rig, board, rng, np.asarray(centre), spread) if c0 is None
+                else close_pose(rig, c0, board, rng, close_depth))
+        seen = [c for c in range(rig.n) if _sees(rig.cameras[c], board, pose, rig.sizes[c])]
+        if not seen:
+            continue
+        k += 1
+        for c in seen:
+            path = ensure_dir(out / rig.names[c]) / f"{k:02d}.png"
+            with atomic_path(path) as tmp:
+                cv2.imwrite(str(tmp), render_view(rig.cameras[c], rays[c], board, tex, pose, noise, rng))
+            written[rig.names[c]].append(path)
     return written

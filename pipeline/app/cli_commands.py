@@ -188,17 +188,34 @@ def estimate_cmd(
 @app.command("calibrate")
 def calibrate_cmd(
     images: Annotated[Path, typer.Argument(help="Folder of image pairs (left*/right* numbered alike, or left/ and "
-                                           "right/ folders) or of two videos left.* and right.*.")],
+                                           "right/ folders) or of two videos left.* and right.*; or, for three or "
+                                           "more cameras, one sub-folder of numbered images per camera (cam0/, cam1/, "
+                                           "…: the same number is the same instant).")],
     board: Annotated[str, typer.Option(help="chessboard:COLSxROWS (inner corners) or charuco:COLSxROWS:DICT "
                                        "(squares; DICT e.g. 4X4_50).")],
     square: Annotated[str, typer.Option(help="Side of a square with its unit: 24mm, 2.4cm, 0.024 (metres).")],
     marker: Annotated[str | None, typer.Option(help="ChArUco: side of a marker, with its unit.")] = None,
-    output: Annotated[Path, typer.Option("-o", "--output", help="The calibration to write.")] = Path("calib.yaml"),
+    output: Annotated[Path | None, typer.Option("-o", "--output", help="The calibration to write (default calib.yaml; "
+                                                "for camera sub-folders rig.json, or any rig format by its name).")] = None,
 ) -> None:
-    """Calibrate a stereo rig from board pairs: calib.yaml (metres) and a report beside it."""
+    """Calibrate a stereo rig from board pairs, or a rig of N cameras from per-camera folders: the
+    calibration (metres) and a report beside it."""
     from pipeline.calibrate import calibrate_folder, parse_board, parse_length
+    from pipeline.calibrate_rig import calibrate_rig_folder, camera_folders
 
     b = parse_board(board, parse_length(square), parse_length(marker, "--marker") if marker else None)
+    folders = camera_folders(images) if images.is_dir() else []
+    if len(folders) >= 2 and {f.name for f in folders} != {"left", "right"}:
+        target = output or Path("rig.json")
+        with progress_bar() as bar:
+            bar.add_task("calibrate", total=None)
+            rig_cal, rig_report = calibrate_rig_folder(images, b, target)
+        out.print(f"{rig_cal.rig.n} cameras ({', '.join(rig_cal.rig.names)}); {rig_cal.shared} shared views; joint RMS "
+                  f"{rig_cal.rms_joint:.3f} px; leave-one-camera-out " + ", ".join(
+                      f"{n} {e:.2f} px" for n, e in rig_cal.loo.items()), highlight=False)
+        out.print(f"wrote {target} and {rig_report}")
+        return
+    output = output or Path("calib.yaml")
     with progress_bar() as bar:
         bar.add_task("calibrate", total=None)
         cal, report, _ = calibrate_folder(images, b, output)
