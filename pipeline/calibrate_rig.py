@@ -108,11 +108,11 @@ def calibrate_rig(images: str | Path, board: Board) -> RigCalibration:
     obj = np.column_stack([grid, np.zeros(len(grid))]).astype(np.float32)
     Ks, Ds, rms = [], [], {}
     for name, row, size in zip(names, found, sizes, strict=True):
-        pts = [p for p in row if p is not None]
-        if len(pts) < 3:
-            raise StereotrackError(f"the board was found in {len(pts)} image(s) of camera {name}: at least 3 are needed",
+        mine = [p for p in row if p is not None]
+        if len(mine) < 3:
+            raise StereotrackError(f"the board was found in {len(mine)} image(s) of camera {name}: at least 3 are needed",
                                    images / name)
-        out = cv2.calibrateCameraExtended([obj] * len(pts), pts, size, None, None,  # type: ignore[call-overload]
+        out = cv2.calibrateCameraExtended([obj] * len(mine), mine, size, None, None,  # type: ignore[call-overload]
                                           flags=cv2.CALIB_FIX_K3)
         rms[name] = float(out[0])
         Ks.append(out[1])
@@ -123,9 +123,11 @@ def calibrate_rig(images: str | Path, board: Board) -> RigCalibration:
         raise StereotrackError(f"{int(shared.sum())} view(s) show the board to two or more cameras: at least 3 are "
                                "needed to find the poses", images)
     cols = np.flatnonzero(shared)
-    pts = [[row[k] if row[k] is not None else np.zeros((0, 2), np.float32) for k in cols] for row in found]
-    res = cv2.calibrateMultiview([obj] * len(cols), pts, sizes, mask[:, cols], np.zeros(len(names), np.uint8), Ks, Ds,
-                                 None, None, flagsForIntrinsics=np.full(len(names), cv2.CALIB_FIX_K3, dtype=int),
+    empty = np.zeros((0, 2), np.float32)
+    pts: list[list[np.ndarray]] = [[p if (p := row[k]) is not None else empty for k in cols] for row in found]
+    # OpenCV's stubs type the outputs (Rs, Ts: None asks it to allocate them) and the masks as UMat
+    res = cv2.calibrateMultiview([obj] * len(cols), pts, sizes, mask[:, cols], np.zeros(len(names), np.uint8),  # type: ignore[call-overload]
+                                 Ks, Ds, None, None, flagsForIntrinsics=np.full(len(names), cv2.CALIB_FIX_K3, dtype=int),
                                  flags=cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_FIX_INTRINSIC)
     cams = tuple(Camera(np.asarray(K, float), cv2.Rodrigues(np.asarray(r, float))[0], np.ravel(np.asarray(t, float)),
                         np.ravel(np.asarray(D, float))) for K, D, r, t in zip(res[1], res[2], res[3], res[4], strict=True))

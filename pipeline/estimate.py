@@ -30,7 +30,7 @@ from pipeline.core.io import read_csv, write_csv, write_json
 from pipeline.core.outputs import Outputs
 from pipeline.core.rig import Rig
 from pipeline.core.settings import RunHooks, RunSettings
-from pipeline.core.sync import SyncEstimate, grid_length, resolve_sync
+from pipeline.core.sync import SyncEstimate, describe_views, grid_length, resolve_sync, resolve_view_sync
 from pipeline.core.version import stereotrack_version
 from pipeline.estimators import Estimator, Track, create, registry
 from pipeline.estimators import methods as registered_methods
@@ -94,6 +94,8 @@ class Observed:
     associations: dict[str, Association] = field(default_factory=dict)
     #: a rendered clip's groups → their members' true positions, NaN out of view (:meth:`Clip.group_truth`)
     group_truth: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
+    #: N cameras: each camera's offset against the first (``sync`` summarises them)
+    sync_views: dict[str, SyncEstimate] = field(default_factory=dict)
 
 
 def estimate_clip(clip: str | Path | Clip, settings: RunSettings | None = None, out_dir: str | Path | None = None,
@@ -188,9 +190,10 @@ def observe(clip: Clip, in_dir: Path, detections: Detections | None, settings: R
     width = 2 * len(rig.cameras)
     obs = {k: np.vstack([v, np.full((n - len(v), width), np.nan)]) for k, v in obs.items()}
     groups = {g: [*v, *([[np.zeros((0, 2)) for _ in rig.cameras]] * (n - len(v)))] for g, v in groups.items()}
-    if isinstance(rig, Rig):  # N cameras: their offsets are the rig's (sync estimation is for a pair)
-        ts = None
-        sync, aligned = SyncEstimate(0.0, None, False, "cameras"), obs
+    views: dict[str, SyncEstimate] = {}
+    if isinstance(rig, Rig):  # N cameras: each against the first
+        views, aligned = resolve_view_sync(settings.time_offset if obs else "off", rig, obs, clip.fps, ts)
+        sync = SyncEstimate(0.0, None, any(v.applied for v in views.values()), "cameras", note=describe_views(views))
     else:
         sync, aligned = resolve_sync(settings.time_offset if obs else "off", rig, obs, clip.fps, ts)
     new_checks = [_sync_check(sync)]
@@ -201,7 +204,7 @@ def observe(clip: Clip, in_dir: Path, detections: Detections | None, settings: R
     warn_failed(new_checks)
     return Observed(rig, 1.0 / clip.fps, n, obs, aligned, sync, truth, find_target(clip, settings.target_radius, obs),
                     checks + new_checks, footage, estimate_pixel_sigma(rig, aligned), groups,
-                    group_truth=clip.group_truth(truth_frames) if groups else {})
+                    group_truth=clip.group_truth(truth_frames) if groups else {}, sync_views=views)
 
 
 def _rig_for_footage(clip: Clip, footage: FootageInfo, calib_units: str | None,
@@ -275,7 +278,8 @@ def _run_point(m: str, seen: Observed, config: dict | None, out_dir: Path, resol
     """One point method on every marker, and behind the association on each group of identical
     markers; writes its estimates. Methods that model the time offset see the right camera at its
     own times, the others the right camera interpolated."""
-    modelled = seen.sync.applied and seen.sync.source != "timestamps" and registry()[m].models_time_offset
+    modelled = (seen.sync.applied and seen.sync.source not in ("timestamps", "cameras")
+                and registry()[m].models_time_offset)
     est = create(m, seen.rig, seen.dt, config, time_offset=seen.sync.offset_s if modelled else 0.0)
     resolved[m] = est.config.model_dump(mode="json")
     tracks, identity = {}, {}
@@ -301,6 +305,7 @@ def _metrics(result: EstimateResult, seen: Observed, clip: Clip, calib_units: st
     metrics = compute_metrics(result, point)
     metrics.update({"pixel_sigma_estimate": seen.sigma, "calibration_units": calib_units,
                     "checks": [c.as_dict() for c in seen.checks], "sync": seen.sync.as_dict(),
+                    **({"sync_cameras": {k: v.as_dict() for k, v in seen.sync_views.items()}} if seen.sync_views else {}),
                     "time": {"fps": clip.fps, "dt_s": seen.dt, "source": clip.fps_source}})
     if seen.footage.cameras:
         metrics["detection"] = seen.footage.cameras

@@ -104,7 +104,7 @@ def ideal_timing(scenario: Scenario, cam_index: int) -> bool:
     """Whether camera ``cam_index`` exposes frame k at exactly ``k/fps``, all at once, instantly."""
     r = scenario.rig
     return (scenario.render.exposure_s == 0 and r.line_delay_s == 0 and r.jitter_s == 0
-            and (cam_index == 0 or r.sync_offset_s == 0))
+            and r.time_offsets()[cam_index] == 0)
 
 
 def _render_frame(scene, renderer, cam_index: int, k: int, t0: float) -> np.ndarray:

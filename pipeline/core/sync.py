@@ -23,6 +23,7 @@ import numpy as np
 
 from pipeline.core.camera import StereoRig
 from pipeline.core.checks import EPIPOLAR_WARN_PX
+from pipeline.core.rig import Rig
 
 #: the offsets searched, in frames either side of zero (fewer for short clips: a quarter of them)
 MAX_SHIFT_FRAMES = 10.0
@@ -58,7 +59,7 @@ class SyncEstimate:
         if self.source == "off":
             return "sync offset: not estimated (--time-offset off)"
         if self.source == "cameras":
-            return "sync offsets: not estimated for more than two cameras (the frames are taken as simultaneous)"
+            return self.note or "sync offsets: not estimated for more than two cameras"
         if self.source == "timestamps":
             return f"sync offset: from timestamps.csv, median {1000 * self.offset_s:+.2f} ms (right camera late when +)"
         if self.source == "given":
@@ -249,3 +250,51 @@ def _median_offset(ts: dict[str, np.ndarray], fps: float) -> float:
     d = on["right"] - on["left"]
     d = d[np.isfinite(d)]
     return float(np.median(d)) if len(d) else 0.0
+
+
+# -- more than two cameras -----------------------------------------------------------------------
+
+
+def _pair_columns(c: int) -> list[int]:
+    return [0, 1, 2 * c, 2 * c + 1]
+
+
+def resolve_view_sync(setting: str | float | None, rig: Rig, obs: dict[str, np.ndarray], fps: float,
+                      timestamps: dict[str, np.ndarray] | None = None
+                      ) -> tuple[dict[str, SyncEstimate], dict[str, np.ndarray]]:
+    """Each camera's offset against the first (N cameras), and the observations with every camera
+    aligned to the first camera's instants: per camera, the stereo pair (first, that camera) through
+    :func:`resolve_sync` — its timestamps when the clip has them, else found from the detections
+    (applied only where significant and explaining the epipolar mismatch), a number of seconds for
+    every camera, or off."""
+    names = rig.names
+    out = {k: v.copy() for k, v in obs.items()}
+    found: dict[str, SyncEstimate] = {}
+    for c in range(1, rig.n):
+        pair = StereoRig(rig.cameras[0], rig.cameras[c], rig.sizes[0])
+        sub = {k: v[:, _pair_columns(c)] for k, v in obs.items()}
+        ts = {"left": timestamps[names[0]], "right": timestamps[names[c]]} if timestamps is not None else None
+        est, aligned = resolve_sync(setting, pair, sub, fps, ts)
+        found[names[c]] = est
+        for k, v in aligned.items():
+            if ts is not None:  # the first camera placed on the frame grid too (the same for every pair)
+                out[k] = _grown(out[k], len(v))
+                out[k][:, :2] = v[:, :2]
+            out[k] = _grown(out[k], len(v))
+            out[k][:, 2 * c : 2 * c + 2] = v[:, 2:]
+    return found, out
+
+
+def _grown(Y: np.ndarray, n: int) -> np.ndarray:
+    """``Y`` padded with NaN rows to ``n`` rows (the frame grid can be longer than a footage)."""
+    return Y if len(Y) >= n else np.vstack([Y, np.full((n - len(Y), Y.shape[1]), np.nan)])
+
+
+def describe_views(found: dict[str, SyncEstimate]) -> str:
+    """One line for N cameras' offsets against the first."""
+    parts = []
+    for name, est in found.items():
+        state = ("from timestamps" if est.source == "timestamps" else "applied" if est.applied
+                 else "not applied" if est.source == "detections" else est.source)
+        parts.append(f"{name} {1000 * est.offset_s:+.2f} ms ({state})")
+    return "sync offsets against the first camera: " + ", ".join(parts)
