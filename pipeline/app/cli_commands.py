@@ -62,9 +62,9 @@ def methods_cmd(
 
     if names:
         return _print_settings(names, registry())
-    table = Table("method", "kind", "description", title="estimators (--methods, --config)")
+    table = Table("method", "kind", "cameras", "description", title="estimators (--methods, --config)")
     for name, cls in registry().items():
-        table.add_row(name, cls.kind, cls.description())
+        table.add_row(name, cls.kind, "N" if cls.any_cameras else "2", cls.description())
     out.print(table)
     found = Table("detector", "description", title="detectors (--detector)")
     for name, det in detectors().items():

@@ -35,6 +35,7 @@ class KF3DEstimator(GatedFilter, Estimator):
     """Kalman filter with H = [I 0] on triangulated points."""
 
     name = "kf3d"
+    any_cameras = True
     Config = KF3DConfig
     config: KF3DConfig  # the validated settings, of this method's own type
 

@@ -23,6 +23,7 @@ class PredictOnlyEstimator(Estimator):
     """Start as configured, then constant-velocity prediction only (no update): the baseline."""
 
     name = "predict_only"
+    any_cameras = True
     Config = PredictOnlyConfig
     config: PredictOnlyConfig  # the validated settings, of this method's own type
 

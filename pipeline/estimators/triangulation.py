@@ -25,7 +25,8 @@ class TriangulationEstimator(Estimator):
     treated as a gap. With more than two cameras a frame keeps the largest set of cameras that
     agree (each within the per-camera χ² gate, two degrees of freedom, of a noise of
     ``max(pixel_sigma, 1 px)``): one camera's outlier drops that camera, not the frame
-    (:func:`~pipeline.core.camera.triangulate_robust`); ``extra["cameras"]`` counts the cameras used."""
+    (:func:`~pipeline.core.rig.triangulate_robust`): ``extra["gated"]`` counts the cameras dropped
+    in a frame, ``extra["dropped:<camera>"]`` says which (``metrics.json``: ``dropped_cameras``)."""
 
     name = "triangulation"
     any_cameras = True
@@ -38,22 +39,26 @@ class TriangulationEstimator(Estimator):
     def _fix(self, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Triangulations (…×3, NaN where implausible) and which frames were gated (…)."""
         if self.rig.n > 2:
-            return self._fix_views(Y)[:2]
+            X, gated, _ = self._fix_views(Y)
+            return X, gated
         X = self.model.inverse_function(Y)
         gated = np.all(np.isfinite(X), axis=-1) & (reprojection_residual(self.model, X, Y) > self.max_residual)
         X[gated] = np.nan
         return X, gated
 
     def _fix_views(self, Y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """N cameras: the robust subset triangulation; (points, frames gated, cameras used)."""
+        """N cameras: the robust subset triangulation; (points, frames gated, cameras dropped:
+        observing cameras left out of the frame's point, …×N)."""
         shape = Y.shape[:-1]
         limit = max(self.config.pixel_sigma, GATE_FLOOR_PX) * float(np.sqrt(camera_gate(self.config.gate)))
         X, used = triangulate_robust(self.rig, Y.reshape(-1, Y.shape[-1]), limit)
-        seen = np.isfinite(Y.reshape(-1, self.rig.n, 2)).all(axis=2).sum(axis=1) >= 2
-        gated = seen & ~np.isfinite(X).all(axis=1)
-        return X.reshape(*shape, 3), gated.reshape(shape), used.sum(axis=1).reshape(shape)
+        observed = np.isfinite(Y.reshape(-1, self.rig.n, 2)).all(axis=2)
+        gated = (observed.sum(axis=1) >= 2) & ~np.isfinite(X).all(axis=1)
+        return X.reshape(*shape, 3), gated.reshape(shape), (observed & ~used).reshape(*shape, self.rig.n)
 
     def _step(self, y: np.ndarray) -> Step:
+        if self.rig.n > 2:
+            return self._step_views(y)
         Xs, gated_all = self._fix(y[None])
         X, gated = Xs[0], bool(gated_all[0])
         if np.all(np.isfinite(X)):
@@ -61,6 +66,18 @@ class TriangulationEstimator(Estimator):
             self.initialized = True
             return Step(X, NAN3.copy(), extra={"gated": 0.0})
         return Step(self.last.copy(), NAN3.copy(), predicted=True, extra={"gated": float(gated)})
+
+    def _step_views(self, y: np.ndarray) -> Step:
+        """:meth:`_step` over N cameras, with the cameras dropped in this frame."""
+        Xs, _, dropped_all = self._fix_views(y[None])
+        X, dropped = Xs[0], dropped_all[0]
+        extra = {"gated": float(dropped.sum()), **{f"dropped:{n}": float(d) for n, d in zip(self.rig.names, dropped,
+                                                                                          strict=True)}}
+        if np.all(np.isfinite(X)):
+            self.last = X
+            self.initialized = True
+            return Step(X, NAN3.copy(), extra=extra)
+        return Step(self.last.copy(), NAN3.copy(), predicted=True, extra=extra)
 
     def run_batch(self, Y: np.ndarray) -> np.ndarray:
         """All tracks triangulated at once; gaps hold the last fix as :meth:`step` does."""

@@ -13,9 +13,10 @@ from pipeline.estimators.registration import register
 
 @register
 class UKFEstimator(GatedFilter, Estimator):
-    """Unscented Kalman filter on the 4-D stereo reprojection (white-noise acceleration)."""
+    """Unscented Kalman filter on the stereo (or N-camera) reprojection (white-noise acceleration)."""
 
     name = "ukf"
+    any_cameras = True
     Config = KalmanConfig
     config: KalmanConfig  # the validated settings, of this method's own type
     models_time_offset = True
@@ -30,7 +31,8 @@ class UKFEstimator(GatedFilter, Estimator):
 
         points = MerweScaledSigmaPoints(6, alpha=0.3, beta=2.0, kappa=-3.0)
         A, h = self.A, self.model.function
-        self.filter = UnscentedKalmanFilter(dim_x=6, dim_z=4, dt=self.dt, hx=h, fx=lambda x, dt: A @ x, points=points)
+        self.filter = UnscentedKalmanFilter(dim_x=6, dim_z=self.model.ndim_meas, dt=self.dt, hx=h, fx=lambda x, dt: A @ x,
+                                            points=points)
         self.filter.Q, self.filter.R = self.Q, self.R
 
     def _step(self, y: np.ndarray) -> Step:

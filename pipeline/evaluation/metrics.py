@@ -109,7 +109,8 @@ def method_metrics(res: Estimates, m: str, per_marker: dict[str, Track],
     reps = np.concatenate([t.reprojection_error for t in per_marker.values()])
     positions = np.vstack([t.position for t in per_marker.values()])
     fin = np.all(np.isfinite(positions), axis=1)
-    entry["behind_camera"] = int(np.any(res.rig.depths(positions[fin]) <= 0, axis=1).sum())
+    behind = res.rig.depths(positions[fin]) <= 0  # N cameras face every way: behind all of them is wrong
+    entry["behind_camera"] = int((np.any(behind, axis=1) if isinstance(res.rig, StereoRig) else np.all(behind, axis=1)).sum())
     entry["reprojection_rmse_px"] = float(np.sqrt(np.nanmean(reps**2))) if np.isfinite(reps).any() else None
     nis = [(t.nis, t.nis_dof) for t in per_marker.values() if t.nis is not None]
     if nis:
@@ -118,6 +119,10 @@ def method_metrics(res: Estimates, m: str, per_marker: dict[str, Track],
         counts = [np.nansum(t.extra[key]) for t in per_marker.values() if key in t.extra]
         if counts:  # observations the outlier gate rejected (per camera), tracks restarted
             entry[name] = int(sum(counts))
+    dropped = {k.split(":", 1)[1]: int(sum(np.nansum(t.extra[k]) for t in per_marker.values() if k in t.extra))
+               for k in dict.fromkeys(k for t in per_marker.values() for k in t.extra if k.startswith("dropped:"))}
+    if dropped:  # N cameras: which camera's observations the robust triangulation left out, how often
+        entry["dropped_cameras"] = dropped
     sps = [t.seconds_per_step for t in per_marker.values()]
     entry["seconds_per_step"] = float(np.mean(sps))
     entry["steps_per_second"] = float(1.0 / np.mean(sps)) if np.mean(sps) > 0 else None

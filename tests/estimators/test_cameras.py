@@ -70,7 +70,7 @@ CASES = [  # (rig, trajectory, fps, sigma, seed): the first is the tuning case, 
 
 
 @pytest.mark.parametrize("case", range(len(CASES)))
-@pytest.mark.parametrize("name", ["triangulation", "ekf"])
+@pytest.mark.parametrize("name", ["triangulation", "ekf", "kf3d", "ukf"])
 def test_one_bad_camera_of_several_costs_little(case, name):
     """Acceptance: 20 % gross outliers (20–120 px) in one camera: median 3-D error ≤ 1.1× the clean
     run's, through the method's defaults given only the pixel noise."""
@@ -146,19 +146,19 @@ def test_every_path_gives_the_same_numbers_over_n_cameras():
     rig = ring_rig()
     X = _lissajous(80, 1 / 30)
     Y = np.stack([_observe(rig, X, 1.0, s, 0.1) for s in (0, 1)])
-    for name in ("triangulation", "ekf", "ekf_rts"):
-        est = create(name, rig, 1 / 30, {"pixel_sigma": 1.0})
+    for name in ("triangulation", "ekf", "ekf_rts", "kf3d", "kf3d_rts", "ukf", "predict_only"):
+        est = create(name, rig, 1 / 30, {"pixel_sigma": 1.0} if name != "predict_only" else {})
         runs = np.stack([est.run(y).position for y in Y])
         np.testing.assert_allclose(est.run_batch(Y), runs, atol=1e-12)
         est.reset()
         steps = np.array([est.step(y).position for y in Y[0]])
-        if name != "ekf_rts":  # the smoother's streaming output is the filter's
+        if not name.endswith("_rts"):  # a smoother's streaming output is the filter's
             np.testing.assert_allclose(steps, runs[0], atol=1e-12)
 
 
 def test_stereo_only_methods_refuse_more_cameras_by_name():
-    with pytest.raises(StereotrackError, match="ukf takes a stereo pair; with 4 cameras use one of ekf"):
-        create("ukf", ring_rig(), 1 / 30)
+    with pytest.raises(StereotrackError, match="spsa_stereo takes a stereo pair; with 4 cameras use one of ekf"):
+        create("spsa_stereo", ring_rig(), 1 / 30)
     with pytest.raises(StereotrackError, match="expected frames × 8 observations"):
         create("ekf", ring_rig(), 1 / 30).run(np.zeros((5, 4)))
 
@@ -189,3 +189,16 @@ def test_each_camera_s_offset_is_found_against_the_first(case):
         assert found[name].applied and abs(found[name].offset_s - offsets[c]) < 0.5 / fps, (name, found[name])
     err = lambda Z: float(np.nanmedian(np.linalg.norm(rig.triangulate(Z) - truth, axis=1)))  # noqa: E731
     assert err(Y) > 1.2 * err(synced) and err(aligned["m"]) <= err(synced)
+
+
+def test_triangulation_names_the_camera_it_drops():
+    """Gross outliers in camera 1 only: the frames it is dropped in are (nearly) exactly its outlier
+    frames, no other camera is dropped more than a few times (the per-camera gate at 1 px noise)."""
+    rig, path, fps, sigma, seed = CASES[0]
+    X = path(300, 1 / fps)
+    Y = _observe(rig, X, sigma, seed, outliers=0.2)
+    bad = np.any(np.abs(Y - _observe(rig, X, sigma, seed)) > 1e-9, axis=1)
+    extra = create("triangulation", rig, 1 / fps, {"pixel_sigma": sigma}).run(Y).extra
+    dropped = extra["dropped:cam1"] > 0
+    assert (dropped & bad).sum() >= 0.95 * bad.sum() and (dropped & ~bad).sum() <= 3
+    assert all(np.nansum(extra[f"dropped:{n}"]) <= 3 for n in rig.names if n != "cam1")
