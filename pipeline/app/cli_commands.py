@@ -201,7 +201,7 @@ def calibrate_cmd(
     """Calibrate a stereo rig from board pairs, or a rig of N cameras from per-camera folders: the
     calibration (metres) and a report beside it."""
     from pipeline.calibrate import calibrate_folder, parse_board, parse_length
-    from pipeline.calibrate_rig import calibrate_rig_folder, camera_folders
+    from pipeline.calibrate.rig import calibrate_rig_folder, camera_folders
 
     b = parse_board(board, parse_length(square), parse_length(marker, "--marker") if marker else None)
     folders = camera_folders(images) if images.is_dir() else []

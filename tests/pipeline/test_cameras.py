@@ -160,7 +160,7 @@ def test_calibrate_recovers_a_rendered_ring(tmp_path, n):
 def test_leave_one_camera_out_shows_a_wrong_pose():
     """The report's leave-one-camera-out error: ~0 for exact poses, and the moved camera's
     grows most when its pose is 1 cm off (the others place the board where it is)."""
-    from pipeline.calibrate_rig import _leave_one_out
+    from pipeline.calibrate.rig import _leave_one_out
     from pipeline.core.rig import ring_rig
 
     rig = ring_rig(4).in_frame_of(0)

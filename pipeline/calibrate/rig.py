@@ -1,4 +1,4 @@
-"""``stereotrack calibrate`` for three or more cameras: a rig from a folder of board images, one
+"""``stereotrack calibrate`` for two or more cameras in per-camera folders: a rig from a folder of board images, one
 sub-folder per camera (``cam0/``, ``cam1/``, … numbered alike: the same number is the same
 instant, seen by any subset of the cameras), written as a rig file with a report beside it.
 
