@@ -277,10 +277,11 @@ def test_methods_command_lists_every_method():
             if cells[0]:
                 rows.append(cells)
             else:  # a wrapped description continues on the next line
-                rows[-1][2] += " " + cells[2]
+                rows[-1][3] += " " + cells[3]
     assert [r[0] for r in rows] == list(registry())
-    for (name, kind, desc), cls in zip(rows, registry().values(), strict=True):
+    for (name, kind, cameras, desc), cls in zip(rows, registry().values(), strict=True):
         assert kind == cls.kind and desc == cls.description(), name
+        assert cameras == ("N" if cls.any_cameras else "2"), name
     from detectors import registry as detectors
 
     assert all(f"│ {name} " in res.output for name in detectors())
