@@ -60,6 +60,8 @@ class EstimateResult:
     metrics: dict[str, Any] = field(default_factory=dict)
     #: method → marker → the track's per-frame scores (kept with the tracks)
     scores: dict[str, dict[str, FrameScores]] = field(default_factory=dict)
+    #: the observations with every camera at the first camera's instants (the clip's sync applied)
+    aligned: dict[str, np.ndarray] = field(default_factory=dict)
 
     @property
     def truth_positions(self) -> dict[str, np.ndarray] | None:
@@ -139,7 +141,8 @@ def estimate_clip(clip: str | Path | Clip, settings: RunSettings | None = None, 
     configs = _with_pixel_noise(settings.configs, methods, seen.sigma)
     resolved: dict[str, dict[str, Any]] = {}
     target_tracks = {m: _run_target(m, seen, configs.get(m, {}), out_dir, resolved, count) for m in target}
-    result = EstimateResult(out_dir, seen.rig, seen.dt, seen.n, seen.obs, {}, seen.truth, seen.target, target_tracks)
+    result = EstimateResult(out_dir, seen.rig, seen.dt, seen.n, seen.obs, {}, seen.truth, seen.target, target_tracks,
+                            aligned=seen.aligned)
     entries = {}
     for m in point:
         tracks, scores, identity = _run_point(m, seen, configs.get(m), out_dir, resolved, count)

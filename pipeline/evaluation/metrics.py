@@ -22,6 +22,7 @@ class Estimates(Protocol):
     n_frames: int
     dt: float
     rig: StereoRig | Rig
+    aligned: dict[str, np.ndarray]  # the observations, every camera at the first camera's instants
     tracks: dict[str, dict[str, Track]]
     truth: ClipTruth | None
     target: TargetInfo | None
@@ -123,6 +124,8 @@ def method_metrics(res: Estimates, m: str, per_marker: dict[str, Track],
                for k in dict.fromkeys(k for t in per_marker.values() for k in t.extra if k.startswith("dropped:"))}
     if dropped:  # N cameras: which camera's observations the robust triangulation left out, how often
         entry["dropped_cameras"] = dropped
+    if isinstance(res.rig, Rig):
+        entry["reprojection_per_camera_px"] = _per_camera_reprojection(res, per_marker)
     sps = [t.seconds_per_step for t in per_marker.values()]
     entry["seconds_per_step"] = float(np.mean(sps))
     entry["steps_per_second"] = float(1.0 / np.mean(sps)) if np.mean(sps) > 0 else None
@@ -130,6 +133,27 @@ def method_metrics(res: Estimates, m: str, per_marker: dict[str, Track],
         entry.update(_against_truth(scores))
     _note_too_short(entry, m, res.n_frames)
     return entry
+
+
+def _per_camera_reprojection(res: Estimates, per_marker: dict[str, Track]) -> dict[str, float | None]:
+    """N cameras: each camera's RMS pixel distance (per coordinate) between the estimates and its
+    own detections at the first camera's instants (single markers; a camera whose RMS stands out
+    is mis-calibrated, out of sync or sees a wrong blob)."""
+    out: dict[str, float | None] = {}
+    for c, name in enumerate(res.rig.names):
+        sq = []
+        for marker, t in per_marker.items():
+            Y = res.aligned.get(marker)
+            if Y is None:
+                continue
+            n = min(len(Y), len(t.position))
+            with np.errstate(invalid="ignore"):
+                r = res.rig.cameras[c].project(np.nan_to_num(t.position[:n])) - Y[:n, 2 * c : 2 * c + 2]
+            ok = np.all(np.isfinite(t.position[:n]), axis=1) & np.all(np.isfinite(r), axis=1)
+            sq.append(np.sum(r[ok] ** 2, axis=1))
+        allsq = np.concatenate(sq) if sq else np.zeros(0)
+        out[name] = float(np.sqrt(np.mean(allsq) / 2)) if len(allsq) else None
+    return out
 
 
 def _against_truth(scores: dict[str, FrameScores]) -> dict[str, Any]:

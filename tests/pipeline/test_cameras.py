@@ -89,6 +89,8 @@ def test_a_four_camera_clip_runs_end_to_end(qualisys_clip):
         if m != "predict_only":  # the baseline drifts, as it should
             assert entry["rmse"] < 0.004, (m, entry["rmse"])
     assert methods["predict_only"]["rmse"] > 10 * methods["ekf"]["rmse"]
+    per_camera = methods["ekf"]["reprojection_per_camera_px"]
+    assert set(per_camera) == set(Clip(clip).cameras) and max(per_camera.values()) < 0.5
     assert (res.out_dir / "run.rrd").is_file() and (res.out_dir / "report.html").is_file()
 
 
