@@ -1,0 +1,41 @@
+"""The sync estimator on simulated stereo detections: no pull towards half-frame offsets.
+
+Held out: the trajectories (random sinusoids of seeds 50–61) were not used to choose the
+weighting; 1 px noise, 300 frames at 30 fps, the default rig."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.core.camera import StereoRig
+from pipeline.core.sync import estimate_offset, resolve_sync
+
+RIG = StereoRig.from_parameters(640, 480, 600.0, baseline=0.3)
+
+
+def _detections(delta_frames: float, seed: int, n: int = 300, fps: float = 30.0) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    f, ph = rng.uniform(0.2, 0.6, 3), rng.uniform(0, 6, 3)
+
+    def at(t: np.ndarray) -> np.ndarray:
+        return np.c_[0.3 * np.sin(2 * np.pi * f[0] * t + ph[0]), 0.25 * np.sin(2 * np.pi * f[1] * t + ph[1]),
+                     2.2 + 0.4 * np.sin(2 * np.pi * f[2] * t + ph[2])]
+
+    t = np.arange(n) / fps
+    Y = np.c_[RIG.left.project(at(t)), RIG.right.project(at(t + delta_frames / fps))]
+    return {"m": Y + rng.normal(0, 1.0, Y.shape)}
+
+
+@pytest.mark.parametrize("delta", [0.0, 0.5, 1.0, 1.5, 2.0, -1.0])
+def test_whole_and_half_frame_offsets_are_found_alike(delta):
+    """Integer and half-integer truths alike: median error under 0.03 frame, none over 0.1 (an
+    unweighted cost, whose noise falls by a quarter at every half frame, erred by a median 0.07
+    frame towards the half at integer truths)."""
+    errs = np.array([estimate_offset(RIG, _detections(delta, seed), 30.0).offset_s * 30.0 - delta
+                     for seed in range(50, 62)])
+    assert np.median(np.abs(errs)) < 0.03 and np.max(np.abs(errs)) < 0.1, errs
+
+
+def test_no_offset_is_applied_to_synchronised_cameras():
+    assert not any(resolve_sync("auto", RIG, _detections(0.0, seed), 30.0)[0].applied for seed in range(50, 62))
