@@ -19,7 +19,7 @@ Color = tuple[int, int, int]
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # NaN or inf: an error naming the field
 
 
 class CameraPose(_Model):

@@ -39,12 +39,22 @@ VIDEO_SAMPLES = 40
 LENGTH = re.compile(r"^\s*([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*(mm|cm|m)?\s*$")
 
 
+#: a bare number (no unit) at least this large is refused: no printed board has squares of half a
+#: metre, so ``--square 25`` means 25 mm, not the 25 m it would silently be read as
+BARE_LENGTH_LIMIT = 0.5
+
+
 def parse_length(text: str, what: str = "--square") -> float:
-    """``24mm``, ``2.4cm``, ``0.024`` or ``0.024m`` → metres (a bare number is metres)."""
+    """``24mm``, ``2.4cm``, ``0.024`` or ``0.024m`` → metres (a bare number under 0.5 is metres;
+    a larger one is refused as ambiguous, naming the likely unit)."""
     m = LENGTH.match(str(text))
     if not m or float(m.group(1)) <= 0:
         raise StereotrackError(f"{what} {text!r} is not a length (e.g. 24mm, 2.4cm, 0.024)")
-    return float(m.group(1)) * LENGTH_UNITS[m.group(2) or "m"]
+    value = float(m.group(1))
+    if m.group(2) is None and value >= BARE_LENGTH_LIMIT:
+        raise StereotrackError(f"{what} {text} has no unit and would be {value:g} metres: give one "
+                               f"({m.group(1)}mm? {m.group(1)}cm?)")
+    return value * LENGTH_UNITS[m.group(2) or "m"]
 
 
 def parse_board(spec: str, square: float, marker: float | None = None) -> Board:

@@ -547,3 +547,31 @@ def test_library_warnings_name_their_source(capsys):
     err = capsys.readouterr().err.splitlines()
     assert err == ["warning: _nanfunctions_impl.py:1215: RuntimeWarning: Mean of empty slice",
                    "warning: clip/calib.yaml: something"]
+
+
+@pytest.mark.parametrize(("field", "value"), [(("rig", "distortion"), [float("nan"), 0.0, 0.0, 0.0, 0.0]),
+                                              (("rig", "sync_offset_s"), float("inf")),
+                                              (("distractors", 0, "position"), [0.0, float("nan"), 1.0])])
+def test_nan_or_inf_in_a_scenario_is_an_error_naming_the_field(field, value):
+    """#40 item 8: NaN or inf passed validation and ended in an internal error; now one line."""
+    from pipeline.core.errors import ScenarioError
+    from renderers.scenario import load_scenario, parse_scenario
+
+    data = load_scenario("multi_marker").model_dump(mode="json")
+    node = data
+    for key in field[:-1]:
+        node = node[key]
+    node[field[-1]] = value
+    name = ".".join(str(k) for k in field)
+    with pytest.raises(ScenarioError, match=rf"my\.yaml: invalid scenario: {name}.*finite number"):
+        parse_scenario(data, "my.yaml")
+
+
+@pytest.mark.parametrize("square", ["25", "1", "0.5"])
+def test_a_square_without_a_unit_that_cannot_be_metres_is_refused(square):
+    """#40 item 3: `--square 25` was 25 m, silently (a 300 m baseline, exit 0)."""
+    from pipeline.calibrate import parse_length
+
+    with pytest.raises(StereotrackError, match=rf"--square {square} has no unit and would be .* metres: give one"):
+        parse_length(square)
+    assert parse_length("0.024") == 0.024 and parse_length("25mm") == pytest.approx(0.025)
