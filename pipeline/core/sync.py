@@ -163,7 +163,8 @@ def estimate_offset(rig: StereoRig, obs: dict[str, np.ndarray], fps: float, seed
         idx = np.concatenate([np.arange(s, min(s + BLOCK, len(D))) for s in starts])
         boot.append(_argmin(D[idx].mean(axis=0), shifts))
     half = CI_WIDEN * 1.96 * float(np.std(boot))
-    residual = float(np.sqrt(np.interp(best, shifts, D.mean(axis=0))))
+    # the epipolar residual in pixels at δ (the cost is weighted: undo the weight of δ's shift)
+    residual = float(np.sqrt(np.interp(best, shifts, D.mean(axis=0)) * interpolation_variance(best)))
     return SyncEstimate(best / fps, ((best - half) / fps, (best + half) / fps), False, "detections", residual)
 
 
