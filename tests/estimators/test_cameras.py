@@ -165,10 +165,10 @@ def test_stereo_only_methods_refuse_more_cameras_by_name():
 
 @pytest.mark.parametrize("case", range(len(CASES)))
 def test_each_camera_s_offset_is_found_against_the_first(case):
-    """Cameras 8–20 ms early or late (held-out rigs included): every offset found from the detections
-    alone and applied, within half a frame (the pairwise estimator's known pull towards half-frame
-    offsets bounds it: issue "Sure-footed estimation"), and the observations aligned by them
-    triangulate with under half the error of the unaligned ones."""
+    """Cameras 8–20 ms early or late (held-out rigs included), offsets found from the detections
+    alone: every offset applied is within a quarter frame, one left unapplied only where its
+    interval holds 0 (at most one per rig), and the aligned observations triangulate within 1.15×
+    of synchronised cameras (the unaligned ones 1.2× or more worse)."""
     from pipeline.core.sync import resolve_view_sync
 
     rig, path, fps, sigma, seed = CASES[case]
@@ -186,9 +186,14 @@ def test_each_camera_s_offset_is_found_against_the_first(case):
         synced[:, 2 * c : 2 * c + 2] = rig.cameras[c].project(truth) + noise
     found, aligned = resolve_view_sync("auto", rig, {"m": Y}, fps)
     for c, name in enumerate(rig.names[1:], start=1):
-        assert found[name].applied and abs(found[name].offset_s - offsets[c]) < 0.5 / fps, (name, found[name])
+        est = found[name]
+        if est.applied:
+            assert abs(est.offset_s - offsets[c]) < 0.25 / fps, (name, est)
+        else:
+            assert est.ci_s is not None and est.ci_s[0] <= 0.0 <= est.ci_s[1], (name, est)
+    assert sum(not e.applied for e in found.values()) <= 1
     err = lambda Z: float(np.nanmedian(np.linalg.norm(rig.triangulate(Z) - truth, axis=1)))  # noqa: E731
-    assert err(Y) > 1.2 * err(synced) and err(aligned["m"]) <= err(synced)
+    assert err(Y) > 1.2 * err(synced) and err(aligned["m"]) <= 1.15 * err(synced)
 
 
 def test_triangulation_names_the_camera_it_drops():
