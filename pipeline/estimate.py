@@ -180,6 +180,8 @@ def observe(clip: Clip, in_dir: Path, detections: Detections | None, settings: R
     ts = _timestamps(clip, settings.time_offset)
     grid = grid_length(ts, clip.fps) if ts is not None else None  # videos that dropped frames are shorter
     truth_frames = max(footage.frames, grid) if footage.frames is not None and grid is not None else footage.frames
+    if truth_frames is not None and isinstance(clip.info.get("frames"), int):  # a rendered clip's own frame count:
+        truth_frames = max(truth_frames, clip.info["frames"])  # its last frames may be ones every camera dropped
     truth = clip.truth(truth_frames)
     if detections is None:
         cols = read_csv(det_path, DETECTION_COLUMNS, numeric=["area", "score"], finite=["frame", "u", "v"])

@@ -575,3 +575,22 @@ def test_a_square_without_a_unit_that_cannot_be_metres_is_refused(square):
     with pytest.raises(StereotrackError, match=rf"--square {square} has no unit and would be .* metres: give one"):
         parse_length(square)
     assert parse_length("0.024") == 0.024 and parse_length("25mm") == pytest.approx(0.025)
+
+
+def test_a_clip_whose_cameras_both_drop_the_last_frames_runs(tmp_path):
+    """#40 item 7: with drop rate 0.5, seed 2, both cameras drop frame 19 of 20; the run stopped
+    with "truth.csv: line 40: frame 19 is outside the clip's frames 0..18", blaming a file the
+    renderer wrote. The clip's own frame count (clip.json) now bounds its truth."""
+    from pipeline.app.run import process_clip
+    from renderers.render import render_clip
+    from renderers.scenario import load_scenario, parse_scenario
+    from renderers.truth import frame_times
+
+    data = load_scenario("sample_small").model_dump(mode="json")
+    data["rig"]["drop_rate"], data["seed"], data["frames"] = 0.5, 2, 20
+    scenario = parse_scenario(data)
+    assert not frame_times(scenario).present[:, -1].any()  # the case: every camera dropped the last frame
+    render_clip(scenario, tmp_path / "clip", fmt="png", workers=1)
+    res = process_clip(tmp_path / "clip", settings=RunSettings(methods=("triangulation", "ekf"), images=False,
+                                                                recording=False, figures=False))
+    assert res.estimate.metrics["frames"] == 20 and res.estimate.metrics["methods"]["triangulation"]["rmse"] < 0.2
