@@ -201,9 +201,9 @@ class Clip:
         camera's median frame period in timestamps.csv, else the left video's header, else 30
         (with a warning: a frame folder has no rate of its own)."""
         if self.given_fps is not None:
-            return float(self.given_fps), "--fps"
+            return self._checked_rate(float(self.given_fps), "--fps"), "--fps"
         if self.settings.fps is not None:
-            return float(self.settings.fps), CLIP_SETTINGS
+            return self._checked_rate(float(self.settings.fps), f"{CLIP_SETTINGS}'s fps"), CLIP_SETTINGS
         if "fps" in self.info:
             return float(self.info["fps"]), CLIP_INFO
         stamped = self._timestamps_rate()
@@ -219,6 +219,24 @@ class Clip:
         warnings.warn(f"{self.path}: no frame rate given (frame folders have none): assuming 30 fps; "
                       f"give --fps or `fps:` in {CLIP_SETTINGS}", stacklevel=3)  # past functools' cached_property
         return 30.0, "default"
+
+    def _checked_rate(self, fps: float, source: str) -> float:
+        """``fps`` as given, with a warning naming both when the clip's own frame times
+        (timestamps.csv) or its video header say another rate (over 5 % apart)."""
+        stamped = self._timestamps_rate()
+        header = None
+        if stamped is None and self.path.is_dir():
+            try:
+                reader = CameraReader(self.camera_source(self.cameras[0]))
+                reader.close()
+                header = reader.fps or None
+            except StereotrackError:
+                header = None
+        for rate, what in ((stamped, TIMESTAMPS + "'s frame times"), (header, "the video header")):
+            if rate and abs(fps / rate - 1) > 0.05:
+                warnings.warn(f"{self.path}: {source} {fps:g} contradicts {what} ({rate:.4g} fps); using {fps:g} "
+                              "(the frame grid, truth and time offsets follow it)", stacklevel=4)
+        return fps
 
     @cached_property
     def timestamps(self) -> dict[str, np.ndarray] | None:

@@ -594,3 +594,17 @@ def test_a_clip_whose_cameras_both_drop_the_last_frames_runs(tmp_path):
     res = process_clip(tmp_path / "clip", settings=RunSettings(methods=("triangulation", "ekf"), images=False,
                                                                 recording=False, figures=False))
     assert res.estimate.metrics["frames"] == 20 and res.estimate.metrics["methods"]["triangulation"]["rmse"] < 0.2
+
+
+def test_a_frame_rate_contradicting_the_clip_s_frame_times_is_warned_naming_both(tmp_path):
+    """#40 item 6: `--fps` against timestamps.csv re-gridded the clip with no word naming the two."""
+    from pipeline.core.clip import Clip
+    from renderers.render import render_clip
+    from renderers.scenario import load_scenario
+
+    render_clip(load_scenario("sample_small").with_overrides(frames=6), tmp_path / "clip", fmt="png", workers=1)
+    with pytest.warns(UserWarning, match=r"--fps 60 contradicts timestamps.csv's frame times \(30 fps\); using 60"):
+        assert Clip(tmp_path / "clip", fps=60).fps == 60
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert Clip(tmp_path / "clip", fps=30).fps == 30  # agreeing: no warning
