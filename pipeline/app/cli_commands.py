@@ -319,6 +319,9 @@ def _clip_or_render(target: str, output: Path | None, frames: int | None, seed: 
             "is neither a clip folder nor a scenario (.yaml)"
         raise StereotrackError(why, clip)
     if clip.is_dir() and any(clip.iterdir()):
+        if output is not None:
+            raise StereotrackError(f"-o sets where a rendered clip goes; {clip} is a clip folder already (its outputs go to "
+                                   f"{clip / 'out'}): drop -o, or name a scenario file to render", clip)
         return clip
     from renderers.render import render_clip
     from renderers.scenario import load_scenario

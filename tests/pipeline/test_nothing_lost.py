@@ -608,3 +608,18 @@ def test_a_frame_rate_contradicting_the_clip_s_frame_times_is_warned_naming_both
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert Clip(tmp_path / "clip", fps=30).fps == 30  # agreeing: no warning
+
+
+def test_run_on_a_clip_folder_refuses_an_output_it_would_ignore(tmp_path, monkeypatch):
+    """`run CLIP -o DIR` wrote CLIP/out and ignored -o without a word (and a folder in the working
+    directory named like a built-in scenario is that clip, not the scenario)."""
+    from typer.testing import CliRunner
+
+    from pipeline.app.cli import app
+
+    (tmp_path / "identical").mkdir()
+    (tmp_path / "identical" / "left.mp4").write_bytes(b"")
+    monkeypatch.chdir(tmp_path)
+    res = CliRunner().invoke(app, ["run", "identical", "-o", str(tmp_path / "elsewhere")])
+    assert res.exit_code != 0 and "-o sets where a rendered clip goes; identical is a clip folder" in str(res.exception)
+    assert not (tmp_path / "elsewhere").exists() and not (tmp_path / "identical" / "out").exists()
