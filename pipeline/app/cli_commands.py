@@ -197,6 +197,8 @@ def calibrate_cmd(
     marker: Annotated[str | None, typer.Option(help="ChArUco: side of a marker, with its unit.")] = None,
     output: Annotated[Path | None, typer.Option("-o", "--output", help="The calibration to write (default calib.yaml; "
                                                 "for camera sub-folders rig.json, or any rig format by its name).")] = None,
+    force: Annotated[bool, typer.Option("--force", help="Replace an existing calibration that `calibrate` did not "
+                                        "write (one it wrote, with its report beside it, is replaced anyway).")] = False,
 ) -> None:
     """Calibrate a stereo rig from board pairs, or a rig of N cameras from per-camera folders: the
     calibration (metres) and a report beside it."""
@@ -218,7 +220,7 @@ def calibrate_cmd(
     output = output or Path("calib.yaml")
     with progress_bar() as bar:
         bar.add_task("calibrate", total=None)
-        cal, report, _ = calibrate_folder(images, b, output)
+        cal, report, _ = calibrate_folder(images, b, output, force)
     for name, why in cal.rejected.items():
         out.print(f"left out {name}: {why}", highlight=False)
     out.print(f"{len(cal.used)} pairs; RMS left {cal.rms_left:.3f} px, right {cal.rms_right:.3f} px, stereo "

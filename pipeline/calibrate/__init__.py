@@ -361,8 +361,20 @@ def _coverage_figure(cal: Calibration, path: Path) -> None:
     plt.close(fig)
 
 
-def calibrate_folder(images: str | Path, board: Board, out: str | Path) -> tuple[Calibration, Path, Path]:
-    """The whole command: pairs → calibration → calib.yaml and its report (warnings emitted)."""
+def check_replaceable_calibration(out: Path, force: bool = False) -> None:
+    """Refuse to replace a calibration stereotrack did not write: an existing ``out`` is replaced
+    only when its report (``<stem>_report.md``, which ``calibrate`` writes beside it) is there too,
+    or with ``force``; one line naming the file otherwise."""
+    if out.exists() and not force and not out.with_name(f"{out.stem}_report.md").is_file():
+        raise StereotrackError("exists and was not written by `stereotrack calibrate` (no report beside it): "
+                               "choose another -o, or pass --force to replace it", out)
+
+
+def calibrate_folder(images: str | Path, board: Board, out: str | Path, force: bool = False
+                     ) -> tuple[Calibration, Path, Path]:
+    """The whole command: pairs → calibration → calib.yaml and its report (warnings emitted); a
+    calibration stereotrack did not write is not replaced (:func:`check_replaceable_calibration`)."""
+    check_replaceable_calibration(Path(out), force)
     cal = calibrate(find_pairs(Path(images)), board)
     report, fig = write_outputs(cal, Path(out))
     for w in cal.warnings:

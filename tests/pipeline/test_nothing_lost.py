@@ -623,3 +623,20 @@ def test_run_on_a_clip_folder_refuses_an_output_it_would_ignore(tmp_path, monkey
     res = CliRunner().invoke(app, ["run", "identical", "-o", str(tmp_path / "elsewhere")])
     assert res.exit_code != 0 and "-o sets where a rendered clip goes; identical is a clip folder" in str(res.exception)
     assert not (tmp_path / "elsewhere").exists() and not (tmp_path / "identical" / "out").exists()
+
+
+def test_calibrate_never_replaces_a_calibration_it_did_not_write(tmp_path):
+    """#40 item 2: `calibrate` replaced an existing calib.yaml (a user's own) without a word. Now:
+    refused before any work, the file untouched; `calibrate`'s own output (its report beside it)
+    is replaced as before, and --force replaces anything."""
+    from pipeline.calibrate import calibrate_folder, check_replaceable_calibration
+    from pipeline.core.board import Board
+
+    mine = tmp_path / "calib.yaml"
+    mine.write_text("%YAML:1.0\nK1: precious\n")
+    with pytest.raises(StereotrackError, match="calib.yaml: exists and was not written by `stereotrack calibrate`"):
+        calibrate_folder(tmp_path / "no-such-folder", Board("chessboard", 9, 6, 0.025), mine)
+    assert mine.read_text() == "%YAML:1.0\nK1: precious\n"
+    check_replaceable_calibration(mine, force=True)
+    (tmp_path / "calib_report.md").write_text("# Calibration report: calib.yaml\n")
+    check_replaceable_calibration(mine)  # stereotrack's own output: replaceable
