@@ -6,7 +6,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated
 
-import numpy as np
 import typer
 from rich.table import Table
 
@@ -25,6 +24,8 @@ _FORMATS_HELP = ("calib.toml (Anipose/Pose2Sim), NAME.qca.txt (Qualisys), rig.js
 def show_cmd(rig_path: Annotated[Path, typer.Argument(help=f"The rig: {_FORMATS_HELP}, or a clip folder.")],
              calib_units: CalibUnitsOption = None) -> None:
     """Print each camera's name, image size, focal lengths, centre (m), distortion and time offset."""
+    import numpy as np
+
     from pipeline.core.rigfiles import load_rig
 
     rig = load_rig(rig_path, calib_units)
