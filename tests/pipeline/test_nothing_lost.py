@@ -634,7 +634,7 @@ def test_calibrate_never_replaces_a_calibration_it_did_not_write(tmp_path):
 
     mine = tmp_path / "calib.yaml"
     mine.write_text("%YAML:1.0\nK1: precious\n")
-    with pytest.raises(StereotrackError, match="calib.yaml: exists and was not written by `stereotrack calibrate`"):
+    with pytest.raises(StereotrackError, match=r"calib\.yaml: exists and was not written by `stereotrack calibrate`"):
         calibrate_folder(tmp_path / "no-such-folder", Board("chessboard", 9, 6, 0.025), mine)
     assert mine.read_text() == "%YAML:1.0\nK1: precious\n"
     check_replaceable_calibration(mine, force=True)
