@@ -26,7 +26,7 @@ from pipeline.core.calibration import has_calibration
 from pipeline.core.errors import StereotrackError, first_line
 from pipeline.core.io import check_replaceable, ensure_dir, write_json
 from pipeline.core.lifeline import OutputLock, die_with_parent, ignore_sigint, still_parented
-from pipeline.core.outputs import DETECT_INFO, ESTIMATES, FIGURES, MANIFEST, OUT, Outputs
+from pipeline.core.outputs import DETECT_INFO, ESTIMATES, FIGURES, MANIFEST, OUT, Outputs, partial_folder
 from pipeline.core.rigfiles import find_rig
 from pipeline.core.settings import RunHooks, RunSettings
 from pipeline.present.summary import ClipOutcome, write_summary
@@ -110,7 +110,7 @@ def _process_one(clip: str, key: str, out_root: str, job: BatchJob, parent_pid: 
     from pipeline.core.clip import input_files
 
     clip_p, final = Path(clip), Path(out_root) / key
-    partial = final.parent / f".{final.name}.partial-{uuid.uuid4().hex[:12]}"
+    partial = partial_folder(final, uuid.uuid4().hex[:12])
     try:
         check_replaceable(final, OURS, "clip's outputs")
         ensure_dir(partial)

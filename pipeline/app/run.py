@@ -79,7 +79,7 @@ def run_description(clip: Path, detector: str, metrics: dict) -> str:
 def _process_clip(clip_: Clip, out_dir: Path, settings: RunSettings, hooks: RunHooks, keep_tracks: bool) -> RunResult:
     t0 = time.perf_counter()
     clip = clip_.path  # the clip is read once, handed to every stage
-    recorder = Recorder(Outputs(out_dir).recording, 1.0 / clip_.fps, name=f"stereotrack run {clip.name}",
+    recorder = Recorder(Outputs(out_dir).recording, 1.0 / clip_.fps, name=f"{clip.name} · stereotrack run",
                         cameras=clip_.cameras) if settings.recording else None
     try:
         hooks.say("detect (frame pairs)")

@@ -21,6 +21,24 @@ MANIFEST = "manifest.json"
 EXPORT = "export"
 
 
+#: a batch's attempt at one clip's outputs, renamed to the final folder when the clip is complete
+PARTIAL = ".{name}.partial-{attempt}"
+
+
+def partial_folder(final: Path, attempt: str) -> Path:
+    """The hidden folder beside ``final`` that one attempt at it writes into."""
+    return final.parent / PARTIAL.format(name=final.name, attempt=attempt)
+
+
+def final_folder(folder: Path) -> Path:
+    """The folder an attempt's outputs will be in once complete: ``OUT/<clip>`` for a batch's
+    ``OUT/.<clip>.partial-<id>``, else ``folder`` itself (what a report's replay command names)."""
+    import re
+
+    m = re.fullmatch(r"\.(.+)\.partial-[0-9a-f]+", folder.name)
+    return folder.parent / m.group(1) if m else folder
+
+
 class _File:
     """A file of the output folder, by name: ``Outputs(folder).metrics`` is ``folder/metrics.json``;
     ``what`` says what it holds (the docs' list of outputs is generated from it)."""

@@ -17,7 +17,7 @@ import numpy as np
 
 from pipeline.core.clip import Clip
 from pipeline.core.io import write_bytes, write_text
-from pipeline.core.outputs import Outputs
+from pipeline.core.outputs import Outputs, final_folder
 from pipeline.evaluation.metrics import RUNAWAY, runaways
 from pipeline.present import html as H
 from pipeline.present.figures import render_figures
@@ -205,7 +205,7 @@ def write_report(clip: str | Path | Clip, out_dir: str | Path | None = None,
     figs = render_figures(data, progress) if figures else []
     for name, _, png in figs:
         write_bytes(out.figure(name), png)
-    replay = f"stereotrack view {out_dir}"
+    replay = f"stereotrack view {final_folder(out_dir)}"  # a batch's clip: where it will be, not its attempt
     write_text(out.report_html, html_report(data, figs, replay))
     path = out.report_md
     write_text(path, markdown_report(data, [(n, c, out.figure(n).relative_to(out_dir).as_posix()) for n, c, _ in figs],

@@ -27,3 +27,12 @@ def test_csv_blocks_read_as_one_table(tmp_path, monkeypatch):
     with pytest.raises(StereotrackError, match=r"line 13: column 'x' is empty"):
         path.write_text("frame,x\n" + "".join(f"{k},{k}\n" for k in range(11)) + "11,\n")
         io.read_csv(path, finite=["x"])
+
+
+def test_an_attempt_s_folder_names_its_final_one(tmp_path):
+    from pipeline.core.outputs import final_folder, partial_folder
+
+    final = tmp_path / "out" / "clip.v2"
+    attempt = partial_folder(final, "0123456789ab")
+    assert attempt.name == ".clip.v2.partial-0123456789ab" and final_folder(attempt) == final
+    assert final_folder(final) == final and final_folder(tmp_path / ".hidden") == tmp_path / ".hidden"

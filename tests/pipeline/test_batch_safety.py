@@ -104,6 +104,8 @@ def test_second_batch_is_refused_and_first_completes(reference):
         assert verify_manifest(out / f"clip{i}") is None
         m = json.loads((out / f"clip{i}" / "metrics.json").read_text())
         assert m["methods"]["ekf"]["rmse"] < 0.05
+        # the report's replay command names the clip's folder, not the attempt's hidden one (#41)
+        assert f"stereotrack view {out / f'clip{i}'}`" in (out / f"clip{i}" / "report.md").read_text()
     assert {c for c in read_csv(out / "summary.csv")["clip"]} == {"clip0", "clip1", "clip2"}
     assert not (out / ".stereotrack.lock").exists()  # released cleanly
 
