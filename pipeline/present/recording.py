@@ -281,15 +281,13 @@ class Recorder:
         self._rig(est.rig)
         self._detections(est, marker_colours or {}, est.truth_positions, _frames(est))
         todo = [m for m in est.tracks if m not in self.logged]
-        if not todo:  # every method was logged as it finished: nothing to count here
-            progress = None
         for j, meth in enumerate(todo):
             if progress is not None:
                 progress(j, len(todo))
             self.method(est, meth, est.tracks[meth], est.scores[meth])
         self._target(est, est.truth_positions, _frames(est))
-        if progress is not None:
-            progress(len(todo), len(todo))  # the bar completes (it stopped at n − 1 of n)
+        if progress is not None:  # the bar completes: n of n, or 1 of 1 when every method was logged as it finished
+            progress(max(len(todo), 1), max(len(todo), 1))
         self.rec.send_blueprint(blueprint(1.0 / self.dt, bool(est.target_tracks), bool(info), sorted(self.markers),
                                           runaways(est.metrics), self.uncertain, est.rig.names), make_active=True,
                             make_default=True)
