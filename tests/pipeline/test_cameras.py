@@ -79,7 +79,7 @@ def test_a_four_camera_clip_runs_end_to_end(qualisys_clip):
     """`run` with its defaults: every camera detected, the methods that take N cameras run beside
     their predict-only baseline, each marker within a few millimetres of the truth."""
     _, clip = qualisys_clip
-    res = process_clip(clip, settings=RunSettings(images=False))
+    res = process_clip(clip, settings=RunSettings(images=False))  # `run` with its defaults (no frames in the recording)
     assert Clip(clip).cameras == ("Miqus_1", "Miqus_2", "Miqus_3", "Miqus_4")
     det = read_csv(res.out_dir / "detections.csv", ["camera"])
     assert set(det["camera"]) == set(Clip(clip).cameras)
@@ -92,6 +92,15 @@ def test_a_four_camera_clip_runs_end_to_end(qualisys_clip):
     per_camera = methods["ekf"]["reprojection_per_camera_px"]
     assert set(per_camera) == set(Clip(clip).cameras) and max(per_camera.values()) < 0.5
     assert (res.out_dir / "run.rrd").is_file() and (res.out_dir / "report.html").is_file()
+    from tests.pipeline.test_pipeline import read_recording
+
+    cols, static, _ = read_recording(res.out_dir / "run.rrd")
+    rig = res.estimate.rig
+    for name, cam in zip(rig.names, rig.cameras, strict=True):  # every camera's pinhole and pose, logged once
+        assert f"/world/{name}" in static
+        K = np.array(cols[f"/world/{name}"]["Pinhole:image_from_camera"][0]).reshape(3, 3).T
+        np.testing.assert_allclose(K, cam.K, rtol=1e-6)
+        assert f"/world/{name}/detections" in cols
 
 
 def test_the_ring_scenario_names_its_cameras():
