@@ -97,7 +97,7 @@ def blueprint(fps: float = 30.0, target: bool = False, info: bool = False, marke
     hidden, markers = list(hidden or []), list(markers or [])
     trail = rrb.VisibleTimeRange("frame", start=rrb.TimeRangeBoundary.infinite(),
                                  end=rrb.TimeRangeBoundary.cursor_relative())
-    plots = [t for t in (_series_tabs("error", "3-D error (m)", markers, hidden),
+    plots = [t for t in (_series_tabs("error", "3-D error (mm)", markers, hidden),
                          _series_tabs("reprojection", "reprojection error (px)", markers, hidden)) if t is not None]
     if target:
         plots += [rrb.TimeSeriesView(name="target α (rad)", origin="/metrics/target/alpha"),
@@ -337,7 +337,7 @@ class Recorder:
         self._paths(f"world/estimates/{meth}/path", [t.position for t in per_marker.values()], rgb)
         for marker, t in per_marker.items():
             if (error := scores[marker].error) is not None:
-                self._scalars(f"metrics/error/{marker}/{meth}", error, meth, rgb)
+                self._scalars(f"metrics/error/{marker}/{meth}", 1000.0 * error, meth, rgb)  # mm, as the report
             self._scalars(f"metrics/reprojection/{marker}/{meth}", t.reprojection_error, meth, rgb)
 
     def _ellipsoids(self, meth: str, per_marker: dict, n: int) -> bool:

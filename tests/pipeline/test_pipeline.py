@@ -178,7 +178,7 @@ def test_recording_read_back(e2e_run):
         colours.add(p["Points3D:colors"][0][0])
         e = cols[f"/metrics/error/red/{meth}"]
         want = np.linalg.norm(tr.position - truth, axis=1)
-        np.testing.assert_allclose(np.array(e["Scalars:scalars"])[:, 0], want[e["frame"]], rtol=1e-9)
+        np.testing.assert_allclose(np.array(e["Scalars:scalars"])[:, 0], 1000 * want[e["frame"]], rtol=1e-9)  # mm
     assert len(colours) == len(METHODS)  # one colour per method
 
 
