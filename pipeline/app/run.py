@@ -79,9 +79,11 @@ def run_description(clip: Path, detector: str, metrics: dict) -> str:
 def _process_clip(clip_: Clip, out_dir: Path, settings: RunSettings, hooks: RunHooks, keep_tracks: bool) -> RunResult:
     t0 = time.perf_counter()
     clip = clip_.path  # the clip is read once, handed to every stage
-    recorder = Recorder(Outputs(out_dir).recording, 1.0 / clip_.fps, name=f"{clip.name} · stereotrack run",
-                        cameras=clip_.cameras) if settings.recording else None
-    try:
+    dt, recorder = 1.0 / clip_.fps, None
+    try:  # the recorder is made inside: an interrupt as it opens its file leaves no partial recording
+        if settings.recording:
+            recorder = Recorder(Outputs(out_dir).recording, dt, name=f"{clip.name} · stereotrack run",
+                                cameras=clip_.cameras)
         hooks.say("detect (frame pairs)")
         sink = recorder.log_frame if recorder is not None and settings.images else None
         det = detect_clip(clip_, settings, out_dir, replace(hooks, frame=sink))

@@ -151,15 +151,15 @@ class Recorder:
         self.tmp = partial_beside(self.path)  # readable like every other output once renamed
         self.quality, self.image_every = int(jpeg_quality), max(1, int(image_every))
         self.rec = rr.RecordingStream("stereotrack")
-        try:
+        try:  # interrupted anywhere from here to the end of construction: leave nothing behind
             self.rec.save(str(self.tmp))  # the blueprint, chosen for this run, is sent by finish
-        except BaseException:  # interrupted while opening: leave nothing behind
+            self.images = 0
+            self.logged: list[str] = []  # point methods logged so far (by :meth:`method`)
+            self.uncertain: list[str] = []  # those of them with covariance ellipsoids
+            self.markers: set[str] = set()
+        except BaseException:
             self.abort()
             raise
-        self.images = 0
-        self.logged: list[str] = []  # point methods logged so far (by :meth:`method`)
-        self.uncertain: list[str] = []  # those of them with covariance ellipsoids
-        self.markers: set[str] = set()
 
     def __enter__(self) -> Recorder:
         return self
