@@ -222,3 +222,16 @@ def test_long_series_are_thinned_to_what_a_figure_shows():
     assert len(a) <= MAX_LINE_POINTS + 1 and a[-1] == 7000 and np.all(np.diff(a) > 0)
     short = np.arange(50.0)
     assert _envelope(short)[1] is short and _thin(short)[0] is short
+
+
+def test_the_checks_never_say_all_passed_above_a_failed_line():
+    """#41 item 8: estimates behind a camera were listed as a failed line under "All input checks
+    passed"."""
+    from pipeline.present.report import check_lines, checks_section
+
+    metrics = {"checks": [{"name": "sync", "ok": True, "message": "fine"}],
+               "methods": {"spsa": {"behind_camera": 3}, "ekf": {"behind_camera": 0}}}
+    failed, lines = check_lines(metrics)
+    assert failed == 1 and (False, "estimates behind a camera (counted, not drawn): spsa 3") in lines
+    text = "\n".join(checks_section(metrics))
+    assert "All input checks passed" not in text and "1 check(s) failed" in text
