@@ -178,8 +178,9 @@ def html_report(data: ReportData, figures: list[tuple[str, str, bytes]], replay:
         body.append(f"<div class='checks{' failed' if failed else ''}'><b>Checks: {head}</b><ul>"
                     + "".join(f"<li class={'pass' if ok else 'fail'}>{inline(x)}</li>" for ok, x in checks)
                     + "</ul></div>")
+    truth_key = " &nbsp; <span class=swatch style='background:#000;opacity:.55'></span>truth (dashed)"
     body.append("<p>" + " &nbsp; ".join(H.swatch(method_hex(m), m) for m in data.metrics.get("methods", {}))
-                + " &nbsp; <span class=swatch style='background:#000;opacity:.55'></span>truth (dashed)</p>")
+                + (truth_key if data.metrics.get("has_truth") else "") + "</p>")  # no truth, no key for it
     for title, intro, t in tables(data.metrics):
         body += [f"<h2>{title}</h2>", f"<p class=note>{inline(intro)}</p>" if intro else "", to_html(t)]
     if figures:

@@ -235,3 +235,13 @@ def test_the_checks_never_say_all_passed_above_a_failed_line():
     assert failed == 1 and (False, "estimates behind a camera (counted, not drawn): spsa 3") in lines
     text = "\n".join(checks_section(metrics))
     assert "All input checks passed" not in text and "1 check(s) failed" in text
+
+
+def test_a_report_without_truth_has_no_truth_in_its_colour_key(tmp_path):
+    """#41 item 8: a run without truth still listed "truth (dashed)" in its colour key."""
+    from pipeline.present.report import html_report
+    from pipeline.present.report_data import ReportData
+
+    for has_truth in (False, True):
+        data = ReportData("clip", tmp_path, {"has_truth": has_truth, "methods": {"ekf": {}}, "frames": 3, "dt": 0.1})
+        assert ("truth (dashed)" in html_report(data, [], "stereotrack view x")) == has_truth
