@@ -31,9 +31,10 @@ if TYPE_CHECKING:
 # ---------------------------------------------------------------- tables
 
 
-def _col(methods: dict, title: str, key: str, fmt, best=None, sub: str | None = None) -> Column:
+def _col(methods: dict, title: str, key: str, fmt, best=None, sub: str | None = None,
+         good: tuple[float, float] | None = None) -> Column:
     vals = [(e.get(key) or {}).get(sub) if sub else e.get(key) for e in methods.values()]
-    return Column(title, vals, fmt, best)
+    return Column(title, vals, fmt, best, good)
 
 
 def _keep(cols: list[Column]) -> list[Column]:
@@ -76,10 +77,12 @@ def consistency_table(metrics: dict) -> Table | None:
     if not ms:
         return None
     ratio, share = number(".2f"), number(".0f", 100, " %")
-    cols = _keep([_col(ms, "NEES/3", "nees_position", ratio, 1.0, "normalized_mean"),
-                  _col(ms, "NEES in 95 % band", "nees_position", share, 0.95, "in_95"),
-                  _col(ms, "NIS/dof", "nis", ratio, 1.0, "normalized_mean"),
-                  _col(ms, "NIS in 95 % band", "nis", share, 0.95, "in_95")])
+    # a cell is marked only where the filter is consistent there: mean within 0.5–2, 80 % in the band
+    mean_ok, band_ok = (0.5, 2.0), (0.8, 1.0)
+    cols = _keep([_col(ms, "NEES/3", "nees_position", ratio, 1.0, "normalized_mean", mean_ok),
+                  _col(ms, "NEES in 95 % band", "nees_position", share, 0.95, "in_95", band_ok),
+                  _col(ms, "NIS/dof", "nis", ratio, 1.0, "normalized_mean", mean_ok),
+                  _col(ms, "NIS in 95 % band", "nis", share, 0.95, "in_95", band_ok)])
     return Table("filter", list(ms), cols)
 
 
@@ -107,7 +110,8 @@ def identity_tables(metrics: dict) -> list[tuple[str, str, Table]]:
 
 TABLE_INTRO = {
     "consistency": "NEES/3 and NIS/dof average 1, and 95 % of frames fall inside the χ² band, when a filter's "
-                   "covariance matches its actual errors; far above 1 means over-confident, far below under-confident.",
+                   "covariance matches its actual errors; far above 1 means over-confident, far below under-confident. "
+                   "A cell is marked best only where that filter is consistent (mean 0.5–2, 80 % in the band).",
     "metrics": "Best value per column in bold. steps/s is wall-clock speed on this machine and varies with its load; "
                "compare methods within one run.",
 }

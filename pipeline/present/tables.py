@@ -26,17 +26,22 @@ def number(spec: str, scale: float = 1.0, suffix: str = "") -> Callable[[Any], s
 @dataclass
 class Column:
     """A column: its title, one value per row, how values print, and which is best: ``"min"``,
-    ``"max"``, or a number the best value is closest to (1 for a normalized NEES); None: no best."""
+    ``"max"``, or a number the best value is closest to (1 for a normalized NEES); None: no best.
+    ``good``: the range a value must lie in to be marked at all (a filter's consistency: the
+    closest of many failures is no best)."""
     title: str
     values: Sequence[Any]
     fmt: Callable[[Any], str] = str
     best: str | float | None = None
+    good: tuple[float, float] | None = None
 
     def best_row(self) -> int | None:
         """The row holding the best value (None without a rule, or with fewer than two values)."""
         ok = [(i, float(v)) for i, v in enumerate(self.values)
               if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)]
-        if self.best is None or len(ok) < 2:
+        if self.good is not None:
+            ok = [(i, v) for i, v in ok if self.good[0] <= v <= self.good[1]]
+        if self.best is None or len(ok) < 2 - (self.good is not None):
             return None
         if self.best == "min":
             return min(ok, key=lambda t: t[1])[0]

@@ -245,3 +245,16 @@ def test_a_report_without_truth_has_no_truth_in_its_colour_key(tmp_path):
     for has_truth in (False, True):
         data = ReportData("clip", tmp_path, {"has_truth": has_truth, "methods": {"ekf": {}}, "frames": 3, "dt": 0.1})
         assert ("truth (dashed)" in html_report(data, [], "stereotrack view x")) == has_truth
+
+
+def test_no_filter_is_marked_best_at_consistency_when_all_fail():
+    """#41 item 8: the consistency table marked the "best" cell even when every filter failed its band."""
+    from pipeline.present.report import consistency_table
+
+    def entry(nees: float, band: float) -> dict:
+        return {"nees_position": {"normalized_mean": nees, "in_95": band}, "nis": {"normalized_mean": nees, "in_95": band}}
+
+    failing = consistency_table({"methods": {"ekf": entry(11.6, 0.78), "ukf": entry(9.0, 0.70)}})
+    assert all(c.best_row() is None for c in failing.columns)
+    mixed = consistency_table({"methods": {"ekf": entry(1.05, 0.90), "ukf": entry(9.0, 0.70), "kf3d": entry(0.7, 0.95)}})
+    assert [c.best_row() for c in mixed.columns] == [0, 2, 0, 2]
