@@ -51,6 +51,7 @@ from pipeline.core.schemas import (  # noqa: F401  (the clip's tables, named her
     truth_columns,
     truth_extra_columns,
 )
+from pipeline.core.timestamps import read_timestamps
 
 CLIP_INFO = "clip.json"
 MARKERS_FILE = "markers.yaml"
@@ -441,24 +442,6 @@ def find_target(clip: Clip, target_radius: float | None, obs: dict[str, np.ndarr
         tt = read_csv(path, ["frame", "alpha", "distance"])
         info.alpha, info.distance = tt["alpha"], tt["distance"]
     return info
-
-
-def read_timestamps(path: str | Path, cameras: tuple[str, ...] = STEREO) -> dict[str, np.ndarray]:
-    """``timestamps.csv`` → per camera an array of times indexed by frame (NaN where the camera has
-    no such frame); errors name the line."""
-    cols = read_csv(path, TIMESTAMP_COLUMNS, finite=["frame", "t"])
-    out: dict[str, np.ndarray] = {}
-    for cam in cameras:
-        sel = cols["camera"] == cam
-        frames = cols["frame"][sel]
-        if np.any(frames < 0) or np.any(frames != np.round(frames)):
-            raise StereotrackError("frame numbers must be whole and non-negative", path)
-        t = np.full(int(frames.max()) + 1 if len(frames) else 0, np.nan)
-        t[frames.astype(int)] = cols["t"][sel]
-        out[cam] = t
-    if any(not len(v) for v in out.values()):
-        raise StereotrackError(f"needs rows for every camera ({', '.join(cameras)})", path)
-    return out
 
 
 def _seen(table: dict[str, np.ndarray], marker: str, n: int, cameras: tuple[str, ...] = STEREO) -> np.ndarray:

@@ -640,3 +640,33 @@ def test_calibrate_never_replaces_a_calibration_it_did_not_write(tmp_path):
     check_replaceable_calibration(mine, force=True)
     (tmp_path / "calib_report.md").write_text("# Calibration report: calib.yaml\n")
     check_replaceable_calibration(mine)  # stereotrack's own output: replaceable
+
+
+def _stamps(tmp_path, rows: list[tuple[int, str, float]]):
+    from pipeline.core.io import write_csv
+
+    path = tmp_path / "timestamps.csv"
+    write_csv(path, ["frame", "camera", "t"], rows)
+    return path
+
+
+GOOD_STAMPS = [(k, cam, k / 30 + (0.004 if cam == "right" else 0.0)) for k in range(30) for cam in ("left", "right")]
+
+
+@pytest.mark.parametrize(("case", "rows", "problem"), [
+    ("milliseconds", [(k, c, 1000 * t) for k, c, t in GOOD_STAMPS], r"frames are 33\.3+ apart: t must be in seconds"),
+    ("two times swapped", [(k, c, (GOOD_STAMPS[2 * (k ^ 1 if k in (10, 11) else k)][2] if c == "left" else t))
+                           for k, c, t in GOOD_STAMPS], r"line \d+: left frame 11 at .* is not after frame 10"),
+    ("a row twice", [*GOOD_STAMPS[:40], GOOD_STAMPS[39], *GOOD_STAMPS[40:]], r"line 42: right frame 19 is listed twice"),
+    ("frame 10⁹", [*GOOD_STAMPS[:-2], (10**9, "left", 2.0), GOOD_STAMPS[-1]], r"left frame 1000000000 is far beyond"),
+])
+def test_timestamps_are_checked_not_taken_on_trust(tmp_path, case, rows, problem):
+    """#40 item 5: milliseconds made a 29,060-frame grid, swapped times and a duplicated row gave
+    wrong numbers silently, a frame number of 10⁹ tried to allocate 29.8 GiB."""
+    from pipeline.core.timestamps import read_timestamps
+
+    path = _stamps(tmp_path, rows)
+    with pytest.raises(StereotrackError, match=problem) as err:
+        read_timestamps(path)
+    assert str(err.value).startswith(f"{path}: ") and "\n" not in str(err.value)
+    read_timestamps(_stamps(tmp_path, GOOD_STAMPS))  # the file as it should be reads
