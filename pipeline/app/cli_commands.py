@@ -39,6 +39,25 @@ from pipeline.core.errors import StereotrackError
 from pipeline.core.outputs import Outputs
 
 
+def writable_output(folder: Path | None) -> None:
+    """A folder given with ``-o``: new, empty, or one stereotrack wrote (:data:`~pipeline.core.outputs.OURS`);
+    a user's folder is refused, one line naming it, nothing written."""
+    from pipeline.core.io import check_replaceable
+    from pipeline.core.outputs import OURS
+
+    if folder is not None:
+        check_replaceable(folder, OURS, "outputs")
+
+
+def mark_output(folder: Path | None) -> None:
+    """After a command wrote into a folder given with ``-o``: mark it as stereotrack's, so that the
+    next command writing there finds it so."""
+    from pipeline.core.outputs import OUTPUT_MARK
+
+    if folder is not None and folder.is_dir():
+        (folder / OUTPUT_MARK).touch()
+
+
 @app.command("scenarios")
 def scenarios_cmd() -> None:
     """List the built-in scenarios."""
@@ -141,11 +160,13 @@ def detect_cmd(
 
     settings = RunSettings.checked(detector=detector, markers=marker_specs(markers), roi=parse_roi(roi), fps=fps,
                                    allow_unequal=allow_unequal, calib_units=calib_units, force_window=force)
+    writable_output(output)
     clip_ = Clip(clip, settings.fps)
     with progress_bar() as bar:
         task = bar.add_task(f"detect ({detector})", total=None)
         hooks = RunHooks(progress=lambda done, total: bar.update(task, completed=done, total=total or None))
         result = detect_clip(clip_, settings, output, hooks)
+    mark_output(output)
     print_learned(result.learned)
     print_time(clip_.fps, clip_.fps_source)
     table = Table("camera", "frames", "detections", "misses", "false (hidden)", "px err median", "p95", "max",
@@ -175,11 +196,13 @@ def estimate_cmd(
 
     settings = RunSettings.checked(methods=method_list(methods), configs=method_configs(config), calib_units=calib_units,
                                    time_offset=time_offset, fps=fps)
+    writable_output(output)
     with progress_bar() as bar:
         task = bar.add_task("estimate", total=None)
         hooks = RunHooks(stage=lambda name: bar.update(task, description=name),
                          progress=lambda d, t: bar.update(task, completed=d, total=t))
         res = estimate_clip(Clip(clip, settings.fps), settings, output, hooks, in_dir=Outputs.of(clip).folder)
+    mark_output(output)
     print_time(res.metrics["time"]["fps"], res.metrics["time"]["source"])
     print_sync(res.metrics)
     out.print(metrics_table(res.metrics, str(Outputs(res.out_dir).metrics)))
@@ -255,10 +278,12 @@ def report_cmd(
     """Write out/report.md with the metrics table and figures."""
     from pipeline.present.report import write_report
 
+    writable_output(output)
     with progress_bar() as bar:
         task = bar.add_task("report", total=None)
         path = write_report(clip, output, progress=lambda d, t: bar.update(task, completed=d, total=t),
                             in_dir=Outputs.of(clip).folder)
+    mark_output(output)
     out.print(f"wrote {path}")
 
 

@@ -21,6 +21,14 @@ MANIFEST = "manifest.json"
 EXPORT = "export"
 
 
+#: hidden files stereotrack leaves in a folder given with ``-o`` (outputs) and in every export folder:
+#: what marks them as its own (names a user does not write by accident, as ``metrics.json`` could be)
+OUTPUT_MARK = ".stereotrack-output"
+EXPORT_MARK = ".stereotrack-export"
+#: one of these in a folder given with ``-o`` (or nothing at all there) makes it one stereotrack may
+#: write into; any other folder is refused, untouched
+OURS = (DETECT_INFO, OUTPUT_MARK, EXPORT_MARK)
+
 #: a batch's attempt at one clip's outputs, renamed to the final folder when the clip is complete
 PARTIAL = ".{name}.partial-{attempt}"
 

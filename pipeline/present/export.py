@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.core.errors import StereotrackError
-from pipeline.core.io import atomic_path, write_csv
-from pipeline.core.outputs import Outputs
+from pipeline.core.io import atomic_path, check_replaceable, write_csv
+from pipeline.core.outputs import EXPORT_MARK, OURS, Outputs
 
 FORMATS = ("trc", "c3d", "csv")
 
@@ -110,8 +110,12 @@ def export_clip(clip: str | Path, fmt: str, methods: list[str] | None = None, ou
         if m not in have:
             raise StereotrackError(f"no estimates of method {m!r} (have: {', '.join(have)})", est)
     out_dir = Path(out) if out else Outputs(in_dir).export_dir
+    if out:  # a folder the user named: never one of theirs (CLIP/out/export is stereotrack's own)
+        check_replaceable(out_dir, OURS, "export")
     fps = clip_fps(in_dir)
     written = []
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / EXPORT_MARK).touch()
     for m in methods or have:
         path = out_dir / f"{m}.{fmt}"
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -670,3 +670,28 @@ def test_timestamps_are_checked_not_taken_on_trust(tmp_path, case, rows, problem
         read_timestamps(path)
     assert str(err.value).startswith(f"{path}: ") and "\n" not in str(err.value)
     read_timestamps(_stamps(tmp_path, GOOD_STAMPS))  # the file as it should be reads
+
+
+@pytest.mark.parametrize("command", ["detect", "estimate", "report", "export"])
+def test_an_output_folder_of_the_user_s_is_never_written_into(tmp_path, command):
+    """#40 item 2: `detect/estimate/report/export -o` replaced a user's files of the same names.
+    A folder given with -o must be new, empty or stereotrack's; a user's is refused, untouched."""
+    from typer.testing import CliRunner
+
+    from pipeline.app.cli import app
+
+    clip = shutil.copytree(SAMPLE, tmp_path / "clip")
+    runner = CliRunner()
+    assert runner.invoke(app, ["run", str(clip), "--methods", "triangulation"]).exit_code == 0
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    for name in ("detections.csv", "metrics.json", "report.md", "triangulation.trc", "notes.txt"):
+        (mine / name).write_text("precious\n")
+    before = {p.name: p.read_text() for p in mine.iterdir()}
+    res = runner.invoke(app, [command, str(clip), "-o", str(mine)])
+    assert res.exit_code != 0 and "was not written by stereotrack" in str(res.exception)
+    assert {p.name: p.read_text() for p in mine.iterdir()} == before
+    fresh = tmp_path / "fresh"
+    for _ in range(2):  # a new folder, then the same folder again: stereotrack's own, replaced
+        res = runner.invoke(app, [command, str(clip), "-o", str(fresh)])
+        assert res.exit_code == 0, res.output
