@@ -25,12 +25,14 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     The temporary name keeps the suffix (OpenCV and matplotlib pick the format from it), so an
     interrupted write leaves at worst a hidden ``.*.partial*`` file, never a half-written target.
     """
-    tmp_path = partial_beside(Path(path))
-    try:
+    tmp_path: Path | None = None
+    try:  # made inside: an interrupt as the temporary file is made leaves it behind no more
+        tmp_path = partial_beside(Path(path))
         yield tmp_path
         os.replace(tmp_path, path)
     except BaseException:
-        tmp_path.unlink(missing_ok=True)
+        if tmp_path is not None:
+            tmp_path.unlink(missing_ok=True)
         raise
 
 
@@ -69,10 +71,14 @@ def partial_beside(path: Path) -> Path:
     permissions an ordinary new file gets (0666 less the umask, not mkstemp's 0600): whatever is
     renamed into place from it is readable like every other output."""
     fd, tmp = _mkstemp_beside(path)
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)
+    try:  # interrupted before it is handed over: removed here, as nobody else knows its name
+        os.close(fd)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
     return Path(tmp)
 
 

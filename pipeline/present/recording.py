@@ -20,7 +20,7 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -148,10 +148,11 @@ class Recorder:
 
         self.path, self.dt, self.name, self.cameras = Path(path), float(dt), name, tuple(cameras)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.rec: Any = None
         self.tmp = partial_beside(self.path)  # readable like every other output once renamed
-        self.quality, self.image_every = int(jpeg_quality), max(1, int(image_every))
-        self.rec = rr.RecordingStream("stereotrack")
         try:  # interrupted anywhere from here to the end of construction: leave nothing behind
+            self.quality, self.image_every = int(jpeg_quality), max(1, int(image_every))
+            self.rec = rr.RecordingStream("stereotrack")
             self.rec.save(str(self.tmp))  # the blueprint, chosen for this run, is sent by finish
             self.images = 0
             self.logged: list[str] = []  # point methods logged so far (by :meth:`method`)
@@ -393,6 +394,7 @@ class Recorder:
         """Stop recording and remove the partial file (after the file sink has closed it, so that
         no late write recreates it)."""
         try:
-            self.rec.disconnect()
+            if self.rec is not None:
+                self.rec.disconnect()
         finally:
             self.tmp.unlink(missing_ok=True)
