@@ -106,6 +106,7 @@ class Clip:
             raise StereotrackError(f"--fps must be a positive number of frames per second, not {fps:g}")
         self.given_fps = fps  # --fps: wins over everything the clip says
         self._rigs: dict[str | None, StereoRig | Rig] = {}
+        self._file_rigs: dict[str | None, Rig] = {}
         self._truth: dict[int | None, ClipTruth | None] = {}
 
     @classmethod
@@ -286,6 +287,13 @@ class Clip:
             return None
         return find_rig(self.folder)
 
+    def _file_rig(self, units: str | None) -> Rig:
+        """The N-camera rig file as it reads (world: its own frame), read once per unit override."""
+        if units not in self._file_rigs:
+            assert self._rig_file is not None
+            self._file_rigs[units] = load_rig(self._rig_file, units)
+        return self._file_rigs[units]
+
     @cached_property
     def cameras(self) -> tuple[str, ...]:
         """The clip's camera names, its footage's file names: ``left``, ``right`` for a stereo clip;
@@ -295,7 +303,7 @@ class Clip:
         if isinstance(named, list) and len(named) >= 2 and all(isinstance(n, str) for n in named):
             return tuple(named)
         if self._rig_file is not None:
-            names = load_rig(self._rig_file).names
+            names = self._file_rig(None).names
             if not (len(names) == 2 and all(_has_source(self.folder, n) for n in STEREO)):
                 return names
         return STEREO
@@ -312,7 +320,7 @@ class Clip:
             if self._rig_file is None:
                 self._rigs[units] = load_calibration(self.path, units)
             else:
-                rig = load_rig(self._rig_file, units)
+                rig = self._file_rig(units)
                 self._rigs[units] = rig.stereo(0, 1) if self.stereo else rig.in_frame_of(0)
         return self._rigs[units]
 

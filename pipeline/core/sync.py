@@ -292,10 +292,9 @@ def resolve_view_sync(setting: str | float | None, rig: Rig, obs: dict[str, np.n
         est, aligned = resolve_sync(setting, pair, sub, fps, ts)
         found[names[c]] = est
         for k, v in aligned.items():
-            if ts is not None:  # the first camera placed on the frame grid too (the same for every pair)
-                out[k] = _grown(out[k], len(v))
-                out[k][:, :2] = v[:, :2]
             out[k] = _grown(out[k], len(v))
+            if ts is not None:  # the first camera placed on the frame grid too (the same for every pair)
+                out[k][:, :2] = v[:, :2]
             out[k][:, 2 * c : 2 * c + 2] = v[:, 2:]
     return found, out
 
