@@ -24,7 +24,7 @@ from pipeline.core.calibration import save_calibration
 from pipeline.core.camera import StereoRig
 from pipeline.core.clip import CLIP_INFO, TIMESTAMPS
 from pipeline.core.errors import StereotrackError
-from pipeline.core.io import write_json, write_text
+from pipeline.core.io import check_replaceable, write_json, write_text
 from pipeline.core.outputs import OUT
 from pipeline.core.rig import Rig
 from pipeline.core.rigfiles import save_rig
@@ -172,14 +172,36 @@ def _staging_dir(clip_dir: Path) -> Path:
     return clip_dir.parent / f".{clip_dir.name}.partial-{uuid.uuid4().hex[:12]}"
 
 
-#: The files that say a folder is a clip stereotrack rendered (clips made before clip.json have
-#: scenario.yaml): only such a folder, or an empty one, is ever re-rendered.
-RENDERED_MARK = (CLIP_INFO, "scenario.yaml")
+#: The file that says a folder is a clip stereotrack rendered (its description, with the keys
+#: :func:`_is_our_description` checks; never ``scenario.yaml``, which a user writes): only such a
+#: folder, or an empty one, is ever re-rendered.
+RENDERED_MARK = (CLIP_INFO,)
 #: What a render puts in a clip folder; a re-render replaces exactly these (and the stale ``out/``).
 RENDERED = ("calib.yaml", "calib_true.yaml", RIG_FILE, CLIP_INFO, "scenario.yaml", "truth.csv", "target_truth.csv",
             TIMESTAMPS, "left", "right", "left.mp4", "right.mp4", OUT)
 #: A marker counts as visible when at least this share of its unoccluded image area shows.
 VISIBLE_SHARE = 0.4
+
+
+def _is_our_description(path: Path) -> bool:
+    """Whether ``path`` is a clip description the renderer wrote (a JSON object with its fps, frame
+    count and markers), not a user's file of the same name."""
+    import json
+
+    try:
+        info = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(info, dict) and {"fps", "frames", "markers"} <= info.keys()
+
+
+def _check_ours(clip_dir: Path) -> None:
+    """Refuse, before any work, a folder that is neither new, empty nor a clip stereotrack rendered."""
+    check_replaceable(clip_dir, RENDERED_MARK, "clip")
+    info = clip_dir / CLIP_INFO
+    if info.exists() and not _is_our_description(info):
+        raise StereotrackError(f"{CLIP_INFO} here is not a clip description stereotrack wrote; choose an empty or "
+                               "new folder for the clip", clip_dir)
 
 
 def _rendered_cameras(clip_dir: Path) -> list[str]:
@@ -311,11 +333,11 @@ def render_clips(
     ``workers=1`` renders here, in this process, one camera after the other. A folder that
     stereotrack did not render (and is not empty) is refused before any work starts.
     """
-    from pipeline.core.io import check_replaceable, ensure_dir
+    from pipeline.core.io import ensure_dir
 
     dirs = [Path(d) for _, d in jobs]
     for d in dirs:  # before any work: a folder stereotrack did not render is never replaced
-        check_replaceable(d, RENDERED_MARK, "clip")
+        _check_ours(d)
         ensure_dir(d.parent)
     stagings: list[Path] = []
     try:  # an interrupt while the staging folders are being made leaves none of them behind

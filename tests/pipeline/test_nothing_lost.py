@@ -68,6 +68,23 @@ def test_render_refuses_a_folder_it_did_not_make(tmp_path, monkeypatch, capsys):
     assert (empty / "my_notes.txt").read_text() == "mine" and len(list((empty / "left").iterdir())) == 3
 
 
+def test_render_never_takes_a_users_scenario_yaml_for_its_mark(tmp_path, monkeypatch, capsys):
+    """#40 item 1: a folder holding the user's own scenario.yaml (and their notes in out/) is not a
+    clip stereotrack rendered; rendering into it is refused and nothing in it changes."""
+    mine = tmp_path / "mine"
+    (mine / "out").mkdir(parents=True)
+    shutil.copy(REPO / "data" / "scenarios" / "sample_small.yaml", mine / "scenario.yaml")
+    (mine / "out" / "notes.txt").write_text("precious")
+    before = snapshot(mine)
+    rc, _, err = cli(monkeypatch, capsys, "render", mine / "scenario.yaml", "-o", mine, "--frames", "5")
+    assert rc == 2 and "was not written by stereotrack" in err and str(mine) in err
+    assert snapshot(mine) == before
+    (mine / "clip.json").write_text('{"my": "notes"}')  # a clip.json of the user's own is no mark either
+    before = snapshot(mine)
+    rc, _, err = cli(monkeypatch, capsys, "render", mine / "scenario.yaml", "-o", mine, "--frames", "5")
+    assert rc == 2 and "not a clip description stereotrack wrote" in err and snapshot(mine) == before
+
+
 def test_batch_force_never_replaces_a_foreign_folder(tmp_path):
     inp = tmp_path / "in"
     real_copy(inp / "clip")
