@@ -96,3 +96,26 @@ def test_a_third_camera_joins_the_tracks():
     assert len(out.observations) >= 4
     seen = np.array([np.isfinite(Y[:, 4]).sum() for Y in out.observations.values()])
     assert seen.sum() > 0.8 * 4 * 120
+
+
+def test_labelled_detections_name_each_blobs_markers():
+    """The perfect association the benchmark sets beside the association: the same detections as
+    ``detections`` (same seed), each labelled with the markers it images; a single marker's
+    detection lies at its own projection (within 5 σ), a merged blob at its members' mean."""
+    from renderers.identical import labelled_detections, own_observations
+
+    X = crossing_paths(6, 60, 30.0, 7)
+    cams = list(RIG.cameras)
+    D, labels = labelled_detections(cams, X, 1.0, 7, RIG.image_size, merge_px=40.0)
+    assert all(np.array_equal(a, b) for fa, fb in zip(D, detections(cams, X, 1.0, 7, RIG.image_size, merge_px=40.0),
+                                                    strict=True) for a, b in zip(fa, fb, strict=True))
+    merged = 0
+    for k, (frame, lab) in enumerate(zip(D, labels, strict=True)):
+        for c, cam in enumerate(cams):
+            for uv, who in zip(frame[c], lab[c], strict=True):
+                assert np.linalg.norm(uv - cam.project(X[k, list(who)]).mean(axis=0)) < 5.0
+                merged += len(who) > 1
+    assert merged > 0
+    own = own_observations(labels, D, 6)
+    single = sum(len(w) == 1 for lab in labels for cam_lab in lab for w in cam_lab)
+    assert np.isfinite(own[..., ::2]).sum() == single
