@@ -16,8 +16,8 @@ from detectors.blob import BlobDetector, MarkerColor
 from detectors.markers import resolve_marker_specs
 from pipeline.core.camera import StereoRig
 from pipeline.core.checks import Check, check_view_sizes, colour_checks, rig_for_frames, warn_failed
-from pipeline.core.clip import CLIP_INFO, DETECTION_COLUMNS, MARKERS_FILE, Clip, FootageInfo
-from pipeline.core.detections import Detections, GroupDetections, split_groups
+from pipeline.core.clip import CLIP_INFO, DETECTION_WRITTEN, MARKERS_FILE, Clip, FootageInfo
+from pipeline.core.detections import Detections, GroupDetections, blob_flags, split_groups
 from pipeline.core.errors import StereotrackError
 from pipeline.core.frames import CameraReader, StereoFrameSource
 from pipeline.core.io import write_csv, write_json
@@ -263,10 +263,11 @@ def _write_detections(out_dir: Path, clip: Clip, source: StereoFrameSource, scan
                       record: dict) -> DetectResult:
     """``detections.csv`` and ``detect.json``; the result the estimate stage takes in memory."""
     path = Outputs(out_dir).detections
-    write_csv(path, DETECTION_COLUMNS, scan.rows)
     cols = scan.rows.columns()
-    summaries = summarize(cols, clip, scan.frames, scan.cameras)
     observations, groups = split_groups(cols, scan.frames, path, clip.identical_groups(), clip.cameras)
+    index, merged = blob_flags(cols, groups)
+    write_csv(path, DETECTION_WRITTEN, ((*row, i, m) for row, i, m in zip(scan.rows, index, merged, strict=True)))
+    summaries = summarize(cols, clip, scan.frames, scan.cameras)
     cameras = [asdict(s) for s in summaries]
     write_json(Outputs(out_dir).detect_info, {
         "clip": str(clip.path), "frames": scan.frames, "frame_size": list(source.size), "stereo": source.stereo,

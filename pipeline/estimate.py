@@ -356,9 +356,9 @@ def _run_method(est: Estimator, Y: np.ndarray, marker: str) -> Track:
 def _write_estimates(path: Path, tracks: dict[str, Track], dt: float, scores: dict[str, FrameScores]) -> None:
     def rows():
         for marker, tr in tracks.items():
-            cons = scores[marker].columns()
+            cons, group = scores[marker].columns(), marker.split("#", 1)[0]
             for k in range(len(tr.position)):
-                yield (k, k * dt, marker, *tr.position[k], *tr.velocity[k], *cons[k], int(tr.predicted[k]))
+                yield (k, k * dt, marker, *tr.position[k], *tr.velocity[k], *cons[k], int(tr.predicted[k]), group)
 
     write_csv(path, ESTIMATE_COLUMNS, rows())
 
@@ -368,8 +368,8 @@ def _write_target_estimates(path: Path, name: str, tr: Track, dt: float) -> None
 
     def rows():
         for k in range(len(tr.position)):
-            yield (k, k * dt, name, *tr.position[k], *tr.velocity[k], *cons[k], int(tr.predicted[k]), tr.extra["alpha"][k],
-                   tr.extra["distance"][k])
+            yield (k, k * dt, name, *tr.position[k], *tr.velocity[k], *cons[k], int(tr.predicted[k]), name,
+                   tr.extra["alpha"][k], tr.extra["distance"][k])
 
     write_csv(path, TARGET_COLUMNS, rows())
 

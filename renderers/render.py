@@ -247,9 +247,10 @@ def _write_clip_files(scenario: Scenario, staging: Path, truth: Truth, fmt: Form
             proj.visible[:, :, c] &= cnt >= VISIBLE_SHARE * expected_areas(rig.cameras[c], truth, proj, c)
     notes = [f"marker '{name}' is never visible in {'either camera' if len(names) == 2 else 'any camera'}"
              for i, name in enumerate(truth.names) if not proj.visible[:, i, :].any()]
+    info = clip_description(scenario)
     write_text(staging / "scenario.yaml", scenario.to_yaml())
-    write_json(staging / CLIP_INFO, clip_description(scenario))
-    write_truth(staging / "truth.csv", truth, proj, names)
+    write_json(staging / CLIP_INFO, info)
+    write_truth(staging / "truth.csv", truth, proj, names, {m["name"]: m["group"] for m in info["markers"]})
     write_timestamps(staging / TIMESTAMPS, proj.times, fmt, names)
     if isinstance(rig, Rig):  # N cameras: the rig file of its own format (no stereo calib.yaml)
         save_rig(rig, staging / RIG_FILE)

@@ -156,10 +156,13 @@ def project_truth(rig: StereoRig | Rig, scenario: Scenario, truth: Truth, times:
     return ProjectedTruth(uv, uvp, t_seen, visible, times)
 
 
-def write_truth(path: Path, truth: Truth, proj: ProjectedTruth, cameras: tuple[str, ...] = ("left", "right")) -> None:
+def write_truth(path: Path, truth: Truth, proj: ProjectedTruth, cameras: tuple[str, ...] = ("left", "right"),
+                groups: dict[str, str] | None = None) -> None:
     """Write ``truth.csv`` (long format, one row per frame per marker): the 3-D state at the first
-    camera's frame time, each camera's pixels at its own time, visibility, the pinhole pixels and
-    the times each camera saw the marker (columns named by ``cameras``)."""
+    camera's frame time, each camera's pixels at its own time, visibility, the pinhole pixels, the
+    times each camera saw the marker (columns named by ``cameras``) and the marker's group
+    (``groups``: marker → the group a detector sees it as; its own name where absent)."""
+    group = [(groups or {}).get(name) or name for name in truth.names]
     t_left = proj.times.t[0]
     pos, vel = (truth.positions, truth.velocities) if np.array_equal(t_left, truth.t) else truth.at(t_left)[:2]
 
@@ -169,7 +172,7 @@ def write_truth(path: Path, truth: Truth, proj: ProjectedTruth, cameras: tuple[s
                 yield (
                     k, t_left[k], name, *pos[k, i], *vel[k, i],
                     *proj.uv[k, i], *proj.visible[k, i].astype(int).tolist(),
-                    *proj.uv_pinhole[k, i], *proj.t_seen[k, i],
+                    *proj.uv_pinhole[k, i], *proj.t_seen[k, i], group[i],
                 )
 
     write_csv(path, truth_columns(cameras) + truth_extra_columns(cameras), rows())

@@ -33,6 +33,7 @@ from pipeline.core.rig import Rig
 from pipeline.core.rigfiles import RIG_NAMES, find_rig, load_rig
 from pipeline.core.schemas import (  # noqa: F401  (the clip's tables, named here for every reader)
     DETECTION_COLUMNS,
+    DETECTION_WRITTEN,
     DETECTIONS,
     ESTIMATE_COLUMNS,
     ESTIMATES,

@@ -105,3 +105,46 @@ def observations_from_columns(cols: dict[str, np.ndarray], n_frames: int | None,
         best[key] = score
         arr[k, 2 * c : 2 * c + 2] = (u, v)
     return out
+
+
+#: a group's blob over this many times the group's median blob area, and less round than
+#: :data:`MERGED_ROUNDNESS`, holds merged images (on the rendered ``identical`` clip, 150 frames:
+#: 96 % of the blobs so flagged image two or more markers)
+MERGED_AREA = 1.4
+MERGED_ROUNDNESS = 0.8
+#: frames on either side of a blob's whose areas make its group's median (markers change size with depth)
+MERGED_SPAN = 15
+
+
+def blob_flags(cols: dict[str, np.ndarray], groups: Collection[str] = ()) -> tuple[np.ndarray, np.ndarray]:
+    """Each detection row's ``index`` (its number among the rows of its marker, frame and camera, in
+    order) and ``merged`` flag (a group's blob over :data:`MERGED_AREA` × the group's median area in
+    that camera over the frame and :data:`MERGED_SPAN` on either side, and with a roundness (the
+    ``score``) under :data:`MERGED_ROUNDNESS`: two or more images merged)."""
+    frames = np.asarray(cols["frame"], dtype=np.int64)
+    keys = list(zip(frames.tolist(), (str(c) for c in cols["camera"]), (str(m) for m in cols["marker"]), strict=True))
+    seen: dict[tuple, int] = {}
+    index = np.empty(len(keys), dtype=np.int64)
+    for i, key in enumerate(keys):
+        index[i] = seen[key] = seen.get(key, -1) + 1
+    merged = np.zeros(len(keys), dtype=np.int64)
+    area, score = np.asarray(cols["area"], dtype=float), np.asarray(cols["score"], dtype=float)
+    names, cams = np.asarray(cols["marker"]).astype(str), np.asarray(cols["camera"]).astype(str)
+    for g in groups:
+        for cam in np.unique(cams[names == g]):
+            rows = np.flatnonzero((names == g) & (cams == cam))
+            merged[rows] = _over_median(frames[rows], area[rows]) & (score[rows] < MERGED_ROUNDNESS)
+    return index, merged
+
+
+def _over_median(frames: np.ndarray, area: np.ndarray) -> np.ndarray:
+    """1 where ``area`` exceeds :data:`MERGED_AREA` × the median of the areas within
+    :data:`MERGED_SPAN` frames (rows sorted or not)."""
+    order = np.argsort(frames, kind="stable")
+    f, a = frames[order], area[order]
+    lo = np.searchsorted(f, f - MERGED_SPAN, side="left")
+    hi = np.searchsorted(f, f + MERGED_SPAN, side="right")
+    ref = np.array([np.median(a[i:j]) for i, j in zip(lo, hi, strict=True)])
+    out = np.empty(len(f), dtype=np.int64)
+    out[order] = a > MERGED_AREA * ref
+    return out

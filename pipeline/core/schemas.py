@@ -36,6 +36,8 @@ def _truth_extra_schema(cameras: tuple[str, ...]) -> dict[str, str]:
            "are compared with), px" for cam in cameras for c in "uv"},
         **{f"t_{cam}": f"when the {cam} camera saw the marker: its frame time plus, with a rolling shutter, the delay "
            "of the row that imaged it, s" for cam in cameras},
+        "group": "what a detector sees the marker as: the group of identical markers it belongs to (the name "
+                 "detections.csv gives their blobs), or its own name",
     }
 
 
@@ -76,7 +78,14 @@ DETECTIONS = Schema("out/detections.csv", "one detection (a camera may have none
     "v": "pixel, undistorted by the calibration, px",
     "area": "the blob's area, px²",
     "score": "the detector's confidence in [0, 1]: the blob's roundness, or the tracker's share of the colour mass",
+    "index": "the detection's number among this marker's (or group's) detections in this frame and camera, from 0, "
+             "best first: a group of identical markers has several, with no identity (written by detect; a file of "
+             "your own may leave it out)",
+    "merged": "1 where a group's blob has over 1.4× the group's median blob area in this camera (the median over "
+              "the frame and the 15 on either side) and a roundness under 0.8: the images of two or more markers "
+              "merged; else 0 (written by detect; a file of your own may leave it out)",
 })
+
 ESTIMATES = Schema("out/estimates/<method>.csv", "one marker at one frame", "estimate", {
     "frame": _FRAME,
     "t": "the frame time, s",
@@ -87,6 +96,8 @@ ESTIMATES = Schema("out/estimates/<method>.csv", "one marker at one frame", "est
     "nees": "position NEES against the truth (filters on rendered clips; empty otherwise)",
     "predicted": "1 where the method used no measurement (a gap, a gated frame, before its start: the position "
                  "is held or coasted), 0 where it did",
+    "group": "the group of identical markers a track (``<group>#<n>``) belongs to; a marker of its own colour: its "
+             "own name",
 })
 TARGET_ESTIMATES = Schema("out/estimates/<four-point method>.csv", "one frame (marker: the target's name)", "estimate", {
     "alpha": "the estimated tilt α, rad",
@@ -98,6 +109,8 @@ TRUTH_COLUMNS = list(_TRUTH)
 TRUTH_EXTRA_COLUMNS = list(_TRUTH_EXTRA)
 TIMESTAMP_COLUMNS = TIMESTAMPS_SCHEMA.names
 TARGET_TRUTH_COLUMNS = TARGET_TRUTH.names
-DETECTION_COLUMNS = DETECTIONS.names
+DETECTION_WRITTEN = DETECTIONS.names
+#: the columns a detections.csv must have (``index`` and ``merged`` are optional)
+DETECTION_COLUMNS = DETECTION_WRITTEN[:-2]
 ESTIMATE_COLUMNS = ESTIMATES.names
 TARGET_COLUMNS = TARGET_ESTIMATES.names

@@ -11,12 +11,13 @@ import json
 import numpy as np
 import pytest
 
+from detectors.stage import detect_clip
 from pipeline.app.run import process_clip
 from pipeline.core.clip import read_csv
 from pipeline.core.settings import RunSettings
 from pipeline.estimate import estimate_clip
 from renderers.render import render_clip
-from renderers.scenario import parse_scenario
+from renderers.scenario import load_scenario, parse_scenario
 
 SCENARIO = {
     "name": "identical_small", "frames": 45, "fps": 30, "seed": 3,
@@ -48,10 +49,12 @@ def test_identical_markers_run_end_to_end(identical_run):
     for k, c, m in zip(det["frame"], det["camera"], det["marker"], strict=True):
         per[(k, c)] = per.get((k, c), 0) + (m == g)
     assert max(per.values()) == 4  # every blob of the colour, not one per colour
+    truth = read_csv(clip / "truth.csv", ["marker", "group"])
+    assert set(truth["group"]) == {g} and len(set(truth["marker"])) == 4  # each marker its identity, one group
     for method in ("triangulation", "ekf"):
-        est = read_csv(res.out_dir / "estimates" / f"{method}.csv", ["marker", "x"], numeric=["x"])
+        est = read_csv(res.out_dir / "estimates" / f"{method}.csv", ["marker", "x", "group"], numeric=["x"])
         names = set(est["marker"])
-        assert names and all(n.startswith(f"{g}#") for n in names)
+        assert names and all(n.startswith(f"{g}#") for n in names) and set(est["group"]) == {g}
         ident = res.estimate.metrics["methods"][method]["identity"][g]
         assert ident["idf1"] >= 0.8 and ident["mota"] >= 0.7, ident
         assert ident["id_switches"] <= 2, ident
@@ -60,6 +63,31 @@ def test_identical_markers_run_end_to_end(identical_run):
     report = (res.out_dir / "report.md").read_text()
     section = report.split(f"## Identity: {g}", 1)[1]  # the report's identity table, one row per method
     assert "| IDF1 |" in section and "| triangulation |" in section and "| ekf |" in section
+
+
+@pytest.mark.slow
+def test_detections_number_the_blobs_and_flag_merged_ones(tmp_path):
+    """detections.csv numbers a group's blobs per frame and camera (0, 1, …) and flags a blob as
+    merged by its size and shape: against the truth (the built-in ``identical``, ten spheres, whose
+    images merge often), a flagged blob holds two or more markers' images (their true pixels inside
+    its equivalent radius) and at least half of such blobs are flagged."""
+    clip = tmp_path / "clip"
+    scenario = load_scenario("identical").model_copy(update={"frames": 60})
+    render_clip(scenario, clip, fmt="png", workers=1)
+    res = detect_clip(clip, out_dir=tmp_path / "out")
+    det = read_csv(res.path, ["frame", "camera", "index", "merged", "area"])
+    truth = read_csv(clip / "truth.csv", ["frame"])
+    for k, c in {(k, c) for k, c in zip(det["frame"], det["camera"], strict=True)}:
+        mine = (det["frame"] == k) & (det["camera"] == c)
+        assert sorted(det["index"][mine]) == list(range(mine.sum()))
+    many = np.zeros(len(det["frame"]), dtype=bool)
+    for r, (k, c) in enumerate(zip(det["frame"], det["camera"], strict=True)):
+        at = truth["frame"] == k
+        uv = np.c_[truth[f"u_{c}_pinhole"][at], truth[f"v_{c}_pinhole"][at]]
+        many[r] = (np.linalg.norm(uv - [det["u"][r], det["v"][r]], axis=1) < np.sqrt(det["area"][r] / np.pi)).sum() >= 2
+    flagged = det["merged"] == 1
+    assert many.sum() >= 5 and flagged.any()
+    assert (many & flagged).sum() >= 0.9 * flagged.sum() and (many & flagged).sum() >= 0.5 * many.sum()
 
 
 @pytest.mark.slow
