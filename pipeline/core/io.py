@@ -30,6 +30,12 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         tmp_path = partial_beside(Path(path))
         yield tmp_path
         os.replace(tmp_path, path)
+    except OSError as exc:  # a full disk, a read-only one: named by the file it was writing
+        if tmp_path is not None:
+            tmp_path.unlink(missing_ok=True)
+        if exc.filename is None or exc.filename == str(tmp_path):
+            raise StereotrackError(f"cannot write ({exc.strerror or exc})", path) from None
+        raise
     except BaseException:
         if tmp_path is not None:
             tmp_path.unlink(missing_ok=True)

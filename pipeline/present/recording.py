@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from pipeline.core.camera import StereoRig
+from pipeline.core.errors import StereotrackError
 from pipeline.core.io import partial_beside
 from pipeline.core.rig import Rig
 from pipeline.evaluation.identity import switches_of
@@ -144,6 +145,7 @@ class Recorder:
 
     def __init__(self, path: str | Path, dt: float, jpeg_quality: int = 80, image_every: int = 1,
                  name: str | None = None, cameras: tuple[str, ...] = ("left", "right")) -> None:
+        os.environ.setdefault("RUST_LOG", "off")  # the file sink's own log lines (a full disk): ours name the file
         import rerun as rr
 
         self.path, self.dt, self.name, self.cameras = Path(path), float(dt), name, tuple(cameras)
@@ -294,6 +296,7 @@ class Recorder:
                             make_default=True)
         self.rec.flush()
         self.rec.disconnect()
+        _check_reads_back(self.tmp, self.path)
         os.replace(self.tmp, self.path)
         return self.path
 
@@ -398,3 +401,22 @@ class Recorder:
                 self.rec.disconnect()
         finally:
             self.tmp.unlink(missing_ok=True)
+
+
+def _check_reads_back(tmp: Path, path: Path) -> None:
+    """The recording written to ``tmp`` opens with rerun's own reader (it ends in its footer); a
+    file the sink could not finish (a full disk) is an error naming ``path``, never an output."""
+    import warnings
+
+    from rerun.chunk import RrdReader
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            ok = bool(RrdReader(tmp).recordings())
+        except (RuntimeError, OSError, ValueError):
+            ok = False
+    if not ok or any("no footer" in str(w.message) for w in caught):
+        tmp.unlink(missing_ok=True)
+        raise StereotrackError("the recording could not be written completely (rerun's reader does not open it; "
+                               "is the disk full?)", path)

@@ -85,6 +85,68 @@ def test_render_never_takes_a_users_scenario_yaml_for_its_mark(tmp_path, monkeyp
     assert rc == 2 and "not a clip description stereotrack wrote" in err and snapshot(mine) == before
 
 
+def test_a_full_disk_names_the_file_and_keeps_nothing_half_written(tmp_path):
+    """#40 item 4: a write that fails (ENOSPC, EROFS) is one error naming the file it was writing,
+    and neither the file nor its temporary is left."""
+    import errno
+
+    from pipeline.core.io import atomic_path
+
+    target = tmp_path / "detections.csv"
+    for code in (errno.ENOSPC, errno.EROFS):
+        with pytest.raises(StereotrackError, match=r"cannot write \(") as caught, atomic_path(target) as tmp:
+            tmp.write_text("half")
+            raise OSError(code, os.strerror(code))
+        assert str(target) in str(caught.value) and os.strerror(code) in str(caught.value)
+        assert list(tmp_path.iterdir()) == []
+
+
+def test_a_recording_that_does_not_read_back_is_no_output(tmp_path):
+    """#40 item 4: rerun's file sink logs a full disk and goes on; the recording is checked with
+    rerun's reader before it is moved into place, and a truncated one is an error naming it."""
+    import rerun as rr
+
+    from pipeline.present.recording import _check_reads_back
+
+    whole = tmp_path / ".run.partial.rrd"
+    rec = rr.RecordingStream("stereotrack")
+    rec.save(str(whole))
+    for k in range(200):
+        rec.set_time("frame", sequence=k)
+        rec.log("world/points", rr.Points3D(np.random.default_rng(k).normal(size=(500, 3))))
+    rec.flush()
+    rec.disconnect()
+    _check_reads_back(whole, tmp_path / "run.rrd")  # a complete recording passes
+    cut = tmp_path / ".cut.partial.rrd"
+    cut.write_bytes(whole.read_bytes()[: whole.stat().st_size // 2])
+    with pytest.raises(StereotrackError, match="could not be written completely") as caught:
+        _check_reads_back(cut, tmp_path / "run.rrd")
+    assert str(tmp_path / "run.rrd") in str(caught.value) and not cut.exists()
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(shutil.which("unshare") is None, reason="needs unshare to mount a small filesystem")
+def test_run_on_a_full_disk_is_one_line_naming_the_file(png_clip, tmp_path):
+    """#40 item 4 as a user meets it: `run` with out/ on a 2 MB filesystem (a tmpfs in a user and
+    mount namespace) ends with one line naming the file that did not fit (here the recording, whose
+    sink only logs the full disk), exit 2, and leaves no temporary file and no recording."""
+    clip = tmp_path / "clip"
+    shutil.copytree(png_clip, clip, ignore=shutil.ignore_patterns("out"))
+    (clip / "out").mkdir()
+    script = (f"mount -t tmpfs -o size=2m tmpfs {clip / 'out'} || exit 77; "
+              f"{sys.executable} -m pipeline.app.cli run {clip}; rc=$?; ls -A {clip / 'out'} > {tmp_path / 'left'}; exit $rc")
+    done = subprocess.run(["unshare", "-rm", "sh", "-c", script], capture_output=True, text=True, timeout=600)
+    if done.returncode == 77:
+        pytest.skip("no permission to mount a tmpfs here")
+    errors = [ln for ln in done.stderr.splitlines() + done.stdout.splitlines() if ln.startswith("error:")]
+    assert done.returncode == 2 and len(errors) == 1, done.stderr[-2000:]
+    assert "re_log" not in done.stderr + done.stdout  # rerun's own log lines of the failed sink are not shown
+    assert str(clip / "out") in errors[0]
+    assert "No space left on device" in errors[0] or "recording could not be written completely" in errors[0]
+    left = (tmp_path / "left").read_text().split()
+    assert "run.rrd" not in left and not [n for n in left if "partial" in n]
+
+
 def test_batch_force_never_replaces_a_foreign_folder(tmp_path):
     inp = tmp_path / "in"
     real_copy(inp / "clip")
