@@ -16,7 +16,7 @@ from detectors.blob import BlobDetector, MarkerColor
 from detectors.markers import resolve_marker_specs
 from pipeline.core.camera import StereoRig
 from pipeline.core.checks import Check, check_view_sizes, colour_checks, rig_for_frames, warn_failed
-from pipeline.core.clip import CLIP_INFO, DETECTION_WRITTEN, MARKERS_FILE, Clip, FootageInfo
+from pipeline.core.clip import CLIP_INFO, DETECTION_WRITTEN, MARKERS_FILE, TIMESTAMPS, Clip, FootageInfo
 from pipeline.core.detections import Detections, GroupDetections, blob_flags, split_groups
 from pipeline.core.errors import StereotrackError
 from pipeline.core.frames import CameraReader, StereoFrameSource
@@ -147,11 +147,34 @@ def detect_clip(clip: str | Path | Clip, settings: RunSettings | None = None, ou
                for _ in range(len(source.readers))]
     scan = _scan(source, finders, rig, markers, {n for names in groups.values() for n in names} | set(groups),
                  hooks.frame, hooks.progress)
+    _check_footage_times(clip_, source, scan.counts)
     checks += colour_checks(scan.samples)
     warn_failed(checks)
     record = {"detector": settings.detector, "markers": [m.spec() for m in markers], "learned": learned,
               "marker_colours": {m.name: list(m.display_rgb()) for m in markers}}
     return _write_detections(out_dir, clip_, source, scan, checks, record)
+
+
+def _check_footage_times(clip: Clip, source: StereoFrameSource, counts: list[int]) -> None:
+    """Every frame each camera's footage holds has a time in ``timestamps.csv``, and every time is
+    of a frame the footage holds: a video longer or shorter than its timestamps (frames lost in
+    recording or copying) cannot be paired by time, so it is one error naming the file."""
+    if clip.timestamps is None or len(source.readers) < 2:
+        return
+    path = clip.folder / TIMESTAMPS
+    for cam, reader, n in zip(clip.cameras, source.readers, counts, strict=True):
+        held = np.ones(n, dtype=bool)
+        held[[g for g in reader.gaps if g < n]] = False
+        t = clip.timestamps[cam]
+        listed = np.zeros(max(n, len(t)), dtype=bool)
+        listed[: len(t)] = np.isfinite(t)
+        if (extra := np.flatnonzero(listed[n:])).size:
+            raise StereotrackError(f"lists {cam} frame {n + int(extra[0])} but the {cam} footage has {n} frames "
+                                   f"(0–{n - 1}): footage shorter than its timestamps cannot be paired by time "
+                                   "(frames lost?)", path)
+        if (untimed := np.flatnonzero(held & ~listed[:n])).size:
+            raise StereotrackError(f"has no time for {cam} frame {int(untimed[0])} ({untimed.size} of the footage's "
+                                   f"{n} frames have none): every frame needs a row", path)
 
 
 class DetectionTable:
@@ -210,6 +233,8 @@ class _Scanned:
     samples: dict[tuple[str, str], list]
     frames: int
     cameras: int
+    #: the frames each camera's footage held (decoded, or missing files of a frame folder)
+    counts: list[int] = field(default_factory=list)
 
 
 class _CameraScan:
@@ -252,6 +277,7 @@ def _scan(source: StereoFrameSource, finders: list, rig: StereoRig | Rig | None,
         out.frames = fr.index + 1
         if progress is not None:
             progress(out.frames, total)
+    out.counts = [cs.k for cs in cams]
     if rig is not None:
         out.rows.undistort(rig)
     out.samples = {(m.name, cs.cam): cs.samples[m.name, cs.cam] for cs in cams for m in markers

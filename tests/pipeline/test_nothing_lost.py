@@ -751,6 +751,33 @@ def test_timestamps_are_checked_not_taken_on_trust(tmp_path, case, rows, problem
     read_timestamps(_stamps(tmp_path, GOOD_STAMPS))  # the file as it should be reads
 
 
+@pytest.mark.parametrize(("case", "problem"), [
+    ("footage longer", "timestamps.csv: has no time for left frame 20 (4 of the footage's 24 frames have none)"),
+    ("footage shorter", "timestamps.csv: lists left frame 24 but the left footage has 24 frames (0–23): footage "
+                        "shorter than its timestamps"),
+])
+def test_footage_and_its_timestamps_must_agree(mp4_clip, tmp_path, monkeypatch, capsys, case, problem):
+    """#40 item 5: a video shorter than its timestamps ran on (errors growing to 667 mm, exit 0) and
+    footage longer than them was an internal error. Both are one line naming timestamps.csv, exit 2."""
+    from pipeline.core.io import read_csv, write_csv
+
+    clip = tmp_path / "clip"
+    shutil.copytree(mp4_clip, clip, ignore=shutil.ignore_patterns("out"))
+    shutil.copy(clip / "timestamps.csv", tmp_path / "good.csv")
+    ts = read_csv(clip / "timestamps.csv", ["frame", "camera", "t"])
+    rows = list(zip(ts["frame"].astype(int), ts["camera"], ts["t"], strict=True))
+    if case == "footage longer":
+        rows = [r for r in rows if r[0] < 20]
+    else:
+        rows += [(24 + j, cam, 0.8 + j / 30 + 1e-3 * (cam == "right")) for cam in ("left", "right") for j in range(4)]
+    write_csv(clip / "timestamps.csv", ["frame", "camera", "t"], rows)
+    rc, out, err = cli(monkeypatch, capsys, "detect", clip)
+    assert_one_line_error(rc, out, err, problem, case=case)
+    shutil.copy(tmp_path / "good.csv", clip / "timestamps.csv")  # the clip as it was rendered runs
+    rc, _, err = cli(monkeypatch, capsys, "detect", clip)
+    assert rc == 0, err
+
+
 @pytest.mark.parametrize("command", ["detect", "estimate", "report", "export"])
 def test_an_output_folder_of_the_user_s_is_never_written_into(tmp_path, command):
     """#40 item 2: `detect/estimate/report/export -o` replaced a user's files of the same names.
