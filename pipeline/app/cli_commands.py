@@ -5,6 +5,7 @@ I/O and presentation only: each calls the library functions the tests call."""
 from __future__ import annotations
 
 import warnings
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Annotated, Literal
 
@@ -47,6 +48,25 @@ def writable_output(folder: Path | None) -> None:
 
     if folder is not None:
         check_replaceable(folder, OURS, "outputs")
+
+
+def stage_lock(clip: Path, output: Path | None, what: str, make: bool = True) -> ExitStack:
+    """The locks a single stage holds while it runs: its output folder and, when it reads another,
+    the clip's ``out/`` it reads from (a `run` writing there meanwhile makes it fail at once, naming
+    the holder, as a second `run` does). ``make=False``: lock the clip's ``out/`` only if it exists."""
+    from pipeline.core.lifeline import OutputLock
+
+    stack = ExitStack()
+    own = Outputs.of(clip if clip.is_dir() else clip.parent).folder
+    try:
+        for folder in dict.fromkeys([output or own, own]):
+            if folder == own and (output is not None or not make) and not own.is_dir():
+                continue  # nothing to read there, nothing to make
+            stack.enter_context(OutputLock(folder, f"stereotrack {what} {clip}"))
+    except BaseException:
+        stack.close()
+        raise
+    return stack
 
 
 def mark_output(folder: Path | None) -> None:
@@ -162,7 +182,7 @@ def detect_cmd(
                                    allow_unequal=allow_unequal, calib_units=calib_units, force_window=force)
     writable_output(output)
     clip_ = Clip(clip, settings.fps)
-    with progress_bar() as bar:
+    with stage_lock(clip, output, "detect"), progress_bar() as bar:
         task = bar.add_task(f"detect ({detector})", total=None)
         hooks = RunHooks(progress=lambda done, total: bar.update(task, completed=done, total=total or None))
         result = detect_clip(clip_, settings, output, hooks)
@@ -197,7 +217,7 @@ def estimate_cmd(
     settings = RunSettings.checked(methods=method_list(methods), configs=method_configs(config), calib_units=calib_units,
                                    time_offset=time_offset, fps=fps)
     writable_output(output)
-    with progress_bar() as bar:
+    with stage_lock(clip, output, "estimate"), progress_bar() as bar:
         task = bar.add_task("estimate", total=None)
         hooks = RunHooks(stage=lambda name: bar.update(task, description=name),
                          progress=lambda d, t: bar.update(task, completed=d, total=t))
@@ -265,7 +285,9 @@ def export_cmd(
     """Write each method's 3-D tracks as <method>.<format>: marker names, frame rate, metres."""
     from pipeline.present.export import export_clip
 
-    for path in export_clip(clip, fmt.lower(), method_list(methods), output):
+    with stage_lock(clip, None, "export", make=False):  # -o: a folder export_clip checks is new, empty or ours
+        written = export_clip(clip, fmt.lower(), method_list(methods), output)
+    for path in written:
         out.print(f"wrote {path}")
 
 
@@ -279,7 +301,7 @@ def report_cmd(
     from pipeline.present.report import write_report
 
     writable_output(output)
-    with progress_bar() as bar:
+    with stage_lock(clip, output, "report"), progress_bar() as bar:
         task = bar.add_task("report", total=None)
         path = write_report(clip, output, progress=lambda d, t: bar.update(task, completed=d, total=t),
                             in_dir=Outputs.of(clip).folder)

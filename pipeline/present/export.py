@@ -95,6 +95,21 @@ def write_wide_csv(path: Path, t: Tracks) -> None:
 WRITERS = {"trc": write_trc, "c3d": write_c3d, "csv": write_wide_csv}
 
 
+def _current(in_dir: Path, have: list[str], asked: list[str]) -> list[str]:
+    """The methods of the last estimate (``metrics.json``'s), of those with estimates: a table an
+    earlier estimate left, which the reports no longer draw, is not exported as if it were current
+    (named with ``--methods`` it is an error saying so)."""
+    try:
+        last = list(json.loads(Outputs(in_dir).metrics.read_text()).get("methods") or {})
+    except (OSError, ValueError, AttributeError):
+        return have
+    for m in asked:
+        if m not in last:
+            raise StereotrackError(f"the estimates of {m!r} are from an earlier estimate: the last one (metrics.json) "
+                                   f"ran {', '.join(last)}; run `stereotrack estimate --methods {m}` again", in_dir)
+    return [m for m in have if m in last] or have
+
+
 def export_clip(clip: str | Path, fmt: str, methods: list[str] | None = None, out: str | Path | None = None,
                 in_dir: str | Path | None = None) -> list[Path]:
     """Write each method's tracks (default: every method with estimates) as ``<out>/<method>.<fmt>``
@@ -109,6 +124,7 @@ def export_clip(clip: str | Path, fmt: str, methods: list[str] | None = None, ou
     for m in methods or []:
         if m not in have:
             raise StereotrackError(f"no estimates of method {m!r} (have: {', '.join(have)})", est)
+    have = _current(in_dir, have, methods or [])
     out_dir = Path(out) if out else Outputs(in_dir).export_dir
     if out:  # a folder the user named: never one of theirs (CLIP/out/export is stereotrack's own)
         check_replaceable(out_dir, OURS, "export")

@@ -801,3 +801,35 @@ def test_an_output_folder_of_the_user_s_is_never_written_into(tmp_path, command)
     for _ in range(2):  # a new folder, then the same folder again: stereotrack's own, replaced
         res = runner.invoke(app, [command, str(clip), "-o", str(fresh)])
         assert res.exit_code == 0, res.output
+
+
+@pytest.mark.parametrize("command", ["detect", "estimate", "report", "export"])
+def test_single_stages_wait_for_no_run_holding_the_clip(detected_clip, tmp_path, monkeypatch, capsys, command):
+    """#40 item 10: `estimate`, `detect`, `report` and `export` took no lock while `run` held the
+    clip's out/. Now each fails at once naming the holder, and changes nothing there."""
+    from pipeline.core.lifeline import OutputLock
+
+    clip = tmp_path / "clip"
+    shutil.copytree(detected_clip, clip)
+    (clip / "out" / "report.md").write_text("# an earlier report\n")
+    before = snapshot(clip)
+    with OutputLock(clip / "out", f"stereotrack run {clip}"):
+        rc, out, err = cli(monkeypatch, capsys, command, clip)
+    assert_one_line_error(rc, out, err, f"output folder is in use by stereotrack run {clip}", case=command)
+    assert snapshot(clip) == before
+
+
+def test_export_leaves_out_the_estimates_an_earlier_estimate_left(detected_clip, tmp_path, monkeypatch, capsys):
+    """#40 item 10: `export` wrote the tables of an earlier `estimate` that the last one (and so the
+    reports) no longer has; it now exports the last estimate's methods, and naming a stale one is
+    an error saying why."""
+    clip = tmp_path / "clip"
+    shutil.copytree(detected_clip, clip)
+    assert cli(monkeypatch, capsys, "estimate", clip, "--methods", "triangulation,kf3d")[0] == 0
+    assert cli(monkeypatch, capsys, "estimate", clip, "--methods", "triangulation")[0] == 0
+    assert (clip / "out" / "estimates" / "kf3d.csv").exists()  # the earlier table is still there, untouched
+    rc, out, err = cli(monkeypatch, capsys, "export", clip)
+    assert rc == 0, err
+    assert sorted(p.name for p in (clip / "out" / "export").glob("*.trc")) == ["triangulation.trc"]
+    rc, out, err = cli(monkeypatch, capsys, "export", clip, "--methods", "kf3d")
+    assert_one_line_error(rc, out, err, "the estimates of 'kf3d' are from an earlier estimate")
