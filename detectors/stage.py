@@ -15,7 +15,14 @@ from detectors import check_detector, create_detector
 from detectors.blob import BlobDetector, MarkerColor
 from detectors.markers import resolve_marker_specs
 from pipeline.core.camera import StereoRig
-from pipeline.core.checks import Check, check_view_sizes, colour_checks, rig_for_frames, warn_failed
+from pipeline.core.checks import (
+    Check,
+    check_view_sizes,
+    colour_checks,
+    rarely_found_checks,
+    rig_for_frames,
+    warn_failed,
+)
 from pipeline.core.clip import CLIP_INFO, DETECTION_WRITTEN, MARKERS_FILE, TIMESTAMPS, Clip, FootageInfo
 from pipeline.core.detections import Detections, GroupDetections, blob_flags, split_groups
 from pipeline.core.errors import StereotrackError
@@ -149,6 +156,8 @@ def detect_clip(clip: str | Path | Clip, settings: RunSettings | None = None, ou
                  hooks.frame, hooks.progress)
     _check_footage_times(clip_, source, scan.counts)
     checks += colour_checks(scan.samples)
+    checks += rarely_found_checks(scan.rows.columns(), scan.frames, scan.rows.cameras,
+                                  [m.name for m in markers if m.name not in groups])
     warn_failed(checks)
     record = {"detector": settings.detector, "markers": [m.spec() for m in markers], "learned": learned,
               "marker_colours": {m.name: list(m.display_rgb()) for m in markers}}

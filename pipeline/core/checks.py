@@ -185,3 +185,26 @@ def colour_checks(samples: dict[tuple[str, str], list[tuple[float, ...]]]) -> li
                              f"marker '{name}': two or more blobs of its colour in {multi:.0%} of sampled {cam} frames: "
                              "another object of the same colour may be tracked instead", multi, name))
     return out
+
+
+#: a marker found in fewer than this share of a camera's frames is worth a look
+RARE_SHARE = 0.25
+
+
+def rarely_found_checks(cols: dict[str, np.ndarray], frames: int, cameras: tuple[str, ...],
+                        markers: list[str]) -> list[Check]:
+    """Per marker and camera: found in under :data:`RARE_SHARE` of the frames (of a clip of ten or
+    more), its colour range most likely misses it (learned from one frame's lighting, say), and a
+    table of dashes is no result to pass on without a word."""
+    if frames < 10:
+        return []
+    out = []
+    for cam in cameras:
+        for name in markers:
+            mine = (cols["camera"] == cam) & (cols["marker"] == name)
+            n = len(np.unique(cols["frame"][mine]))
+            if n < RARE_SHARE * frames:
+                out.append(Check("detection_rate", False,
+                                 f"marker '{name}' found in {n} of {frames} {cam} frames: its colour range misses it "
+                                 "(learn it again from a window where it shows, or widen it)", n / frames, name))
+    return out

@@ -833,3 +833,18 @@ def test_export_leaves_out_the_estimates_an_earlier_estimate_left(detected_clip,
     assert sorted(p.name for p in (clip / "out" / "export").glob("*.trc")) == ["triangulation.trc"]
     rc, out, err = cli(monkeypatch, capsys, "export", clip, "--methods", "kf3d")
     assert_one_line_error(rc, out, err, "the estimates of 'kf3d' are from an earlier estimate")
+
+
+def test_a_marker_its_colour_range_misses_is_warned(png_clip, tmp_path, monkeypatch, capsys):
+    """#40 item 10: a colour range that finds its marker in almost no frame ran to a full table of
+    dashes without a word. Now a warning per camera names the marker and the count, and detect.json
+    keeps it as a failed check."""
+    clip = tmp_path / "clip"
+    shutil.copytree(png_clip, clip, ignore=shutil.ignore_patterns("out"))
+    rc, _, err = cli(monkeypatch, capsys, "detect", clip, "--markers", "red=#e62828", "--markers", "yellow=#e6d214")
+    assert rc == 0, err
+    for cam in ("left", "right"):
+        assert f"marker 'yellow' found in 0 of 24 {cam} frames" in err
+    assert "marker 'red'" not in err
+    checks = json.loads((clip / "out" / "detect.json").read_text())["checks"]
+    assert [c["subject"] for c in checks if c["name"] == "detection_rate" and not c["ok"]] == ["yellow", "yellow"]
