@@ -86,9 +86,21 @@ def _interrupted() -> None:
     # Every lock, temporary file and worker is gone by now (released on the way up). Leave at once with
     # the documented status: about one interrupted render-batch in ten under load was otherwise ended by
     # a KeyboardInterrupt during the interpreter's shutdown (exit status −2, whatever the signal).
+    _release_semaphores()
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(128 + sig)
+
+
+def _release_semaphores() -> None:
+    """Unlink the named semaphores of the worker pools' queues and locks (their finalizers, which a
+    normal exit runs and ``os._exit`` skips), so that multiprocessing's resource tracker does not
+    print "leaked semaphore objects" after an interrupted batch or render."""
+    import contextlib
+    from multiprocessing import util
+
+    with contextlib.suppress(Exception):
+        util._run_finalizers(0)  # those of priority ≥ 0: closes and unlinks, no joins (these are < 0)
 
 
 if __name__ == "__main__":
