@@ -100,7 +100,7 @@ def _release_semaphores() -> None:
     from multiprocessing import util
 
     with contextlib.suppress(Exception):
-        util._run_finalizers(0)  # those of priority ≥ 0: closes and unlinks, no joins (these are < 0)
+        util._run_finalizers(0)  # type: ignore[attr-defined]  # priority ≥ 0: closes, unlinks; no joins (< 0)
 
 
 if __name__ == "__main__":
