@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.core.camera import StereoRig
-from pipeline.core.checks import Check, jump_checks, rig_for_frames, stereo_checks, warn_failed
+from pipeline.core.checks import Check, calibration_checks, jump_checks, rig_for_frames, stereo_checks, warn_failed
 from pipeline.core.clip import (
     DETECTION_COLUMNS,
     ESTIMATE_COLUMNS,
@@ -201,7 +201,7 @@ def observe(clip: Clip, in_dir: Path, detections: Detections | None, settings: R
         sync = SyncEstimate(0.0, None, any(v.applied for v in views.values()), "cameras", note=describe_views(views))
     else:
         sync, aligned = resolve_sync(settings.time_offset if obs else "off", rig, obs, clip.fps, ts)
-    new_checks = [_sync_check(sync)]
+    new_checks = [_sync_check(sync), *calibration_checks(rig, clip.calibration_name)]
     if obs and isinstance(rig, StereoRig):  # the pair checks read single markers (groups pair up only when associated)
         new_checks += [*stereo_checks(rig, aligned, clip.calibration_name), *jump_checks(obs, rig.image_size[0] or 640)]
     elif obs:

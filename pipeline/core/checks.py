@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.core.camera import StereoRig
+from pipeline.core.camera import StereoRig, Views
 from pipeline.core.errors import ClipError
 from pipeline.core.rig import Rig
 
@@ -207,4 +207,34 @@ def rarely_found_checks(cols: dict[str, np.ndarray], frames: int, cameras: tuple
                 out.append(Check("detection_rate", False,
                                  f"marker '{name}' found in {n} of {frames} {cam} frames: its colour range misses it "
                                  "(learn it again from a window where it shows, or widen it)", n / frames, name))
+    return out
+
+
+#: camera centres farther apart than this (m) are a unit mistake (a board square given without
+#: its unit is metres), not a rig; closer than :data:`MIN_SPACING_M`, one in millimetres read as metres
+MAX_SPACING_M = 100.0
+MIN_SPACING_M = 0.005
+#: focal lengths outside these multiples of the image width (a field of view over 146° or under
+#: 1.2°) are no calibration of this footage
+FOCAL_TO_WIDTH = (0.15, 50.0)
+
+
+def calibration_checks(views: Views, calib: str = "calib.yaml") -> list[Check]:
+    """The calibration's scale and focal lengths against what a rig can be: cameras 300 m apart
+    (a calibration from ``--square 25`` read as metres) or a focal length of a 1° lens pass every
+    other check and turn every 3-D figure into nonsense, so they are failed checks naming the file."""
+    out = []
+    centres = np.array([cam.center for cam in views.cameras])
+    spacing = np.linalg.norm(centres[:, None] - centres[None], axis=2)[np.triu_indices(len(centres), 1)]
+    if len(spacing) and (spacing.max() > MAX_SPACING_M or spacing.min() < MIN_SPACING_M):
+        far = spacing.max() if spacing.max() > MAX_SPACING_M else spacing.min()
+        out.append(Check("calibration_scale", False, f"{calib}: cameras {far:.4g} m apart: is the calibration in the "
+                         "unit it states (a board square given without its unit is metres)?", float(far), calib))
+    for cam, name, (w, _) in zip(views.cameras, views.names, views.sizes, strict=True):
+        f = float(cam.K[0, 0])
+        if w and not FOCAL_TO_WIDTH[0] * w <= f <= FOCAL_TO_WIDTH[1] * w:
+            fov = float(np.degrees(2 * np.arctan(w / (2 * f)))) if f > 0 else float("nan")
+            out.append(Check("calibration_focal", False, f"{calib}: the {name} camera's focal length {f:.4g} px is "
+                             f"{f / w:.3g}× the image width {w} px (a {fov:.3g}° field of view): not this footage's "
+                             "calibration?", f / w, calib))
     return out

@@ -848,3 +848,35 @@ def test_a_marker_its_colour_range_misses_is_warned(png_clip, tmp_path, monkeypa
     assert "marker 'red'" not in err
     checks = json.loads((clip / "out" / "detect.json").read_text())["checks"]
     assert [c["subject"] for c in checks if c["name"] == "detection_rate" and not c["ok"]] == ["yellow", "yellow"]
+
+
+@pytest.mark.parametrize(("case", "expected"), [
+    ("metres for millimetres", "cameras 300 m apart: is the calibration in the unit it states"),
+    ("focal of another lens", "the left camera's focal length 3e+04 px is 93.8× the image width 320 px"),
+])
+def test_an_implausible_calibration_is_a_failed_check(detected_clip, tmp_path, monkeypatch, capsys, case, expected):
+    """#40 (build): `--square 25` made a 300 m baseline and `run` reported a 3-D RMSE of 2,166,929 mm
+    under "All input checks passed". A calibration whose cameras are hundreds of metres apart, or
+    whose focal length no lens of that image could have, is a failed check naming the file."""
+    from dataclasses import replace
+
+    from pipeline.core.calibration import load_calibration, save_calibration
+    from pipeline.core.camera import Camera
+
+    clip = tmp_path / "clip"
+    shutil.copytree(detected_clip, clip)
+    rig = load_calibration(clip / "calib.yaml")
+    if case == "metres for millimetres":
+        bad = replace(rig, right=Camera(rig.right.K, rig.right.R, rig.right.t * 300 / np.linalg.norm(rig.right.t),
+                                        rig.right.D))
+    else:
+        K = rig.left.K.copy()
+        K[0, 0] = K[1, 1] = 30_000.0
+        bad = replace(rig, left=Camera(K, rig.left.R, rig.left.t, rig.left.D))
+    save_calibration(bad, clip / "calib.yaml")
+    rc, _, err = cli(monkeypatch, capsys, "estimate", clip, "--methods", "triangulation")
+    assert rc == 0, err
+    assert expected in err, err
+    rc, _, err = cli(monkeypatch, capsys, "report", clip)
+    assert rc == 0, err
+    assert "All input checks passed" not in (clip / "out" / "report.md").read_text()
