@@ -442,6 +442,29 @@ def test_fuzz_scenario_yaml(tmp_path, data, raw):
     _fails_cleanly(lambda: load_scenario(path), path)
 
 
+STAMP_CELL = st.one_of(st.integers(-3, 40), st.integers(10**8, 10**10), st.floats(allow_nan=True, allow_infinity=True),
+                       st.sampled_from(["left", "right", "centre", "", "1e400", "0x10"]), TEXT)
+
+
+@FUZZ
+@given(rows=st.lists(st.tuples(STAMP_CELL, st.sampled_from(["left", "right"]) | TEXT, STAMP_CELL), max_size=12),
+       header=st.sampled_from([["frame", "camera", "t"], ["frame", "camera"], ["t", "camera", "frame"], ["a"]]),
+       raw=st.none() | st.binary(max_size=80))
+def test_fuzz_timestamps(tmp_path, rows, header, raw):
+    """#40 (acceptance): timestamps.csv of any content reads, or fails in one line naming it."""
+    import csv
+
+    from pipeline.core.timestamps import read_timestamps
+
+    path = tmp_path / "timestamps.csv"
+    if raw is not None:
+        path.write_bytes(raw)
+    else:
+        with open(path, "w", newline="") as fh:
+            csv.writer(fh).writerows([header, *rows])
+    _fails_cleanly(lambda: read_timestamps(path), path)
+
+
 CALIB_TEXT = (SAMPLE / "calib.yaml").read_text()
 
 
