@@ -165,9 +165,10 @@ def detect_clip(clip: str | Path | Clip, settings: RunSettings | None = None, ou
 
 
 def _check_footage_times(clip: Clip, source: StereoFrameSource, counts: list[int]) -> None:
-    """Every frame each camera's footage holds has a time in ``timestamps.csv``, and every time is
-    of a frame the footage holds: a video longer or shorter than its timestamps (frames lost in
-    recording or copying) cannot be paired by time, so it is one error naming the file."""
+    """Every frame each camera's footage holds has a time in ``timestamps.csv``, and every time of a
+    video's is of a frame it holds: a video longer or shorter than its timestamps (frames lost in
+    recording or copying) cannot be paired by time, so it is one error naming the file. A frame
+    folder's file numbers say which frames are missing (a time without its file is a missed frame)."""
     if clip.timestamps is None or len(source.readers) < 2:
         return
     path = clip.folder / TIMESTAMPS
@@ -177,7 +178,7 @@ def _check_footage_times(clip: Clip, source: StereoFrameSource, counts: list[int
         t = clip.timestamps[cam]
         listed = np.zeros(max(n, len(t)), dtype=bool)
         listed[: len(t)] = np.isfinite(t)
-        if (extra := np.flatnonzero(listed[n:])).size:
+        if reader.files is None and (extra := np.flatnonzero(listed[n:])).size:  # a folder's numbers say which is missing
             raise StereotrackError(f"lists {cam} frame {n + int(extra[0])} but the {cam} footage has {n} frames "
                                    f"(0–{n - 1}): footage shorter than its timestamps cannot be paired by time "
                                    "(frames lost?)", path)
