@@ -379,7 +379,7 @@ class Estimator(ABC):
         self.initiator = Initiator(self.config.init, self.model, self.dt, propagate=self.knows_pixel_noise(),
                                    gate=self.config.gate)
         self.gated_run: int = 0  # frames in a row with a camera gated
-        self.unseen: int = 0  # frames without observations
+        self.unseen: list[int] = [0] * self.model.rig.n  # per camera: frames since it last observed
         self.returning: int = 0  # frames back from a long gap
         self.recent: deque = deque(maxlen=self.config.restart_after)  # what a restart fits
 

@@ -39,6 +39,7 @@ from pipeline.estimators.kalman_common import (
     KalmanConfig,
     RTSMixin,
     available_rows,
+    drifted,
     filtered_step,
     gated_step,
 )
@@ -164,8 +165,9 @@ class EKFEstimator(GatedFilter, Estimator):
         k, resume = s.frame + 1, 0
         while k < n:
             k = kernels.ekf_frames(Y, k, resume, model, track, out)
-            if k < n:  # gated too long: a restart from the recent detections, if they triangulate
-                r = self.initiator.restart(k, Y[max(0, k + 1 - cfg.restart_after) : k + 1])
+            if k < n:  # gated too long (or back from a one-camera stretch): a restart, if they triangulate
+                asked = bool(track.gate.camera.any()) or drifted(self.model, track.scratch_x, Y[k], cfg.gate)
+                r = self.initiator.restart(k, Y[max(0, k + 1 - cfg.restart_after) : k + 1]) if asked else None
                 resume = 2 if r is None else 1
                 if r is not None:
                     x[:], P[:] = r.state, r.covariance

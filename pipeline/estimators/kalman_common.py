@@ -10,6 +10,7 @@ from collections.abc import Callable
 import numpy as np
 from pydantic import Field
 
+from pipeline.core.camera import StereoMeasurementModel
 from pipeline.estimators.base import Estimator, EstimatorConfig, Start, Step, Track, transition, use_compiled
 from pipeline.estimators.gating import camera_gate, gated_cameras, reprojection_errors
 
@@ -98,16 +99,32 @@ class GatedFilter(Estimator):
             kept = y.copy()
             for c in np.flatnonzero(g):
                 kept[2 * c : 2 * c + 2] = np.nan
-        had = gated or bool(np.isfinite(y).any())  # one track: plain Python, as update_gated_run
+        seen = np.isfinite(y).reshape(-1, 2).any(axis=1).tolist()  # per camera; one track: plain Python
+        had = gated or any(seen)
         self.gated_run = self.gated_run + 1 if gated else (0 if had else self.gated_run)
         self.gated_run, self.unseen, self.returning = after_gap(
-            self.gated_run, self.unseen, self.returning, had, gated, self.config.restart_after)
+            self.gated_run, self.unseen, self.returning, seen, gated, self.config.restart_after)
         restart = None
-        if self.gated_run >= self.config.restart_after:
+        if self.gated_run >= self.config.restart_after and (gated or drifted(self.model, x, y, self.config.gate)):
             restart = self.initiator.restart(self.frame, self.recent_observations())
             if restart is not None:
                 self.gated_run = 0
         return kept, int(g.sum()), restart
+
+
+def drifted(model: StereoMeasurementModel, x: np.ndarray, y: np.ndarray, gate: float) -> bool:
+    """Whether the prediction ``x`` lies outside the χ²₃ gate (probability ``gate``) of this frame's
+    triangulation under the triangulation's own covariance: a camera back from a one-camera
+    stretch passes its gate however far the depth drifted (the prediction's uncertainty grew with
+    it), so the restart it asks for is taken only when the drift is more than the triangulation's
+    noise (a short stretch's small drift is left to the update)."""
+    X = model.inverse_function(np.asarray(y, dtype=float)[None])[0]
+    if gate <= 0 or not np.all(np.isfinite(X)):
+        return False
+    from scipy.special import chdtri
+
+    d = np.asarray(x, dtype=float)[:3] - X
+    return float(d @ np.linalg.solve(model.inverse_covariance(X[None])[0], d)) > float(chdtri(3, 1.0 - gate))
 
 
 def update_gated_run(run, y: np.ndarray, kept: np.ndarray):
@@ -120,17 +137,28 @@ def update_gated_run(run, y: np.ndarray, kept: np.ndarray):
 
 
 def after_gap(run, unseen, returning, had, gated, restart_after: int):
-    """A track back from a gap of ``restart_after`` frames or more restarts at the first gated
-    camera within its first ``restart_after`` observed frames: after a long gap the prediction is
-    far from the returning marker by the gap's length, not because of an outlier (one track in
-    Python scalars, or M tracks as arrays). Returns (gated run, frames unseen, returning frames left)."""
-    returning = np.where(had & (unseen >= restart_after), restart_after, returning)
-    run = np.where(gated & (returning > 0), np.maximum(run, restart_after), run)
-    returning = np.where(had, np.maximum(returning - 1, 0), returning)
-    unseen = np.where(had, 0, unseen + 1)
+    """A camera back from ``restart_after`` frames or more without an observation restarts the
+    track: after a gap of every camera, at its first gated frame within its first ``restart_after``
+    observed frames (the prediction is far from the returning marker by the gap's length, not
+    because of an outlier); after a one-camera stretch (another camera kept observing), at once,
+    when the returning pair triangulates plausibly: the depth drifted along the kept camera's ray,
+    and its uncertainty grew so large that the gate lets the returning camera in while an update
+    linearised that far off does not bring the depth back. ``had`` and ``unseen`` are per camera (…×N: whether it observed this
+    frame; frames since it last did). One track in Python scalars and lists, or M tracks as arrays.
+    Returns (gated run, frames unseen per camera, returning frames left)."""
     if np.ndim(run) == 0:
-        return int(run), int(unseen), int(returning)
-    return run, unseen, returning
+        back = any(h and u >= restart_after for h, u in zip(had, unseen, strict=True))
+        kept = any(h and u < restart_after for h, u in zip(had, unseen, strict=True))
+        returning = restart_after if back else returning
+        run = max(run, restart_after) if (gated and returning > 0) or (back and kept) else run
+        returning = max(returning - 1, 0) if any(had) else returning
+        return int(run), [0 if h else u + 1 for h, u in zip(had, unseen, strict=True)], int(returning)
+    back = np.any(had & (unseen >= restart_after), axis=-1)
+    kept = np.any(had & (unseen < restart_after), axis=-1)
+    returning = np.where(back, restart_after, returning)
+    run = np.where((gated & (returning > 0)) | (back & kept), np.maximum(run, restart_after), run)
+    returning = np.where(np.any(had, axis=-1), np.maximum(returning - 1, 0), returning)
+    return run, np.where(had, 0, unseen + 1), returning
 
 
 def gated_step(step: Step, n_gated: int, restarted: bool = False) -> Step:
@@ -154,7 +182,7 @@ def kalman_batch(est: GatedFilter, Y: np.ndarray, linearize: Linearize) -> np.nd
     A, Q = est.A, est.Q
     threshold, Rg = est.gate_threshold(), est.gate_covariance()
     run_gated = np.zeros(M, dtype=int)
-    unseen, returning = np.zeros(M, dtype=int), np.zeros(M, dtype=int)  # see after_gap
+    unseen, returning = np.zeros((M, Y.shape[2] // 2), dtype=int), np.zeros(M, dtype=int)  # see after_gap
     for k in range(n):
         run = begin < k
         x[run] = x[run] @ A.T
@@ -167,11 +195,11 @@ def kalman_batch(est: GatedFilter, Y: np.ndarray, linearize: Linearize) -> np.nd
         if len(idx):
             Yk = _gate_batch(est, x[idx], P[idx], Y[idx, k], threshold, Rg)
             run_gated[idx] = update_gated_run(run_gated[idx], Y[idx, k], Yk)
-            had = np.isfinite(Y[idx, k]).any(axis=1)
+            had = np.isfinite(Y[idx, k]).reshape(len(idx), -1, 2).any(axis=2)  # per camera
             gated = np.any(np.isfinite(Y[idx, k]) & ~np.isfinite(Yk), axis=1)
             run_gated[idx], unseen[idx], returning[idx] = after_gap(run_gated[idx], unseen[idx], returning[idx], had,
                                                                    gated, est.config.restart_after)
-            fresh = _restart_batch(est, idx, k, Y, run_gated, x, P)
+            fresh = _restart_batch(est, idx, k, Y, run_gated, x, P, gated)
             H, r, R, have = linearize(x[idx, :3], Yk)
             have &= ~fresh
             u = idx[have]
@@ -191,11 +219,14 @@ def _gate_batch(est: GatedFilter, x: np.ndarray, P: np.ndarray, Yk: np.ndarray, 
 
 
 def _restart_batch(est: GatedFilter, idx: np.ndarray, k: int, Y: np.ndarray, run_gated: np.ndarray, x: np.ndarray,
-                   P: np.ndarray) -> np.ndarray:
-    """Restart the tracks of ``idx`` gated too long; which of them restarted."""
+                   P: np.ndarray, gated: np.ndarray) -> np.ndarray:
+    """Restart the tracks of ``idx`` gated too long, or back from a one-camera stretch and
+    :func:`drifted` (``gated``: which of them were gated this frame); which of them restarted."""
     fresh = np.zeros(len(idx), dtype=bool)
     for i in np.flatnonzero(run_gated[idx] >= est.config.restart_after):
         m = idx[i]
+        if not gated[i] and not drifted(est.model, x[m], Y[m, k], est.config.gate):
+            continue
         s = est.initiator.restart(k, Y[m, max(0, k + 1 - est.config.restart_after) : k + 1])
         if s is not None:
             x[m], P[m] = s.state, s.covariance

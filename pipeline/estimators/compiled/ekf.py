@@ -28,9 +28,9 @@ EKFTrack = namedtuple("EKFTrack", ["x", "P", "gate", "scratch_x", "scratch_P"])
 #: only predicted, the NIS and its degrees of freedom, the cameras gated, whether it restarted
 EKFOutput = namedtuple("EKFOutput", ["pos", "vel", "cov", "pred", "nis", "dof", "gated", "restarted"])
 #: a gated track's counters (see :func:`pipeline.estimators.kalman_common.after_gap`): frames in a row
-#: with a camera gated, frames unseen, returning frames left; and, while a restart is asked for, how
+#: with a camera gated, frames each camera has gone unseen, returning frames left; and, while a restart is asked for, how
 #: many cameras and which the gate dropped at that frame
-GATE = np.dtype([("run", "i8"), ("unseen", "i8"), ("returning", "i8"), ("held", "i8"), ("camera", "i8", (2,))])
+GATE = np.dtype([("run", "i8"), ("unseen", "i8", (2,)), ("returning", "i8"), ("held", "i8"), ("camera", "i8", (2,))])
 
 #: the camera's measurement model, compiled
 stereo_linearize = kernel(linearize_point)
@@ -120,15 +120,14 @@ def _gate(y, model, track, h, H, r, kept, ws, nz):
         r[i] = y[i] - h[i]
         for j in range(4):
             S[i, j] += model.R[i, j]
-    had, n_gated = False, 0
+    n_gated = 0
     for c in range(2):
         g.camera[c] = 0
         if camera_nis2(S, r, c) > model.threshold:
             kept[2 * c], kept[2 * c + 1] = np.nan, np.nan
             g.camera[c] = 1
             n_gated += 1
-        had = had or math.isfinite(y[2 * c]) or math.isfinite(y[2 * c + 1])
-    _count_gated(g, had, n_gated > 0, model.restart_after)
+    _count_gated(g, y, n_gated > 0, model.restart_after)
     return n_gated
 
 
@@ -149,7 +148,8 @@ def ekf_batch(Y, begin, x0, P0, model, track, out):
             continue
         _copy_state(x0[m], P0[m], track.x, track.P)
         g = track.gate
-        g.run, g.unseen, g.returning, g.held, g.camera[0], g.camera[1] = 0, 0, 0, 0, 0, 0
+        g.run, g.returning, g.held, g.camera[0], g.camera[1] = 0, 0, 0, 0, 0
+        g.unseen[0], g.unseen[1] = 0, 0
         for a in range(3):
             out[m, k0, a] = track.x[a]
         res = EKFOutput(out[m], vel, cov, pred, nis, dof, gated, restarted)
@@ -218,18 +218,25 @@ def _copy_state(x, P, to_x, to_P):
 
 
 @kernel(inline=True)
-def _count_gated(g, had, gated, restart_after):
-    """The gated-run, unseen and returning counters after one frame (``after_gap``'s arithmetic)."""
+def _count_gated(g, y, gated, restart_after):
+    """The gated-run, per-camera unseen and returning counters after one frame (``after_gap``'s
+    arithmetic; ``y`` the frame's observation before the gate)."""
+    had0 = math.isfinite(y[0]) or math.isfinite(y[1])
+    had1 = math.isfinite(y[2]) or math.isfinite(y[3])
+    had = had0 or had1
     run = g.run + 1 if gated else (0 if had else g.run)
-    unseen, returning = g.unseen, g.returning
-    if had and unseen >= restart_after:
+    returning = g.returning
+    back0, back1 = had0 and g.unseen[0] >= restart_after, had1 and g.unseen[1] >= restart_after
+    kept = (had0 and g.unseen[0] < restart_after) or (had1 and g.unseen[1] < restart_after)
+    if back0 or back1:
         returning = restart_after
-    if gated and returning > 0:
+    if (gated and returning > 0) or ((back0 or back1) and kept):
         run = max(run, restart_after)
     if had:
         returning = max(returning - 1, 0)
-    unseen = 0 if had else unseen + 1
-    g.run, g.unseen, g.returning = run, unseen, returning
+    g.unseen[0] = 0 if had0 else g.unseen[0] + 1
+    g.unseen[1] = 0 if had1 else g.unseen[1] + 1
+    g.run, g.returning = run, returning
 
 
 @kernel(inline=True)
