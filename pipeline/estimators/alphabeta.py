@@ -150,11 +150,13 @@ class AlphaBetaEstimator(Estimator):
             if s is not None:
                 self._begin(s)
                 self.gated_run, restarted = 0, True
+                have = True
             else:
                 z = kept if image else self.model.inverse_function(kept[None])[0]
                 self.f.correct(z)
                 self._correct_covariance(z)
-            have = restarted or bool(np.isfinite(kept).any())
+                # in 3-D space one camera kept triangulates nothing: the frame only predicted
+                have = bool(np.isfinite(z).any()) if image else bool(np.all(np.isfinite(z)))
         extra = {"gated": float(n_gated), "restart": float(restarted)}
         f = self.f
         assert f is not None  # started above, or earlier
