@@ -281,12 +281,15 @@ def export_cmd(
                                                 "estimates).")] = None,
     output: Annotated[Path | None, typer.Option("-o", "--output", help="Folder for the files (default "
                                                 "CLIP/out/export).")] = None,
+    predicted: Annotated[bool, typer.Option("--predicted", help="Also write the frames a method only predicted "
+                                            "(held, coasted, gated); by default they are gaps, as no camera "
+                                            "measured them.")] = False,
 ) -> None:
     """Write each method's 3-D tracks as <method>.<format>: marker names, frame rate, metres."""
     from pipeline.present.export import export_clip
 
     with stage_lock(clip, None, "export", make=False):  # -o: a folder export_clip checks is new, empty or ours
-        written = export_clip(clip, fmt.lower(), method_list(methods), output)
+        written = export_clip(clip, fmt.lower(), method_list(methods), output, predicted=predicted)
     for path in written:
         out.print(f"wrote {path}")
 

@@ -1,7 +1,9 @@
 """``stereotrack export``: the estimated 3-D tracks of a clip for the tools of motion capture and
 biomechanics — OpenSim's TRC (tab-separated text with a marker header), C3D (through ezc3d, the
 maintained open C3D library) and a wide CSV — with the marker names, the frame rate and the units
-(metres). Frames a method never estimated (before its start) are gaps: empty cells in TRC, ``nan``
+(metres). Frames a method never estimated (before its start), and by default those it only
+predicted (held, coasted or gated: ``predicted`` in its estimates), are gaps: ``NaN`` in TRC (an
+empty last cell is dropped by OpenSim's own reader, which then finds the row a value short), ``nan``
 in CSV, NaN in C3D with the point's residual set to −1 (C3D's "invalid" mark)."""
 
 from __future__ import annotations
@@ -29,14 +31,23 @@ class Tracks:
     fps: float
 
 
-def read_tracks(out_dir: Path, method: str, fps: float) -> Tracks:
+def read_tracks(out_dir: Path, method: str, fps: float, predicted: bool = False) -> Tracks:
     """``out_dir/estimates/<method>.csv`` (through :func:`pipeline.core.clip.read_positions`) as
-    frames × markers × 3."""
+    frames × markers × 3; the frames the method only predicted are gaps unless ``predicted``."""
     from pipeline.core.clip import read_positions
+    from pipeline.core.io import read_csv
 
-    pos, n = read_positions(Outputs(out_dir).estimates(method))
+    path = Outputs(out_dir).estimates(method)
+    pos, n = read_positions(path)
     markers = list(pos)
     stacked = np.stack([pos[m] for m in markers], axis=1) if markers else np.empty((n, 0, 3))
+    if not predicted:
+        cols = read_csv(path, ["frame", "marker"])
+        if "predicted" in cols:
+            index = {m: i for i, m in enumerate(markers)}
+            only = np.asarray(cols["predicted"], dtype=float) == 1
+            for k, m in zip(cols["frame"][only].astype(int), cols["marker"][only], strict=True):
+                stacked[k, index[str(m)]] = np.nan
     return Tracks(method, markers, stacked, fps)
 
 
@@ -51,7 +62,8 @@ def clip_fps(out_dir: Path) -> float:
 
 def write_trc(path: Path, t: Tracks) -> None:
     """OpenSim's TRC (PathFileType 4): a header naming the rate, frames, markers and units, then one
-    row per frame (``Frame#`` from 1, ``Time`` in s, X/Y/Z per marker; gaps are empty cells)."""
+    row per frame (``Frame#`` from 1, ``Time`` in s, X/Y/Z per marker; gaps are ``NaN``, which
+    OpenSim's reader parses, where its tokenizer drops a row's empty last cells)."""
     n, m = t.positions.shape[:2]
     head = [
         f"PathFileType\t4\t(X/Y/Z)\t{path.name}",
@@ -63,7 +75,7 @@ def write_trc(path: Path, t: Tracks) -> None:
     with atomic_path(path) as tmp, open(tmp, "w", newline="\n") as f:
         f.write("\n".join(head) + "\n\n")
         for k in range(n):
-            cells = ["" if not np.isfinite(v) else repr(float(v)) for v in t.positions[k].ravel()]
+            cells = ["NaN" if not np.isfinite(v) else repr(float(v)) for v in t.positions[k].ravel()]
             f.write(f"{k + 1}\t{k / t.fps:.6f}\t" + "\t".join(cells) + "\n")
 
 
@@ -111,9 +123,10 @@ def _current(in_dir: Path, have: list[str], asked: list[str]) -> list[str]:
 
 
 def export_clip(clip: str | Path, fmt: str, methods: list[str] | None = None, out: str | Path | None = None,
-                in_dir: str | Path | None = None) -> list[Path]:
+                in_dir: str | Path | None = None, predicted: bool = False) -> list[Path]:
     """Write each method's tracks (default: every method with estimates) as ``<out>/<method>.<fmt>``
-    (default ``CLIP/out/export``); the paths written."""
+    (default ``CLIP/out/export``), the frames it only predicted as gaps unless ``predicted``; the
+    paths written."""
     if fmt not in FORMATS:
         raise StereotrackError(f"unknown export format {fmt!r} (known: {', '.join(FORMATS)})")
     in_dir = Outputs.of(clip, in_dir).folder
@@ -135,6 +148,6 @@ def export_clip(clip: str | Path, fmt: str, methods: list[str] | None = None, ou
     for m in methods or have:
         path = out_dir / f"{m}.{fmt}"
         path.parent.mkdir(parents=True, exist_ok=True)
-        WRITERS[fmt](path, read_tracks(in_dir, m, fps))
+        WRITERS[fmt](path, read_tracks(in_dir, m, fps, predicted))
         written.append(path)
     return written

@@ -86,14 +86,22 @@ def test_bad_clip_settings_are_one_line(tmp_path, monkeypatch, capsys, text, exp
     assert_one_line_error(rc, out, err, "--fps must be a positive number")
 
 
+def opensim_tokens(line: str) -> list[str]:
+    """OpenSim 4.x's ``FileAdapter::tokenize`` on tabs: consecutive tabs give empty tokens, but the
+    text after the last tab is a token only when not empty (a row's empty last cell is dropped)."""
+    parts = line.split("\t")
+    return parts[:-1] if parts[-1] == "" else parts
+
+
 def read_trc(path: Path) -> tuple[dict, list[str], np.ndarray]:
-    """An independent TRC reader (the layout OpenSim documents): header values, marker names,
-    frames × markers × 3 (NaN for empty cells)."""
+    """An independent TRC reader (the layout OpenSim documents, rows tokenized as OpenSim's reader
+    does and required to hold every value): header values, marker names, frames × markers × 3."""
     lines = path.read_text().split("\n")
     keys, values = lines[1].split("\t"), lines[2].split("\t")
     head = dict(zip(keys, values, strict=True))
     names = [n for n in lines[3].split("\t")[2:] if n]
-    rows = [ln.split("\t") for ln in lines[5:] if ln.strip()]
+    rows = [opensim_tokens(ln) for ln in lines[5:] if ln.strip()]
+    assert all(len(r) == 2 + 3 * len(names) for r in rows), "a row OpenSim reads a value short"
     data = np.array([[float(c) if c else np.nan for c in r[2:]] for r in rows])
     return head, names, data.reshape(len(rows), len(names), 3)
 
@@ -107,18 +115,27 @@ def estimated(tmp_path_factory) -> Path:
     return clip
 
 
-def test_export_round_trip_trc_c3d_csv(estimated, monkeypatch, capsys):
-    """TRC (read back by an independent parser) and C3D (read back by ezc3d) hold the estimate
-    CSVs' positions to 1e-6 m, the marker names, the frame rate and the unit; gaps stay gaps."""
+@pytest.mark.parametrize("keep", [False, True], ids=["measured", "--predicted"])
+def test_export_round_trip_trc_c3d_csv(estimated, monkeypatch, capsys, keep):
+    """TRC (read back by an independent parser that tokenizes rows as OpenSim's reader does) and
+    C3D (read back by ezc3d) hold the estimate CSVs' positions to 1e-6 m, the marker names, the
+    frame rate and the unit; gaps stay gaps, and the frames a method only predicted (held,
+    coasted) are gaps too unless ``--predicted``."""
     import ezc3d
 
     from pipeline.core.clip import read_positions
+    from pipeline.core.io import read_csv
 
     for fmt in ("trc", "c3d", "csv"):
-        rc, _out, err = cli(monkeypatch, capsys, "export", estimated, "--format", fmt)
+        rc, _out, err = cli(monkeypatch, capsys, "export", estimated, "--format", fmt, *(["--predicted"] if keep else []))
         assert rc == 0, err
     for method in ("triangulation", "ekf"):
         want, _ = read_positions(estimated / "out" / "estimates" / f"{method}.csv")
+        cols = read_csv(estimated / "out" / "estimates" / f"{method}.csv", ["frame", "marker", "predicted"])
+        only = cols["predicted"] == 1
+        if not keep:
+            for k, m in zip(cols["frame"][only].astype(int), cols["marker"][only], strict=True):
+                want[str(m)][k] = np.nan
         head, names, trc = read_trc(estimated / "out" / "export" / f"{method}.trc")
         assert head["DataRate"] == "25" and head["Units"] == "m" and names == list(want)
         c3d = ezc3d.c3d(str(estimated / "out" / "export" / f"{method}.c3d"))
@@ -152,6 +169,39 @@ def test_estimates_say_which_frames_were_held(estimated, tmp_path):
     assert list(held) == list(range(10, 15)), held
     x = cols["x"]
     assert np.all(x[10:15] == x[9])  # held, not invented
+
+
+def test_exported_trc_opensim_reads_and_held_frames_are_gaps(estimated, tmp_path, monkeypatch, capsys):
+    """#39 (export): a gap in the last marker ended a TRC row in empty cells, which OpenSim's reader
+    drops ("Expected = 5. Received = 4"), and triangulation's held points were exported as if
+    measured. Frames 10–14 without the left camera: held by triangulation (the EKF updates from the
+    right camera). By default the frames a method only predicted are gaps (NaN, a full row for
+    OpenSim's tokenizer; C3D residual −1); with ``--predicted`` the estimates themselves."""
+    import ezc3d
+
+    from pipeline.core.io import read_csv
+
+    clip = tmp_path / "clip"
+    shutil.copytree(estimated, clip)
+    det = (clip / "out" / "detections.csv").read_text().splitlines()
+    kept = [ln for ln in det if not (ln.split(",")[0] in {f"{k}" for k in range(10, 15)} and ln.split(",")[1] == "left")]
+    (clip / "out" / "detections.csv").write_text("\n".join(kept) + "\n")
+    estimate_clip(clip, RunSettings(methods=["triangulation", "ekf"], time_offset="off"))
+    for extra in ([], ["--predicted"]):
+        for fmt in ("trc", "c3d"):
+            rc, _, err = cli(monkeypatch, capsys, "export", clip, "--format", fmt, *extra)
+            assert rc == 0, err
+        for method in ("triangulation", "ekf"):
+            _, _, trc = read_trc(clip / "out" / "export" / f"{method}.trc")
+            c3d = ezc3d.c3d(str(clip / "out" / "export" / f"{method}.c3d"))
+            residual = c3d["data"]["meta_points"]["residuals"][0, 0]
+            cols = read_csv(clip / "out" / "estimates" / f"{method}.csv", ["frame", "predicted", "x"])
+            held = cols["predicted"] == 1
+            if method == "triangulation":
+                assert np.flatnonzero(held).tolist() == list(range(10, 15))
+            expected = ~np.isfinite(cols["x"]) | (held & (not extra))
+            gap = ~np.isfinite(trc[:, 0]).all(axis=1)
+            assert (gap == expected).all() and ((residual == -1) == expected).all()
 
 
 @pytest.mark.parametrize("args, expected", [
