@@ -14,6 +14,7 @@ from rich.progress import (
 from rich.table import Table
 
 from pipeline.app.cli_common import (
+    AllowUnequalOption,
     CalibUnitsOption,
     ConfigOption,
     DetectorOption,
@@ -123,6 +124,7 @@ def batch_cmd(
     fps: FpsOption = None,
     figures: Annotated[bool, typer.Option("--figures", help="Draw each clip's report figures (the summary's "
                                           "leaderboard is always written).")] = False,
+    allow_unequal: AllowUnequalOption = False,
 ) -> None:
     """Process every clip folder under INPUT_DIR; exit code 1 if any clip failed.
 
@@ -133,7 +135,7 @@ def batch_cmd(
 
     settings = RunSettings.checked(detector=detector, methods=method_list(methods), markers=marker_specs(markers),
                                    calib_units=calib_units, configs=method_configs(config), images=not no_images,
-                                   time_offset=time_offset, fps=fps, figures=figures)
+                                   time_offset=time_offset, fps=fps, figures=figures, allow_unequal=allow_unequal)
     if dask is not None and dask != "local":
         raise StereotrackError("--dask takes 'local'; use --scheduler tcp://host:port for a running cluster")
     if workers < 1:

@@ -14,6 +14,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from pipeline.app.cli_common import (
+    AllowUnequalOption,
     CalibUnitsOption,
     ConfigOption,
     DetectorOption,
@@ -167,7 +168,7 @@ def detect_cmd(
     detector: DetectorOption = "blob",
     markers: MarkersOption = None,
     roi: Annotated[str | None, typer.Option(help="Initial tracking window x,y,w,h (meanshift/camshift).")] = None,
-    allow_unequal: Annotated[bool, typer.Option("--allow-unequal", help="Truncate unequal left/right lengths.")] = False,
+    allow_unequal: AllowUnequalOption = False,
     output: Annotated[Path | None, typer.Option("-o", "--output", help="Output folder (default CLIP/out).")] = None,
     calib_units: CalibUnitsOption = None,
     fps: FpsOption = None,
@@ -329,6 +330,7 @@ def run_cmd(
     time_offset: TimeOffsetOption = "auto",
     fps: FpsOption = None,
     force: ForceWindowOption = False,
+    allow_unequal: AllowUnequalOption = False,
 ) -> None:
     """Run every stage on one clip: (render), detect, estimate, metrics, report, recording.
 
@@ -340,7 +342,7 @@ def run_cmd(
     t0 = __import__("time").perf_counter()
     settings = RunSettings.checked(detector=detector, methods=method_list(methods), markers=marker_specs(markers),
                                    calib_units=calib_units, configs=method_configs(config), time_offset=time_offset, fps=fps,
-                                   force_window=force)
+                                   force_window=force, allow_unequal=allow_unequal)
     clip = _clip_or_render(target or DEFAULT_SCENARIO, output, frames, seed, clip_format(fmt))
     with progress_bar() as bar:
         task = bar.add_task("detect", total=None)

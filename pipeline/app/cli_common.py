@@ -91,6 +91,9 @@ TimeOffsetOption = Annotated[str, typer.Option(
 ForceWindowOption = Annotated[bool, typer.Option(
     "--force", help="Keep a colour learned from a NAME@x,y,w,h window even when it selects far more of the first "
     "frame than the marker (by default that stops the command).")]
+AllowUnequalOption = Annotated[bool, typer.Option(
+    "--allow-unequal", help="Truncate left/right videos of unequal lengths (and no timestamps.csv) to the shorter, "
+    "with a warning, instead of stopping.")]
 FpsOption = Annotated[float | None, typer.Option(
     "--fps", help="Frames per second of the footage. Wins over the clip's clip.yaml 'fps', a rendered clip's "
     "clip.json, timestamps.csv and the video header; frame folders with none of these are taken as 30 fps, "

@@ -579,3 +579,22 @@ def test_second_camera_said_in_words():
     said = {side: phrase(SimpleNamespace(second_camera_side=side)) for side in ("left", "right", "above", "below")}
     assert said == {"left": "to the left of the first", "right": "to the right of the first",
                     "above": "above the first", "below": "below the first"}
+
+
+@pytest.mark.slow
+def test_run_and_batch_take_unequal_lengths_as_detect_does(png_clip, tmp_path, monkeypatch, capsys):
+    """#39 (sync): dropping one camera's last frame stopped `run` on unequal lengths, naming a
+    --allow-unequal that only `detect` had. `run` and `batch` take it too: truncated to the shorter
+    with a warning."""
+    clip = tmp_path / "in" / "clip"
+    shutil.copytree(png_clip, clip, ignore=shutil.ignore_patterns("out", "timestamps.csv"))
+    (clip / "right" / "000023.png").unlink()
+    rc, out, err = cli(monkeypatch, capsys, "run", clip, "--methods", "triangulation")
+    assert_one_line_error(rc, out, err, "left has 24 frames, right has 23 frames (use --allow-unequal")
+    rc, out, err = cli(monkeypatch, capsys, "run", clip, "--methods", "triangulation", "--allow-unequal")
+    assert rc == 0 and "truncating to 23" in err, err
+    batch = ["batch", tmp_path / "in", "--methods", "triangulation", "--workers", "1"]
+    rc, out, err = cli(monkeypatch, capsys, *batch, "-o", tmp_path / "refused")
+    assert rc == 1 and not (tmp_path / "refused" / "clip" / "metrics.json").exists(), out + err  # the clip failed
+    rc, out, err = cli(monkeypatch, capsys, *batch, "-o", tmp_path / "out", "--allow-unequal")
+    assert rc == 0 and (tmp_path / "out" / "clip" / "metrics.json").is_file(), out + err
