@@ -135,7 +135,7 @@ def stereo_checks(rig: StereoRig, observations: dict[str, np.ndarray], calib: st
     else:
         out.append(Check("epipolar", True, f"median epipolar distance {epi:.2f} px", epi))
     n_behind = int(behind.sum())
-    out.append(Check("behind_camera", n_behind == 0 or frac > SWAPPED_FRACTION,
+    out.append(Check("behind_camera", n_behind == 0,  # failed with the swap too: points behind are never "ok"
                      f"{n_behind} of {len(behind)} triangulated points lie behind a camera (excluded from the figures)",
                      float(n_behind)))
     return out
