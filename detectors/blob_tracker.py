@@ -1,6 +1,6 @@
 """The ``blob`` detector: :class:`~detectors.blob.BlobDetector` per frame, searching first in a
-window around each marker's last detection, rejecting a same-coloured blob much smaller than the
-marker's recent size, and labelling a one-colour four-point target's points consistently."""
+window around each marker's last detection, rejecting a same-coloured blob much smaller (or larger)
+than the marker's recent size, and labelling a one-colour four-point target's points consistently."""
 
 from __future__ import annotations
 
@@ -15,6 +15,11 @@ from detectors.blob import BlobDetector, Detection, MarkerColor
 
 #: recent blob areas kept per marker (their median is the size a window's find must reach)
 AREA_MEMORY = 5
+#: a blob this many times smaller or larger than the marker's recent size is not the marker (a ball
+#: that left the view is not re-found as a speck of its colour on the wall): at least this many
+#: recent sizes make the judgement
+SIZE_JUMP = 20.0
+SIZE_SAMPLES = 3
 
 
 def label_order(points: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
@@ -78,14 +83,20 @@ class BlobTracker(Detector):
     def detect(self, frame: np.ndarray) -> list[Detection]:
         expected = {m: statistics.median(a) for m, a in self.areas.items() if a}
         dets = self._best_per_marker(self.blob.detect(frame, rois=self.windows, expected_area=expected))
+        dets = [d for d in dets if d.marker in self.grouped or self._plausible_size(d)]
         self.windows = {d.marker: search_window(d, frame.shape) for d in dets if d.marker not in self.grouped}
-        seen = {d.marker for d in dets}
-        for d in dets:
+        for d in dets:  # a marker not seen keeps its recent sizes: what comes back must match them
             self.areas.setdefault(d.marker, deque(maxlen=AREA_MEMORY)).append(d.area)
-        for m in list(self.areas):
-            if m not in seen:
-                self.areas.pop(m)
         return dets
+
+    def _plausible_size(self, d: Detection) -> bool:
+        """Whether a single marker's blob is within :data:`SIZE_JUMP`× of its recent size (always,
+        before :data:`SIZE_SAMPLES` sizes are known)."""
+        recent = self.areas.get(d.marker)
+        if not recent or len(recent) < SIZE_SAMPLES:
+            return True
+        size = statistics.median(recent)
+        return size / SIZE_JUMP <= d.area <= size * SIZE_JUMP
 
     def _best_per_marker(self, dets: list[Detection]) -> list[Detection]:
         """The best blob of each marker; a target's four largest, labelled (none when fewer)."""

@@ -434,3 +434,30 @@ def test_one_colour_target_labelled_by_geometry_over_1000_frames():
             labelled = truth[shuffle][order]
             assert np.array_equal(shuffle[order], np.arange(4)), (c, k)
             previous = labelled
+
+
+def test_a_marker_that_left_is_not_refound_as_a_speck_of_its_colour():
+    """#39 (size continuity): after a 4,000 px ball left the view, a 13 px speck of its colour on
+    the wall was "detected" in every remaining frame. A blob 20× smaller (or larger) than the
+    marker's recent size is not the marker: it is reported missing, and found again when a blob of
+    its size comes back."""
+    from detectors.blob_tracker import BlobTracker
+
+    red = MarkerColor.from_rgb("red", (230, 30, 30))
+    tracker = BlobTracker([red])
+
+    def frame(ball: tuple[int, int] | None) -> np.ndarray:
+        img = np.full((240, 320, 3), 80, np.uint8)
+        cv2.circle(img, (260, 40), 2, (30, 30, 230), -1)  # the speck on the wall, always there
+        if ball is not None:
+            cv2.circle(img, ball, 35, (30, 30, 230), -1)
+        return img
+
+    seen = [tracker.detect(frame((80 + 4 * k, 120))) for k in range(8)]
+    assert all(len(d) == 1 and d[0].area > 3000 for d in seen)
+    gone = [tracker.detect(frame(None)) for _ in range(10)]
+    assert gone == [[]] * 10  # missing, not the speck
+    back = tracker.detect(frame((150, 150)))
+    assert len(back) == 1 and abs(back[0].u - 150) < 1 and abs(back[0].v - 150) < 1
+    fresh = BlobTracker([red])  # with no sizes known yet, the speck is the only candidate there is
+    assert len(fresh.detect(frame(None))) == 1
