@@ -28,8 +28,15 @@ from pipeline.core.camera import StereoRig
 from pipeline.core.checks import EPIPOLAR_WARN_PX
 from pipeline.core.rig import Rig
 
-#: the offsets searched, in frames either side of zero (fewer for short clips: a quarter of them)
+#: the offsets searched finely, in frames either side of zero (fewer for short clips: a quarter of them)
 MAX_SHIFT_FRAMES = 10.0
+#: beyond that, a coarse search (half-frame steps) out to this many seconds (at most a quarter of the
+#: clip) finds larger offsets, then the fine search runs around its best
+MAX_SEARCH_S = 2.0
+COARSE_STEP = 0.5  # frames
+#: markers whose image positions spread less than this (px, 10th to 90th percentile, every camera)
+#: are still: the detections hold no information on time
+STILL_PX = 5.0
 GRID_STEP = 0.02  # frames
 #: epipolar distances beyond this (px) count as this: a mismatched pair must not decide δ
 CLIP_PX = 6.0
@@ -136,6 +143,25 @@ def _argmin(cost: np.ndarray, shifts: np.ndarray) -> float:
     return float(shifts[j])
 
 
+def _image_spread(obs: dict[str, np.ndarray]) -> float:
+    """How far the markers move in the images: the largest 10th-to-90th percentile spread of any
+    pixel coordinate of any marker (px); noise alone spreads a still marker by about 2.6 σ."""
+    spreads = [np.subtract(*np.nanpercentile(Y[np.isfinite(Y).all(axis=1)], [90, 10], axis=0)).max()
+               for Y in obs.values() if np.isfinite(Y).all(axis=1).sum() >= 2]
+    return float(max(spreads, default=0.0))
+
+
+def _coarse_offset(rig: StereoRig, obs: dict[str, np.ndarray], wide: float) -> float:
+    """The best shift on a :data:`COARSE_STEP` grid over ±``wide`` frames: the mean clipped distance
+    at each shift over the pairs that exist there (at least :data:`MIN_PAIRS`)."""
+    shifts = np.arange(-wide, wide + COARSE_STEP / 2, COARSE_STEP)
+    D = _distance_table(rig, obs, shifts)
+    have = np.isfinite(D).sum(axis=0)
+    with np.errstate(invalid="ignore"):
+        cost = np.where(have >= MIN_PAIRS, np.nansum(D, axis=0) / np.maximum(have, 1), np.nan)
+    return float(shifts[int(np.nanargmin(cost))]) if np.isfinite(cost).any() else 0.0
+
+
 def estimate_offset(rig: StereoRig, obs: dict[str, np.ndarray], fps: float, seed: int = 0) -> SyncEstimate:
     """δ from the detections alone (see the module docstring); ``applied`` is left False. It is
     applied (:func:`resolve_sync`) only when the interval excludes 0 and the epipolar residual at δ
@@ -144,17 +170,28 @@ def estimate_offset(rig: StereoRig, obs: dict[str, np.ndarray], fps: float, seed
     both = sum(int(np.all(np.isfinite(Y), axis=1).sum()) for Y in obs.values())
     if both < MIN_PAIRS:
         return SyncEstimate(0.0, None, False, "detections", note=f"only {both} frames with both cameras")
+    if (spread := _image_spread(obs)) < STILL_PX:
+        return SyncEstimate(0.0, None, False, "detections",
+                            note=f"the markers barely move ({spread:.1f} px): the detections hold no information on time")
     span = min(MAX_SHIFT_FRAMES, max(1.0, n / 4))
-    shifts = np.arange(-span, span + GRID_STEP / 2, GRID_STEP)
+    wide = min(MAX_SEARCH_S * fps, n / 4)
+    centre = _coarse_offset(rig, obs, wide) if wide > span else 0.0
+    if abs(centre) <= span - 2:  # within the fine search: that search alone, as it was
+        centre = 0.0
+    else:
+        span = 2.0
+    shifts = centre + np.arange(-span, span + GRID_STEP / 2, GRID_STEP)
     D = _distance_table(rig, obs, shifts)
     valid = np.all(np.isfinite(D), axis=1)  # pairs that exist at every shift searched
     if valid.sum() < MIN_PAIRS:
         return SyncEstimate(0.0, None, False, "detections", note="too few frames with both cameras and their neighbours")
     D = D[valid]
     best = _argmin(D.mean(axis=0), shifts)
-    if abs(best) >= span - 2 * GRID_STEP:  # the cost still falls at the edge: no minimum inside the range
+    if abs(best - centre) >= span - 2 * GRID_STEP:  # the cost still falls at the edge: no minimum inside the range
+        searched = max(wide, span)
         return SyncEstimate(0.0, None, False, "detections",
-                            note=f"no minimum within ±{span:g} frames (swapped cameras or mismatched detections?)")
+                            note=f"no minimum within ±{searched:g} frames ({searched / fps:.2g} s): an offset larger "
+                                 "than that, swapped cameras or mismatched detections?")
     rng = np.random.default_rng(seed)
     blocks = np.arange(0, len(D), BLOCK)
     boot = []
