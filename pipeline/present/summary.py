@@ -44,6 +44,12 @@ METHODS_SUMMARY = Schema("OUT/summary_methods.csv", "one method across the batch
     "runaways": "clips where its error was over 10× that clip's median",
     "failures": "clips where it scored nothing (no estimate, or the clip failed)",
     "median_steps_per_second": "its median speed over the clips, steps/s",
+    "median_reprojection_px": "median over the clips of its estimates' reprojection RMSE against the detections, px "
+                              "(no truth needed)",
+    "median_nis_mean": "median over the clips of its normalised innovation squared over the degrees of freedom "
+                       "(a consistent filter: 1; filters only, no truth needed)",
+    "median_nis_in_95": "median over the clips of the share of frames whose NIS lies in the 95 % χ² band (filters)",
+    "restarts": "restarts over the clips (a track gated too long, or back from a gap, began again)",
 })
 SUMMARY_COLUMNS, METHOD_COLUMNS = SUMMARY.names, METHODS_SUMMARY.names
 
@@ -103,15 +109,35 @@ class MethodRow:
     speed: list[float] = field(default_factory=list)
     runaways: int = 0
     failures: int = 0
+    reprojection: list[float] = field(default_factory=list)
+    nis_mean: list[float] = field(default_factory=list)
+    nis_in_95: list[float] = field(default_factory=list)
+    restarts: int = 0
 
     def values(self) -> dict[str, Any]:
         x = np.array(self.rmse)
         lo, hi = mean_ci(x)
         mlo, mhi = median_ci(x)
+        med = lambda v: float(np.median(v)) if v else None  # noqa: E731
         return {"method": self.method, "clips": len(x), "mean_rmse_m": float(x.mean()) if len(x) else None,
                 "mean_ci_low_m": lo, "mean_ci_high_m": hi, "median_rmse_m": float(np.median(x)) if len(x) else None,
                 "median_ci_low_m": mlo, "median_ci_high_m": mhi, "runaways": self.runaways, "failures": self.failures,
-                "median_steps_per_second": float(np.median(self.speed)) if self.speed else None}
+                "median_steps_per_second": med(self.speed), "median_reprojection_px": med(self.reprojection),
+                "median_nis_mean": med(self.nis_mean), "median_nis_in_95": med(self.nis_in_95),
+                "restarts": self.restarts, "scored_without_truth": len(self.reprojection)}
+
+    def measure(self, e: dict) -> None:
+        """What one clip's metrics say of the method without truth."""
+        _add_finite(self.reprojection, e.get("reprojection_rmse_px"))
+        nis = e.get("nis") or {}
+        _add_finite(self.nis_mean, nis.get("normalized_mean"))
+        _add_finite(self.nis_in_95, nis.get("in_95"))
+        self.restarts += int(e.get("restarts") or 0)
+
+
+def _add_finite(to: list[float], v: Any) -> None:
+    if isinstance(v, (int, float)) and math.isfinite(v):
+        to.append(float(v))
 
 
 def method_rows(outcomes: list[ClipOutcome]) -> list[dict[str, Any]]:
@@ -139,6 +165,7 @@ def method_rows(outcomes: list[ClipOutcome]) -> list[dict[str, Any]]:
             if e.get("steps_per_second"):
                 row.speed.append(float(e["steps_per_second"]))
             row.runaways += m in away
+            row.measure(e)
     return [r.values() for r in rows.values()]
 
 
@@ -163,6 +190,23 @@ def leaderboard(rows: list[dict[str, Any]]) -> Table:
                  ["Intervals across clips: Student t for the mean (lower end clipped at 0), binomial order "
                   "statistics for the median (none below 6 clips). A runaway's error is over 10× its clip's median; "
                   "a failure scored nothing. steps/s is wall-clock and varies with load."])
+
+
+def truthless_board(rows: list[dict[str, Any]]) -> Table:
+    """The per-method table of what the detections alone can say (clips without truth score no
+    3-D error): reprojection error, the filters' innovation consistency, restarts."""
+    get = lambda k: [r[k] for r in rows]  # noqa: E731
+    cols = [Column("clips", get("scored_without_truth"), number("d")),
+            Column("reprojection RMSE (px, median)", get("median_reprojection_px"), number(".2f"), "min"),
+            Column("NIS / dof (median; 1 is consistent)", get("median_nis_mean"), number(".2f"), 1.0, (0.5, 2.0)),
+            Column("in the 95 % NIS band (median)", get("median_nis_in_95"), number(".0%"), "max", (0.8, 1.0)),
+            Column("restarts", get("restarts"), number("d"), "min"),
+            Column("failures", get("failures"), number("d"), "min")]
+    return Table("method", [r["method"] for r in rows], cols,
+                 ["Without truth: no 3-D error can be scored, and these say only how well the estimates agree with "
+                  "the detections and how consistent the filters are with their own noise model (a method that "
+                  "copies the detections, triangulation, reprojects best without being best in 3-D). NIS for "
+                  "filters only."])
 
 
 def clip_table(outcomes: list[ClipOutcome], methods: list[str], out_root: Path | None = None) -> Table:
@@ -200,7 +244,12 @@ def write_summary(out_root: Path, outcomes: list[ClipOutcome]) -> list[dict[str,
     n_fail = sum(o.status == "failed" for o in outcomes)
     head = f"{len(outcomes)} clips, {n_fail} failed."
     notes = [(o.clip, w) for o in outcomes for w in clip_warnings(o)]
+    truthless = [o for o in outcomes if o.metrics and not o.metrics.get("has_truth")]
+    blind = truthless_board(per_method) if truthless else None
+    blind_head = (f"## Methods across clips, without truth ({len(truthless)} of {len(outcomes)} clips have none: "
+                  "scored by the detections alone)")
     md = ["# stereotrack batch summary", "", head, "", "## Methods across clips", "", to_markdown(board), "",
+          *([blind_head, "", to_markdown(blind), ""] if blind else []),
           "## Clips (3-D RMSE, mm)", "", to_markdown(clip_table(outcomes, point)), ""]
     if notes:
         md += ["## Warnings", "", *[f"- **{c}**: {w}" for c, w in notes], ""]
@@ -208,6 +257,7 @@ def write_summary(out_root: Path, outcomes: list[ClipOutcome]) -> list[dict[str,
     body = ["<h1>stereotrack batch summary</h1>", f"<p>{head}</p>",
             "<p>" + " &nbsp; ".join(H.swatch(method_hex(m), m) for m in point) + "</p>",
             "<h2>Methods across clips</h2>", to_html(board),
+            *([f"<h2>{inline(blind_head[3:])}</h2>", to_html(blind)] if blind else []),
             "<h2>Clips (3-D RMSE, mm; each links to its report)</h2>", to_html(clip_table(outcomes, point, out_root))]
     if notes:
         body += ["<h2>Warnings</h2><ul>", *[f"<li><b>{inline(c)}</b>: {inline(w)}</li>" for c, w in notes], "</ul>"]

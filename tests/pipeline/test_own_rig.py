@@ -598,3 +598,39 @@ def test_run_and_batch_take_unequal_lengths_as_detect_does(png_clip, tmp_path, m
     assert rc == 1 and not (tmp_path / "refused" / "clip" / "metrics.json").exists(), out + err  # the clip failed
     rc, out, err = cli(monkeypatch, capsys, *batch, "-o", tmp_path / "out", "--allow-unequal")
     assert rc == 0 and (tmp_path / "out" / "clip" / "metrics.json").is_file(), out + err
+
+
+@pytest.mark.slow
+def test_a_batch_without_truth_still_ranks_its_methods(tmp_path, monkeypatch, capsys):
+    """#39 (leaderboard): a batch of real clips scored 0 clips for every method, the leaderboard
+    empty. A second table, labelled as scored without truth, ranks the methods by what the
+    detections can say: each figure the median over the clips of their metrics.json's."""
+    from pipeline.present.summary import METHOD_COLUMNS
+
+    for i in range(2):
+        real_copy(tmp_path / "in" / f"c{i}")
+    (tmp_path / "in" / "c1" / "clip.yaml").write_text("fps: 25\n")  # the two clips differ
+    (tmp_path / "in" / "markers.yaml").write_text(f"- {RED}\n")
+    rc, out, err = cli(monkeypatch, capsys, "batch", tmp_path / "in", "-o", tmp_path / "out", "--methods",
+                       "triangulation,ekf", "--workers", "1")
+    assert rc == 0, out + err
+    md = (tmp_path / "out" / "summary.md").read_text()
+    assert "## Methods across clips, without truth (2 of 2 clips have none" in md
+    rows = {r["method"]: r for r in read_csv_rows(tmp_path / "out" / "summary_methods.csv")}
+    assert "median_reprojection_px" in METHOD_COLUMNS
+    for m in ("triangulation", "ekf"):
+        per_clip = [json.loads((tmp_path / "out" / f"c{i}" / "metrics.json").read_text())["methods"][m] for i in range(2)]
+        assert rows[m]["clips"] == "0"  # no 3-D score: no truth
+        assert float(rows[m]["median_reprojection_px"]) == pytest.approx(
+            np.median([c["reprojection_rmse_px"] for c in per_clip]), rel=1e-6)
+    assert float(rows["ekf"]["median_nis_mean"]) == pytest.approx(
+        np.median([json.loads((tmp_path / "out" / f"c{i}" / "metrics.json").read_text())["methods"]["ekf"]["nis"]
+                   ["normalized_mean"] for i in range(2)]), rel=1e-6)
+    assert rows["triangulation"]["median_nis_mean"] == ""  # no filter, no NIS
+
+
+def read_csv_rows(path: Path) -> list[dict[str, str]]:
+    import csv
+
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
