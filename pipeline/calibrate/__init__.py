@@ -20,6 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pipeline.calibrate.order import reversed_pairs
 from pipeline.core.board import Board
 from pipeline.core.calibration import LENGTH_UNITS, save_calibration
 from pipeline.core.camera import UNDISTORT_CRITERIA, Camera, StereoRig
@@ -195,6 +196,8 @@ class Calibration:
     epipolar_px: tuple[float, float]  # rectified |y_left − y_right| of the corners: median, max
     hulls: tuple[list[np.ndarray], list[np.ndarray]] = field(default_factory=lambda: ([], []))
     warnings: list[str] = field(default_factory=list)
+    #: pairs whose right view listed the corners in the opposite order (a 180°-symmetric board), reordered
+    reordered: list[str] = field(default_factory=list)
 
     @property
     def baseline(self) -> float:
@@ -234,6 +237,10 @@ def calibrate(pairs: list[tuple[str, np.ndarray, np.ndarray]], board: Board) -> 
     if len(found) < 3:
         raise StereotrackError(f"the board was found in both images of {len(found)} pair(s) of {len(pairs)}: "
                                "at least 3 are needed (check --board: chessboards count inner corners)")
+    flipped = reversed_pairs(found, size) if board.kind == "chessboard" else []
+    for n in flipped:  # the right view listed the corners from the opposite end: the same points, in the same order
+        o, left, right = found[n]
+        found[n] = (o, left, right[::-1].copy())
     cal = _solve(found, size)
     errs = cal.pair_errors
     med = float(np.median(list(errs.values())))
@@ -243,7 +250,7 @@ def calibrate(pairs: list[tuple[str, np.ndarray, np.ndarray]], board: Board) -> 
             rejected[n] = f"reprojection error {errs[n]:.2f} px, over {OUTLIER_FACTOR:g}× the median {med:.2f} px"
             found.pop(n)
         cal = _solve(found, size)
-    cal.rejected = rejected
+    cal.rejected, cal.reordered = rejected, [n for n in flipped if n in found]
     cal.warnings = _poor(cal)
     return cal
 
@@ -337,7 +344,8 @@ def report_text(cal: Calibration, calib_name: str, fig_name: str) -> str:
              f"| focal lengths right fx, fy (px) | {K2[0, 0]:.2f}, {K2[1, 1]:.2f} |",
              f"| board coverage left / right | {100 * cal.coverage[0]:.0f} % / {100 * cal.coverage[1]:.0f} % |",
              "", f"![board coverage]({fig_name})", "", "## Pairs", "", "| pair | stereo RMS (px) | used |", "|---|---:|---|"]
-    lines += [f"| {n} | {e:.3f} | yes |" for n, e in cal.pair_errors.items()]
+    turned = ", right view reordered (its corners were listed from the opposite end)"
+    lines += [f"| {n} | {e:.3f} | yes{turned if n in cal.reordered else ''} |" for n, e in cal.pair_errors.items()]
     lines += [f"| {n} | — | no: {why} |" for n, why in cal.rejected.items()]
     return "\n".join(lines) + "\n"
 

@@ -306,6 +306,49 @@ def test_calibrate_recovers_the_rendered_rig(chessboard_pairs, chessboard_calibr
     assert (out.parent / "calib_report.md").is_file() and (out.parent / "calib_coverage.png").is_file()
 
 
+def _with_reversed_right_views(monkeypatch, turned: set[int]) -> None:
+    """Make the corner finder list the right view's corners from the opposite end in the pairs
+    numbered ``turned`` (what a 180°-symmetric board does): calls alternate left, right per pair."""
+    import pipeline.calibrate as calib
+
+    real, calls = calib.find_corners, [0]
+
+    def find(board, grey):
+        k, calls[0] = calls[0], calls[0] + 1
+        got = real(board, grey)
+        if got is not None and k % 2 == 1 and k // 2 in turned:
+            return got[0], got[1][::-1].copy()
+        return got
+
+    monkeypatch.setattr(calib, "find_corners", find)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("turned", [{1, 4, 7, 10, 13, 16, 18, 19}, set(range(20)) - {0, 5, 11, 17}],
+                         ids=["8 of 20 reversed", "16 of 20 reversed"])
+def test_calibrate_makes_each_pairs_corner_order_agree(chessboard_pairs, monkeypatch, turned):
+    """#39 (calibrate): pairs whose two views list the corners in opposite orders (a board that looks
+    the same turned 180°) were dropped as reprojection outliers, hiding the cause; where they were
+    the majority, kept: a baseline 23× too long, written with exit 0. Each such pair's right view is
+    now reordered (said in the report), and the rendered rig comes back: baseline within 0.5 %.
+    Without the reordering the same sets lose the pairs or the baseline."""
+    import pipeline.calibrate as calib
+    from pipeline.calibrate import calibrate, find_pairs
+    from pipeline.core.board import Board
+
+    truth, pairs = board_rig(), find_pairs(chessboard_pairs)
+    names = [p[0] for p in pairs]
+    _with_reversed_right_views(monkeypatch, turned)
+    cal = calibrate(pairs, Board("chessboard", 9, 6, 0.025))
+    assert sorted(cal.reordered) == sorted(names[i] for i in turned) and not cal.rejected
+    assert abs(cal.baseline / truth.baseline - 1) < 0.005
+    assert "right view reordered" in calib.report_text(cal, "calib.yaml", "x.png")
+    monkeypatch.setattr(calib, "reversed_pairs", lambda found, size: [])  # the method without the reordering
+    _with_reversed_right_views(monkeypatch, turned)
+    broken = calibrate(pairs, Board("chessboard", 9, 6, 0.025))
+    assert len(broken.rejected) >= min(len(turned), 20 - len(turned)) or abs(broken.baseline / truth.baseline - 1) > 0.05
+
+
 @pytest.mark.slow
 def test_calibrate_agrees_with_opencv_on_the_same_corners(chessboard_calibration):
     """stereotrack's calibration against OpenCV's stereoCalibrate run directly, intrinsics and all,
