@@ -242,7 +242,8 @@ def calibrate_cmd(
     output: Annotated[Path | None, typer.Option("-o", "--output", help="The calibration to write (default calib.yaml; "
                                                 "for camera sub-folders rig.json, or any rig format by its name).")] = None,
     force: Annotated[bool, typer.Option("--force", help="Replace an existing calibration that `calibrate` did not "
-                                        "write (one it wrote, with its report beside it, is replaced anyway).")] = False,
+                                        "write (one it wrote, with its report beside it, is replaced anyway), and "
+                                        "write one whose stereo RMS is absurd (over 5 px).")] = False,
 ) -> None:
     """Calibrate a stereo rig from board pairs, or a rig of N cameras from per-camera folders: the
     calibration (metres) and a report beside it."""

@@ -37,6 +37,11 @@ MIN_PAIRS = 8
 OUTLIER_FACTOR = 3.0
 #: frames sampled from a pair of videos
 VIDEO_SAMPLES = 40
+#: a calibration whose stereo RMS exceeds this (px) is not written without --force: its corners do
+#: not fit one rig (a wrong --board, a moving board, pairs that are not simultaneous)
+ABSURD_RMS_PX = 5.0
+#: views in which the classic chessboard detector found the board (the sector-based one did not)
+CLASSIC = [0]
 LENGTH = re.compile(r"^\s*([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*(mm|cm|m)?\s*$")
 
 
@@ -140,12 +145,17 @@ def _video_pairs(left: Path, right: Path) -> list[tuple[str, np.ndarray, np.ndar
 
 
 def find_corners(board: Board, grey: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """(board points N×3 in metres, image points N×2) of the corners found, or None."""
+    """(board points N×3 in metres, image points N×2) of the corners found, or None. A chessboard
+    by the sector-based detector, else by the classic one (:data:`CLASSIC` counts its finds)."""
     if board.kind == "chessboard":
         flags = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
         ok, corners = cv2.findChessboardCornersSB(grey, (board.cols, board.rows), flags=flags)
-        if not ok:
-            return None
+        if not ok:  # the classic detector finds boards the sector-based one misses (and the reverse)
+            flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+            ok, corners = cv2.findChessboardCorners(grey, (board.cols, board.rows), flags=flags)
+            if not ok:
+                return None
+            CLASSIC[0] += 1
         grid = np.mgrid[0 : board.cols, 0 : board.rows].T.reshape(-1, 2) * board.square
         return np.column_stack([grid, np.zeros(len(grid))]).astype(np.float32), refine(grey, corners.reshape(-1, 2))
     cb = board.charuco()
@@ -198,6 +208,8 @@ class Calibration:
     warnings: list[str] = field(default_factory=list)
     #: pairs whose right view listed the corners in the opposite order (a 180°-symmetric board), reordered
     reordered: list[str] = field(default_factory=list)
+    #: views whose board the classic detector found (the sector-based one did not)
+    classic: int = 0
 
     @property
     def baseline(self) -> float:
@@ -221,6 +233,7 @@ def calibrate(pairs: list[tuple[str, np.ndarray, np.ndarray]], board: Board) -> 
     """Corners in every pair, per-camera then stereo calibration, outlier pairs dropped once."""
     size = pairs[0][1].shape[::-1]
     found, rejected = {}, {}
+    CLASSIC[0] = 0
     for name, gl, gr in pairs:
         if gl.shape[::-1] != size or gr.shape[::-1] != size:
             rejected[name] = f"image size {gl.shape[1]}×{gl.shape[0]} differs from the first pair's {size[0]}×{size[1]}"
@@ -250,7 +263,7 @@ def calibrate(pairs: list[tuple[str, np.ndarray, np.ndarray]], board: Board) -> 
             rejected[n] = f"reprojection error {errs[n]:.2f} px, over {OUTLIER_FACTOR:g}× the median {med:.2f} px"
             found.pop(n)
         cal = _solve(found, size)
-    cal.rejected, cal.reordered = rejected, [n for n in flipped if n in found]
+    cal.rejected, cal.reordered, cal.classic = rejected, [n for n in flipped if n in found], CLASSIC[0]
     cal.warnings = _poor(cal)
     return cal
 
@@ -343,6 +356,7 @@ def report_text(cal: Calibration, calib_name: str, fig_name: str) -> str:
              f"| focal lengths left fx, fy (px) | {K1[0, 0]:.2f}, {K1[1, 1]:.2f} |",
              f"| focal lengths right fx, fy (px) | {K2[0, 0]:.2f}, {K2[1, 1]:.2f} |",
              f"| board coverage left / right | {100 * cal.coverage[0]:.0f} % / {100 * cal.coverage[1]:.0f} % |",
+             f"| views whose board only the classic detector found | {cal.classic} |",
              "", f"![board coverage]({fig_name})", "", "## Pairs", "", "| pair | stereo RMS (px) | used |", "|---|---:|---|"]
     turned = ", right view reordered (its corners were listed from the opposite end)"
     lines += [f"| {n} | {e:.3f} | yes{turned if n in cal.reordered else ''} |" for n, e in cal.pair_errors.items()]
@@ -384,6 +398,10 @@ def calibrate_folder(images: str | Path, board: Board, out: str | Path, force: b
     calibration stereotrack did not write is not replaced (:func:`check_replaceable_calibration`)."""
     check_replaceable_calibration(Path(out), force)
     cal = calibrate(find_pairs(Path(images)), board)
+    if cal.rms_stereo > ABSURD_RMS_PX and not force:
+        raise StereotrackError(f"not written: the stereo RMS reprojection error is {cal.rms_stereo:.1f} px (baseline "
+                               f"{cal.baseline:.4g} m): the corners do not fit one rig (a wrong --board, a moving board, "
+                               "pairs that are not simultaneous); --force writes it anyway", out)
     report, fig = write_outputs(cal, Path(out))
     for w in cal.warnings:
         warnings.warn(f"{out}: poor calibration: {w}", stacklevel=2)

@@ -350,6 +350,46 @@ def test_calibrate_makes_each_pairs_corner_order_agree(chessboard_pairs, monkeyp
 
 
 @pytest.mark.slow
+def test_an_absurd_calibration_is_not_written(chessboard_pairs, tmp_path, monkeypatch, capsys):
+    """#39 (calibrate): a set whose corners fit no rig was written with exit 0 (stereo RMS 31.8 px).
+    Now refused, exit 2, the RMS named, nothing written; ``--force`` writes it."""
+    import pipeline.calibrate as calib
+
+    real = calib.find_corners
+    rng = np.random.default_rng(0)
+
+    def scrambled(board, grey):  # every view's corners shuffled: no board point is the same in both views
+        got = real(board, grey)
+        return None if got is None else (got[0], got[1][rng.permutation(len(got[1]))])
+
+    monkeypatch.setattr(calib, "find_corners", scrambled)
+    out = tmp_path / "calib.yaml"
+    args = ("calibrate", chessboard_pairs, "--board", "chessboard:9x6", "--square", "25mm", "-o", out)
+    rc, text, err = cli(monkeypatch, capsys, *args)
+    assert_one_line_error(rc, text, err, "not written: the stereo RMS reprojection error is")
+    assert not out.exists() and not list(tmp_path.iterdir())
+    rc, text, err = cli(monkeypatch, capsys, *args, "--force")
+    assert rc == 0 and out.is_file(), err
+
+
+@pytest.mark.slow
+def test_calibrate_falls_back_to_the_classic_detector(chessboard_pairs, monkeypatch):
+    """#39 (calibrate): boards the sector-based detector misses (and the classic one finds) were
+    lost. With the sector-based detector made to find nothing, every board is found by the classic
+    one (the report counts them) and the rendered rig comes back: baseline within 0.5 %."""
+    import pipeline.calibrate as calib
+    from pipeline.calibrate import calibrate, find_pairs
+    from pipeline.core.board import Board
+
+    monkeypatch.setattr(calib.cv2, "findChessboardCornersSB", lambda *a, **k: (False, None))
+    pairs = find_pairs(chessboard_pairs)
+    cal = calibrate(pairs, Board("chessboard", 9, 6, 0.025))
+    assert cal.classic == 2 * len(cal.used) and not cal.rejected
+    assert abs(cal.baseline / board_rig().baseline - 1) < 0.005
+    assert f"| views whose board only the classic detector found | {cal.classic} |" in calib.report_text(cal, "c", "f")
+
+
+@pytest.mark.slow
 def test_calibrate_agrees_with_opencv_on_the_same_corners(chessboard_calibration):
     """stereotrack's calibration against OpenCV's stereoCalibrate run directly, intrinsics and all,
     on the same corners: the same baseline to 0.1 %."""
