@@ -244,6 +244,10 @@ def calibrate_cmd(
     force: Annotated[bool, typer.Option("--force", help="Replace an existing calibration that `calibrate` did not "
                                         "write (one it wrote, with its report beside it, is replaced anyway), and "
                                         "write one whose stereo RMS is absurd (over 5 px).")] = False,
+    left_only: Annotated[Path | None, typer.Option("--left-only", help="A folder of the first camera's own board "
+                                                   "images (not simultaneous with the other's): its intrinsics use "
+                                                   "them beside the pairs.")] = None,
+    right_only: Annotated[Path | None, typer.Option("--right-only", help="The same for the second camera.")] = None,
 ) -> None:
     """Calibrate a stereo rig from board pairs, or a rig of N cameras from per-camera folders: the
     calibration (metres) and a report beside it."""
@@ -265,7 +269,7 @@ def calibrate_cmd(
     output = output or Path("calib.yaml")
     with progress_bar() as bar:
         bar.add_task("calibrate", total=None)
-        cal, report, _ = calibrate_folder(images, b, output, force)
+        cal, report, _ = calibrate_folder(images, b, output, force, (left_only, right_only))
     for name, why in cal.rejected.items():
         out.print(f"left out {name}: {why}", highlight=False)
     out.print(f"{len(cal.used)} pairs; RMS left {cal.rms_left:.3f} px, right {cal.rms_right:.3f} px, stereo "

@@ -106,6 +106,16 @@ def find_pairs(images: Path) -> list[tuple[str, np.ndarray, np.ndarray]]:
     return [(f"pair {k}", _grey(left[k]), _grey(right[k])) for k in common]
 
 
+def _folder_images(folder: Path) -> list[tuple[str, np.ndarray]]:
+    """Every image of one camera's own board folder, by name."""
+    if not folder.is_dir():
+        raise StereotrackError("not a folder of board images", folder)
+    paths = [p for p in sorted(folder.iterdir()) if p.suffix.lower() in IMAGE_EXTS]
+    if not paths:
+        raise StereotrackError("no images here", folder)
+    return [(f"{folder.name}/{p.name}", _grey(p)) for p in paths]
+
+
 def _numbered(folder: Path, prefix: str) -> dict[int, Path]:
     out: dict[int, Path] = {}
     for p in sorted(folder.iterdir()):
@@ -210,6 +220,10 @@ class Calibration:
     reordered: list[str] = field(default_factory=list)
     #: views whose board the classic detector found (the sector-based one did not)
     classic: int = 0
+    #: each camera's own board images its intrinsics used beside the pairs (left, right), and those
+    #: left out (name → why)
+    singles: tuple[int, int] = (0, 0)
+    singles_skipped: dict[str, str] = field(default_factory=dict)
 
     @property
     def baseline(self) -> float:
@@ -229,8 +243,11 @@ class Calibration:
         return f"{'to the ' + side + ' of' if side in ('left', 'right') else side} the first"
 
 
-def calibrate(pairs: list[tuple[str, np.ndarray, np.ndarray]], board: Board) -> Calibration:
-    """Corners in every pair, per-camera then stereo calibration, outlier pairs dropped once."""
+def calibrate(pairs: list[tuple[str, np.ndarray, np.ndarray]], board: Board,
+              singles: tuple[list[tuple[str, np.ndarray]], list[tuple[str, np.ndarray]]] = ([], [])) -> Calibration:
+    """Corners in every pair, per-camera then stereo calibration, outlier pairs dropped once.
+    ``singles``: each camera's own board images (not simultaneous with the other's), which its
+    intrinsics use beside the pairs' views; the extrinsics come from the pairs alone."""
     size = pairs[0][1].shape[::-1]
     found, rejected = {}, {}
     CLASSIC[0] = 0
@@ -250,11 +267,13 @@ def calibrate(pairs: list[tuple[str, np.ndarray, np.ndarray]], board: Board) -> 
     if len(found) < 3:
         raise StereotrackError(f"the board was found in both images of {len(found)} pair(s) of {len(pairs)}: "
                                "at least 3 are needed (check --board: chessboards count inner corners)")
+    skipped: dict[str, str] = {}  # each camera's own images without a board: not pairs, reported apart
+    extra = tuple(_single_views(views, board, size, skipped) for views in singles)
     flipped = reversed_pairs(found, size) if board.kind == "chessboard" else []
     for n in flipped:  # the right view listed the corners from the opposite end: the same points, in the same order
         o, left, right = found[n]
         found[n] = (o, left, right[::-1].copy())
-    cal = _solve(found, size)
+    cal = _solve(found, size, extra)
     errs = cal.pair_errors
     med = float(np.median(list(errs.values())))
     bad = [n for n, e in errs.items() if e > max(OUTLIER_FACTOR * med, 0.5)]
@@ -262,22 +281,41 @@ def calibrate(pairs: list[tuple[str, np.ndarray, np.ndarray]], board: Board) -> 
         for n in bad:
             rejected[n] = f"reprojection error {errs[n]:.2f} px, over {OUTLIER_FACTOR:g}× the median {med:.2f} px"
             found.pop(n)
-        cal = _solve(found, size)
+        cal = _solve(found, size, extra)
     cal.rejected, cal.reordered, cal.classic = rejected, [n for n in flipped if n in found], CLASSIC[0]
+    cal.singles_skipped = skipped
     cal.warnings = _poor(cal)
     return cal
 
 
-def _solve(found: dict, size: tuple[int, int]) -> Calibration:
+def _single_views(views: list[tuple[str, np.ndarray]], board: Board, size: tuple[int, int],
+                  rejected: dict[str, str]) -> list[tuple[np.ndarray, np.ndarray]]:
+    """One camera's own board images: (board points, corners) of each whose board is found (the
+    others named in ``rejected``)."""
+    out = []
+    for name, grey in views:
+        got = find_corners(board, grey) if grey.shape[::-1] == size else None
+        if got is None:
+            rejected[name] = ("board not found" if grey.shape[::-1] == size else
+                              f"image size {grey.shape[1]}×{grey.shape[0]} differs from the pairs' {size[0]}×{size[1]}")
+        else:
+            out.append((got[0], got[1].astype(np.float32)))
+    return out
+
+
+def _solve(found: dict, size: tuple[int, int], extra: tuple[list, ...] = ([], [])) -> Calibration:
     names = list(found)
     obj = [found[n][0] for n in names]
     il = [found[n][1].astype(np.float32) for n in names]
     ir = [found[n][2].astype(np.float32) for n in names]
     flags = cv2.CALIB_FIX_K3  # k1 k2 p1 p2, as OpenCV's stereo_calib sample: k3 over-fits without full coverage
+    # each camera's intrinsics from the pairs' views and its own board images; the extrinsics from the pairs
+    ol, vl = obj + [o for o, _ in extra[0]], il + [v for _, v in extra[0]]
+    orr, vr = obj + [o for o, _ in extra[1]], ir + [v for _, v in extra[1]]
     # OpenCV's type stubs have no None for the outputs the functions allocate (cameraMatrix, R, T):
     # the documented way to ask for them, hence the three ignores
-    rms_l, K1, D1, *_ = cv2.calibrateCameraExtended(obj, il, size, None, None, flags=flags)  # type: ignore[call-overload]
-    rms_r, K2, D2, *_ = cv2.calibrateCameraExtended(obj, ir, size, None, None, flags=flags)  # type: ignore[call-overload]
+    rms_l, K1, D1, *_ = cv2.calibrateCameraExtended(ol, vl, size, None, None, flags=flags)  # type: ignore[call-overload]
+    rms_r, K2, D2, *_ = cv2.calibrateCameraExtended(orr, vr, size, None, None, flags=flags)  # type: ignore[call-overload]
     out = cv2.stereoCalibrateExtended(obj, il, ir, K1, D1, K2, D2, size, None, None,  # type: ignore[call-overload]
                                       flags=cv2.CALIB_FIX_INTRINSIC)
     rms, R, T, per_view = out[0], out[5], out[6], out[-1]
@@ -288,7 +326,8 @@ def _solve(found: dict, size: tuple[int, int]) -> Calibration:
     hulls = ([cv2.convexHull(p.reshape(-1, 1, 2)).reshape(-1, 2) for p in il],
              [cv2.convexHull(p.reshape(-1, 1, 2)).reshape(-1, 2) for p in ir])
     return Calibration(rig, float(rms_l), float(rms_r), float(rms), names, errors, {},
-                       (_coverage(hulls[0], size), _coverage(hulls[1], size)), _epipolar(rig, il, ir), hulls)
+                       (_coverage(hulls[0], size), _coverage(hulls[1], size)), _epipolar(rig, il, ir), hulls,
+                       singles=(len(extra[0]), len(extra[1])))
 
 
 def _coverage(hulls: list[np.ndarray], size: tuple[int, int]) -> float:
@@ -357,10 +396,14 @@ def report_text(cal: Calibration, calib_name: str, fig_name: str) -> str:
              f"| focal lengths right fx, fy (px) | {K2[0, 0]:.2f}, {K2[1, 1]:.2f} |",
              f"| board coverage left / right | {100 * cal.coverage[0]:.0f} % / {100 * cal.coverage[1]:.0f} % |",
              f"| views whose board only the classic detector found | {cal.classic} |",
+             f"| each camera's own board images used for its intrinsics, left / right | {cal.singles[0]} / "
+             f"{cal.singles[1]} |",
              "", f"![board coverage]({fig_name})", "", "## Pairs", "", "| pair | stereo RMS (px) | used |", "|---|---:|---|"]
     turned = ", right view reordered (its corners were listed from the opposite end)"
     lines += [f"| {n} | {e:.3f} | yes{turned if n in cal.reordered else ''} |" for n, e in cal.pair_errors.items()]
     lines += [f"| {n} | — | no: {why} |" for n, why in cal.rejected.items()]
+    if cal.singles_skipped:
+        lines += ["", "## Single-camera images left out", "", *(f"- {n}: {why}" for n, why in cal.singles_skipped.items())]
     return "\n".join(lines) + "\n"
 
 
@@ -392,12 +435,14 @@ def check_replaceable_calibration(out: Path, force: bool = False) -> None:
                                "choose another -o, or pass --force to replace it", out)
 
 
-def calibrate_folder(images: str | Path, board: Board, out: str | Path, force: bool = False
-                     ) -> tuple[Calibration, Path, Path]:
-    """The whole command: pairs → calibration → calib.yaml and its report (warnings emitted); a
-    calibration stereotrack did not write is not replaced (:func:`check_replaceable_calibration`)."""
+def calibrate_folder(images: str | Path, board: Board, out: str | Path, force: bool = False,
+                     singles: tuple[Path | None, Path | None] = (None, None)) -> tuple[Calibration, Path, Path]:
+    """The whole command: pairs (and each camera's own board images, folders ``singles``) →
+    calibration → calib.yaml and its report (warnings emitted); a calibration stereotrack did not
+    write is not replaced (:func:`check_replaceable_calibration`)."""
     check_replaceable_calibration(Path(out), force)
-    cal = calibrate(find_pairs(Path(images)), board)
+    own = tuple(_folder_images(d) if d is not None else [] for d in singles)
+    cal = calibrate(find_pairs(Path(images)), board, (own[0], own[1]))
     if cal.rms_stereo > ABSURD_RMS_PX and not force:
         raise StereotrackError(f"not written: the stereo RMS reprojection error is {cal.rms_stereo:.1f} px (baseline "
                                f"{cal.baseline:.4g} m): the corners do not fit one rig (a wrong --board, a moving board, "
