@@ -88,6 +88,21 @@ class MarkerColor:
         x, y, w, h = roi
         if w <= 0 or h <= 0 or x < 0 or y < 0 or x + w > W or y + h > H:
             raise StereotrackError(f"marker window {name}@{x},{y},{w},{h} lies outside the {W}×{H} frame{source}")
+        try:
+            mk = cls._learn_centre(name, bgr, roi, source)
+        except StereotrackError:  # a loose window, the marker off its centre: the compact blob it holds
+            blob = compact_blob(bgr, roi)
+            if blob is None:
+                raise
+            mk = cls._learn_centre(name, bgr, blob, source)
+        if not force:
+            mk._selects_one(bgr, roi, source)
+        return mk
+
+    @classmethod
+    def _learn_centre(cls, name: str, bgr: np.ndarray, roi: tuple[int, int, int, int], source: str) -> MarkerColor:
+        """The range of what the window's centre has and its surround lacks (see :meth:`learn`)."""
+        x, y, w, h = roi
         centre, surround = _window_regions(bgr, roi)
         coloured = centre[(centre[:, 1] >= 25) & (centre[:, 2] >= 40)]
         if len(coloured) < max(12, 0.05 * len(centre)):
@@ -97,10 +112,7 @@ class MarkerColor:
         if len(mine) < max(8, 0.1 * len(coloured)):
             raise StereotrackError(f"marker window {name}@{x},{y},{w},{h}: its centre has no colour its surroundings "
                                    f"lack{source}: draw the window around the marker, or give a range NAME:HLO-HHI")
-        mk = cls._range_of(name, mine, surround)
-        if not force:
-            mk._selects_one(bgr, roi, source)
-        return mk
+        return cls._range_of(name, mine, surround)
 
     def _selects_one(self, bgr: np.ndarray, roi: tuple[int, int, int, int], source: str) -> None:
         """Raise when this range selects over ``OUTSIDE_TO_INSIDE`` times as many pixels outside
@@ -250,6 +262,32 @@ def _window_regions(bgr: np.ndarray, roi: tuple[int, int, int, int]) -> tuple[np
     yy, xx = np.mgrid[y0:y1, x0:x1]
     d = ((xx + 0.5 - cx) / (w / 2.0)) ** 2 + ((yy + 0.5 - cy) / (h / 2.0)) ** 2
     return hsv[d <= 0.25], hsv[d > 1.3**2]  # a guard band: the marker's blurred edge is neither
+
+
+#: a window's compact blob: saturated this much above the window's median saturation, at least
+#: this many pixels, and at least this round (area over its bounding circle's)
+BLOB_S_ABOVE, BLOB_MIN_PX, BLOB_ROUND = 30, 12, 0.5
+
+
+def compact_blob(bgr: np.ndarray, roi: tuple[int, int, int, int]) -> tuple[int, int, int, int] | None:
+    """The bounding box (x, y, w, h, in the frame) of the largest compact blob in window ``roi``
+    that is more saturated than most of the window: where a loosely drawn window holds its marker
+    (off its centre, in a corner), the window to learn from. None when no compact blob stands out."""
+    x, y, w, h = roi
+    hsv = cv2.cvtColor(bgr[y : y + h, x : x + w], cv2.COLOR_BGR2HSV)
+    s, v = hsv[..., 1].astype(int), hsv[..., 2].astype(int)
+    mask = ((s > max(np.median(s) + BLOB_S_ABOVE, 60)) & (v > 40)).astype(np.uint8)
+    n, _, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    best = None
+    for i in range(1, n):
+        bx, by, bw, bh, area = (int(a) for a in stats[i])
+        round_ = area / (np.pi * (max(bw, bh) / 2.0) ** 2)
+        if area >= BLOB_MIN_PX and round_ >= BLOB_ROUND and (best is None or area > best[4]):
+            best = (bx, by, bw, bh, area)
+    if best is None:
+        return None
+    bx, by, bw, bh, _ = best
+    return x + bx, y + by, bw, bh
 
 
 def _contrast_pixels(centre: np.ndarray, surround: np.ndarray) -> np.ndarray:

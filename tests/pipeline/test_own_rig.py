@@ -553,6 +553,33 @@ def test_loose_window_on_an_orange_ball_before_a_brown_wall(skin_wall, tmp_path)
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("corner", ["top-left", "bottom-right"])
+def test_a_window_four_times_the_ball_with_the_ball_in_its_corner(skin_wall, tmp_path, corner):
+    """#39 (colour windows): a window 4× the ball with the ball in its corner and the rest the wall
+    of a nearby hue stopped ("its centre has no colour its surroundings lack"), or on real footage
+    learned the wall. The colour is now learned from the compact blob the window holds: the ball
+    found in every frame it shows, each within 3 px and as often within 1 px as with a window
+    drawn tight around it."""
+    from pipeline.core.detections import load_detections
+    from pipeline.core.io import read_csv
+
+    truth = read_csv(skin_wall / "truth.csv")
+    u, v, z = truth["u_left"][0], truth["v_left"][0], truth["z"][0]
+    r = 600 * 0.045 / z
+    x0 = u - 1.2 * r if corner == "top-left" else u - 6.8 * r
+    y0 = v - 1.2 * r if corner == "top-left" else v - 6.8 * r
+    vis = np.flatnonzero(truth["visible_left"] > 0)
+    err = {}
+    for how, spec in (("loose", f"ball@{int(x0)},{int(y0)},{int(8 * r)},{int(8 * r)}"),
+                      ("tight", f"ball@{window_around(u, v, r, 1.0)}")):
+        detect_clip(skin_wall, RunSettings(detector="blob", markers=[spec]), out_dir=tmp_path / how)
+        det = load_detections(tmp_path / how / "detections.csv", len(truth["u_left"]))["ball"]
+        err[how] = np.hypot(det[vis, 0] - truth["u_left_pinhole"][vis], det[vis, 1] - truth["v_left_pinhole"][vis])
+    assert np.all(err["loose"] < 3.0), err["loose"]
+    assert np.mean(err["loose"] < 1.0) >= np.mean(err["tight"] < 1.0) - 0.05, err
+
+
+@pytest.mark.slow
 def test_window_on_the_background_stops(skin_wall, monkeypatch, capsys):
     rc, out, err = cli(monkeypatch, capsys, "detect", skin_wall, "--markers", "wall@60,60,40,40")
     assert_one_line_error(rc, out, err, "its centre has no colour its surroundings lack")
