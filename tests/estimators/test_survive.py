@@ -409,3 +409,34 @@ def test_a_3d_filter_with_one_camera_says_it_only_predicted(method):
     Y[50:53, 2:] = np.nan
     t = create(method, rig, s.dt, {"pixel_sigma": 1.0}).run(Y)
     assert t.predicted[50:53].all() and not t.predicted[45:50].any() and not t.predicted[53:60].any()
+
+
+@pytest.mark.slow
+def test_a_rendered_clip_a_second_and_a_half_late(tmp_path):
+    """#39 (sync) and #38 item 2, rendered: the right camera 1.5 s (45 frames) late, no
+    timestamps.csv. The offset is found from the detections to within 0.05 frame and applied; every
+    filter then sees the right camera's detections re-timed to the left camera's instants (the
+    EKF's own offset model, the right camera at p + v·δ, put it 2.5 m off at this offset)."""
+    from detectors.stage import detect_clip
+    from pipeline.core.settings import RunSettings
+    from pipeline.estimate import estimate_clip
+    from renderers.render import render_clip
+
+    d = load_scenario("sync_offset").model_dump(mode="json")
+    d["rig"]["sync_offset_s"], d["frames"] = 1.5, 200  # the search reaches a quarter of the clip: 50 frames
+    render_clip(parse_scenario(d), tmp_path / "clip", fmt="png", workers=1)
+    (tmp_path / "clip" / "timestamps.csv").unlink()  # the offset must come from the detections
+    detect_clip(tmp_path / "clip")
+    res = estimate_clip(tmp_path / "clip", RunSettings(methods=("triangulation", "ekf", "ukf")))
+    sync = res.metrics["sync"]
+    assert sync["applied"] and sync["source"] == "detections" and abs(sync["offset_s"] * 30 - 45) < 0.05, sync
+    from pipeline.core.clip import read_positions
+
+    truth, _ = read_positions(tmp_path / "clip" / "truth.csv")
+    both = slice(50, 200)  # the frames both cameras see once re-timed (the right camera's first 45 are earlier)
+    rmse = {}
+    for m in ("triangulation", "ekf", "ukf"):
+        est, _ = read_positions(res.out_dir / "estimates" / f"{m}.csv")
+        e = np.concatenate([np.linalg.norm(est[k][both] - truth[k][both], axis=1) for k in truth])
+        rmse[m] = float(np.sqrt(np.nanmean(e**2)))
+    assert rmse["ekf"] < rmse["triangulation"] and rmse["ukf"] < rmse["triangulation"] < 0.05, rmse
