@@ -154,18 +154,22 @@ def _video_pairs(left: Path, right: Path) -> list[tuple[str, np.ndarray, np.ndar
 # -- corners ------------------------------------------------------------------------------------
 
 
-def find_corners(board: Board, grey: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+def find_corners(board: Board, grey: np.ndarray, classic: bool = False) -> tuple[np.ndarray, np.ndarray] | None:
     """(board points N×3 in metres, image points N×2) of the corners found, or None. A chessboard
-    by the sector-based detector, else by the classic one (:data:`CLASSIC` counts its finds)."""
+    by the sector-based detector, else, with ``classic``, by the classic one (:data:`CLASSIC` counts
+    its finds), which may list the corners from the opposite end: only for a caller that makes each
+    pair's order agree (:func:`pipeline.calibrate.order.reversed_pairs`)."""
     if board.kind == "chessboard":
         flags = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
         ok, corners = cv2.findChessboardCornersSB(grey, (board.cols, board.rows), flags=flags)
-        if not ok:  # the classic detector finds boards the sector-based one misses (and the reverse)
+        if not ok and classic:  # the classic detector finds boards the sector-based one misses (and the reverse)
             flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
             ok, corners = cv2.findChessboardCorners(grey, (board.cols, board.rows), flags=flags)
             if not ok:
                 return None
             CLASSIC[0] += 1
+        elif not ok:
+            return None
         grid = np.mgrid[0 : board.cols, 0 : board.rows].T.reshape(-1, 2) * board.square
         return np.column_stack([grid, np.zeros(len(grid))]).astype(np.float32), refine(grey, corners.reshape(-1, 2))
     cb = board.charuco()
@@ -255,7 +259,7 @@ def calibrate(pairs: list[tuple[str, np.ndarray, np.ndarray]], board: Board,
         if gl.shape[::-1] != size or gr.shape[::-1] != size:
             rejected[name] = f"image size {gl.shape[1]}×{gl.shape[0]} differs from the first pair's {size[0]}×{size[1]}"
             continue
-        cl, cr = find_corners(board, gl), find_corners(board, gr)
+        cl, cr = find_corners(board, gl, classic=True), find_corners(board, gr, classic=True)
         both = _common(cl, cr) if cl is not None and cr is not None else None
         if both is None:
             missing = [s for s, c in (("left", cl), ("right", cr)) if c is None]
@@ -294,7 +298,7 @@ def _single_views(views: list[tuple[str, np.ndarray]], board: Board, size: tuple
     others named in ``rejected``)."""
     out = []
     for name, grey in views:
-        got = find_corners(board, grey) if grey.shape[::-1] == size else None
+        got = find_corners(board, grey, classic=True) if grey.shape[::-1] == size else None
         if got is None:
             rejected[name] = ("board not found" if grey.shape[::-1] == size else
                               f"image size {grey.shape[1]}×{grey.shape[0]} differs from the pairs' {size[0]}×{size[1]}")
