@@ -452,17 +452,22 @@ STAMP_CELL = st.one_of(st.integers(-3, 40), st.integers(10**8, 10**10), st.float
        raw=st.none() | st.binary(max_size=80))
 def test_fuzz_timestamps(tmp_path, rows, header, raw):
     """#40 (acceptance): timestamps.csv of any content reads, or fails in one line naming it."""
-    import csv
-
     from pipeline.core.timestamps import read_timestamps
 
-    path = tmp_path / "timestamps.csv"
+    path = _csv_or_bytes(tmp_path / "timestamps.csv", [header, *rows], raw)
+    _fails_cleanly(lambda: read_timestamps(path), path)
+
+
+def _csv_or_bytes(path: Path, rows: list, raw: bytes | None) -> Path:
+    """``raw`` written as it is, else ``rows`` as a CSV table."""
+    import csv
+
     if raw is not None:
         path.write_bytes(raw)
     else:
         with open(path, "w", newline="") as fh:
-            csv.writer(fh).writerows([header, *rows])
-    _fails_cleanly(lambda: read_timestamps(path), path)
+            csv.writer(fh).writerows(rows)
+    return path
 
 
 CALIB_TEXT = (SAMPLE / "calib.yaml").read_text()
@@ -493,20 +498,10 @@ CSV_CELL = st.one_of(st.sampled_from(["", "nan", "inf", "-1", "0", "3", "1e400",
 @FUZZ
 @given(rows=st.lists(st.lists(CSV_CELL, max_size=8), max_size=6), header=st.booleans(), raw=st.none() | st.binary(max_size=80))
 def test_fuzz_detection_csv(tmp_path, rows, header, raw):
-    import csv
-
     from pipeline.core.clip import DETECTION_COLUMNS
     from pipeline.core.detections import load_detections
 
-    path = tmp_path / "detections.csv"
-    if raw is not None:
-        path.write_bytes(raw)
-    else:
-        with open(path, "w", newline="") as fh:
-            w = csv.writer(fh)
-            if header:
-                w.writerow(DETECTION_COLUMNS)
-            w.writerows(rows)
+    path = _csv_or_bytes(tmp_path / "detections.csv", [DETECTION_COLUMNS, *rows] if header else rows, raw)
     _fails_cleanly(lambda: load_detections(path, 40), path)
 
 
