@@ -30,7 +30,7 @@ from _common import LiveDoc, add_output_args, output_dir
 from pipeline.core.io import write_text
 from pipeline.core.settings import RunSettings
 from pipeline.core.sync import resolve_sync
-from pipeline.estimators import create, methods, registry
+from pipeline.estimators import create, methods
 from renderers.motion import simulate_truth
 from renderers.scenario import load_scenario, parse_scenario
 
@@ -78,10 +78,8 @@ def observe(condition: str, rig, X, late, rng) -> tuple[np.ndarray, np.ndarray]:
 
 def run_as_estimate(method: str, rig, dt: float, fps: float, Y: np.ndarray, sync) -> tuple:
     """A method on one marker as ``stereotrack estimate`` runs it (``sync``: resolve_sync's answer)."""
-    est, aligned = sync
-    modelled = est.applied and registry()[method].models_time_offset
-    e = create(method, rig, dt, {"seed": 0}, time_offset=est.offset_s if modelled else 0.0)
-    return e.run(Y if modelled else aligned["m"])
+    _, aligned = sync  # every method sees the right camera re-timed when an offset is applied
+    return create(method, rig, dt, {"seed": 0}).run(aligned["m"])
 
 
 def simulated_suite(seeds: int, out_dir) -> None:
