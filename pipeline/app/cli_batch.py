@@ -162,7 +162,7 @@ class _ClipStages:
             if clip in self.tasks:
                 self.bar.remove_task(self.tasks.pop(clip))
         elif clip not in self.tasks:
-            self.tasks[clip] = self.bar.add_task(f"  {clip}: {stage}", total=None)
+            self.tasks[clip] = self.bar.add_task(f"  {clip}: {stage}", total=None, count=False, eta=False)
         else:
             self.bar.update(self.tasks[clip], description=f"  {clip}: {stage}")
 

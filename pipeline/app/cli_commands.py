@@ -36,6 +36,7 @@ from pipeline.app.cli_common import (
     print_sync,
     print_time,
     progress_bar,
+    stage_eta,
 )
 from pipeline.core.errors import StereotrackError
 from pipeline.core.outputs import Outputs
@@ -219,7 +220,7 @@ def estimate_cmd(
                                    time_offset=time_offset, fps=fps)
     writable_output(output)
     with stage_lock(clip, output, "estimate"), progress_bar() as bar:
-        task = bar.add_task("estimate", total=None)
+        task = bar.add_task("estimate", total=None, eta=False)
         hooks = RunHooks(stage=lambda name: bar.update(task, description=name),
                          progress=lambda d, t: bar.update(task, completed=d, total=t))
         res = estimate_clip(Clip(clip, settings.fps), settings, output, hooks, in_dir=Outputs.of(clip).folder)
@@ -355,7 +356,7 @@ def run_cmd(
         def stage(name: str) -> None:  # a fresh task: no count or clock carried over from the stage before
             nonlocal task
             bar.remove_task(task)
-            task = bar.add_task(name, total=None)
+            task = bar.add_task(name, total=None, eta=stage_eta(name))
 
         hooks = RunHooks(stage=stage, progress=lambda d, t: bar.update(task, completed=d, total=t))
         res = process_clip(clip, settings=settings, hooks=hooks, keep_tracks=False)
