@@ -155,13 +155,13 @@ def detect_clip(clip: str | Path | Clip, settings: RunSettings | None = None, ou
     scan = _scan(source, finders, rig, markers, {n for names in groups.values() for n in names} | set(groups),
                  hooks.frame, hooks.progress)
     _check_footage_times(clip_, source, scan.counts)
+    cols = scan.rows.columns()
     checks += colour_checks(scan.samples)
-    checks += rarely_found_checks(scan.rows.columns(), scan.frames, scan.rows.cameras,
-                                  [m.name for m in markers if m.name not in groups])
+    checks += rarely_found_checks(cols, scan.frames, scan.rows.cameras, [m.name for m in markers if m.name not in groups])
     warn_failed(checks)
     record = {"detector": settings.detector, "markers": [m.spec() for m in markers], "learned": learned,
               "marker_colours": {m.name: list(m.display_rgb()) for m in markers}}
-    return _write_detections(out_dir, clip_, source, scan, checks, record)
+    return _write_detections(out_dir, clip_, source, scan, cols, checks, record)
 
 
 def _check_footage_times(clip: Clip, source: StereoFrameSource, counts: list[int]) -> None:
@@ -295,11 +295,11 @@ def _scan(source: StereoFrameSource, finders: list, rig: StereoRig | Rig | None,
     return out
 
 
-def _write_detections(out_dir: Path, clip: Clip, source: StereoFrameSource, scan: _Scanned, checks: list[Check],
-                      record: dict) -> DetectResult:
-    """``detections.csv`` and ``detect.json``; the result the estimate stage takes in memory."""
+def _write_detections(out_dir: Path, clip: Clip, source: StereoFrameSource, scan: _Scanned,
+                      cols: dict[str, np.ndarray], checks: list[Check], record: dict) -> DetectResult:
+    """``detections.csv`` and ``detect.json`` (``cols``: the scan's rows as columns); the result the
+    estimate stage takes in memory."""
     path = Outputs(out_dir).detections
-    cols = scan.rows.columns()
     observations, groups = split_groups(cols, scan.frames, path, clip.identical_groups(), clip.cameras)
     index, merged = blob_flags(cols, groups)
     write_csv(path, DETECTION_WRITTEN, ((*row, i, m) for row, i, m in zip(scan.rows, index, merged, strict=True)))

@@ -40,8 +40,6 @@ VIDEO_SAMPLES = 40
 #: a calibration whose stereo RMS exceeds this (px) is not written without --force: its corners do
 #: not fit one rig (a wrong --board, a moving board, pairs that are not simultaneous)
 ABSURD_RMS_PX = 5.0
-#: views in which the classic chessboard detector found the board (the sector-based one did not)
-CLASSIC = [0]
 LENGTH = re.compile(r"^\s*([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)\s*(mm|cm|m)?\s*$")
 
 
@@ -154,30 +152,44 @@ def _video_pairs(left: Path, right: Path) -> list[tuple[str, np.ndarray, np.ndar
 # -- corners ------------------------------------------------------------------------------------
 
 
-def find_corners(board: Board, grey: np.ndarray, classic: bool = False) -> tuple[np.ndarray, np.ndarray] | None:
-    """(board points N×3 in metres, image points N×2) of the corners found, or None. A chessboard
-    by the sector-based detector, else, with ``classic``, by the classic one (:data:`CLASSIC` counts
-    its finds), which may list the corners from the opposite end: only for a caller that makes each
-    pair's order agree (:func:`pipeline.calibrate.order.reversed_pairs`)."""
+def find_corners(board: Board, grey: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(board points N×3 in metres, image points N×2) of the corners found, or None."""
     if board.kind == "chessboard":
         flags = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
         ok, corners = cv2.findChessboardCornersSB(grey, (board.cols, board.rows), flags=flags)
-        if not ok and classic:  # the classic detector finds boards the sector-based one misses (and the reverse)
-            flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
-            ok, corners = cv2.findChessboardCorners(grey, (board.cols, board.rows), flags=flags)
-            if not ok:
-                return None
-            CLASSIC[0] += 1
-        elif not ok:
-            return None
-        grid = np.mgrid[0 : board.cols, 0 : board.rows].T.reshape(-1, 2) * board.square
-        return np.column_stack([grid, np.zeros(len(grid))]).astype(np.float32), refine(grey, corners.reshape(-1, 2))
+        return _chessboard(board, grey, corners) if ok else None
     cb = board.charuco()
     corners, ids, _, _ = cv2.aruco.CharucoDetector(cb).detectBoard(grey)
     if ids is None or len(ids) < 6:
         return None
     obj = cb.getChessboardCorners()[ids.ravel()]
     return obj.astype(np.float32), corners.reshape(-1, 2)
+
+
+def classic_corners(board: Board, grey: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """A chessboard by OpenCV's classic detector, which finds boards the sector-based one misses (and
+    the reverse) but may list the corners from the opposite end: only for a caller that makes each
+    pair's order agree (:func:`pipeline.calibrate.order.reversed_pairs`; not the N-camera
+    calibration, where it moved a ring's camera 0.88 m)."""
+    if board.kind != "chessboard":
+        return None
+    flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+    ok, corners = cv2.findChessboardCorners(grey, (board.cols, board.rows), flags=flags)
+    return _chessboard(board, grey, corners) if ok else None
+
+
+def _chessboard(board: Board, grey: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The board's points (metres) and the detector's corners, refined."""
+    grid = np.mgrid[0 : board.cols, 0 : board.rows].T.reshape(-1, 2) * board.square
+    return np.column_stack([grid, np.zeros(len(grid))]).astype(np.float32), refine(grey, corners.reshape(-1, 2))
+
+
+def _either_corners(board: Board, grey: np.ndarray, classic: list[int]) -> tuple[np.ndarray, np.ndarray] | None:
+    """:func:`find_corners`, else :func:`classic_corners` (its finds counted in ``classic[0]``)."""
+    got = find_corners(board, grey)
+    if got is None and (got := classic_corners(board, grey)) is not None:
+        classic[0] += 1
+    return got
 
 
 def refine(grey: np.ndarray, corners: np.ndarray) -> np.ndarray:
@@ -254,12 +266,12 @@ def calibrate(pairs: list[tuple[str, np.ndarray, np.ndarray]], board: Board,
     intrinsics use beside the pairs' views; the extrinsics come from the pairs alone."""
     size = pairs[0][1].shape[::-1]
     found, rejected = {}, {}
-    CLASSIC[0] = 0
+    classic = [0]  # views whose board only the classic detector found
     for name, gl, gr in pairs:
         if gl.shape[::-1] != size or gr.shape[::-1] != size:
             rejected[name] = f"image size {gl.shape[1]}×{gl.shape[0]} differs from the first pair's {size[0]}×{size[1]}"
             continue
-        cl, cr = find_corners(board, gl, classic=True), find_corners(board, gr, classic=True)
+        cl, cr = _either_corners(board, gl, classic), _either_corners(board, gr, classic)
         both = _common(cl, cr) if cl is not None and cr is not None else None
         if both is None:
             missing = [s for s, c in (("left", cl), ("right", cr)) if c is None]
@@ -272,7 +284,7 @@ def calibrate(pairs: list[tuple[str, np.ndarray, np.ndarray]], board: Board,
         raise StereotrackError(f"the board was found in both images of {len(found)} pair(s) of {len(pairs)}: "
                                "at least 3 are needed (check --board: chessboards count inner corners)")
     skipped: dict[str, str] = {}  # each camera's own images without a board: not pairs, reported apart
-    extra = tuple(_single_views(views, board, size, skipped) for views in singles)
+    extra = tuple(_single_views(views, board, size, skipped, classic) for views in singles)
     flipped = reversed_pairs(found, size) if board.kind == "chessboard" else []
     for n in flipped:  # the right view listed the corners from the opposite end: the same points, in the same order
         o, left, right = found[n]
@@ -286,19 +298,19 @@ def calibrate(pairs: list[tuple[str, np.ndarray, np.ndarray]], board: Board,
             rejected[n] = f"reprojection error {errs[n]:.2f} px, over {OUTLIER_FACTOR:g}× the median {med:.2f} px"
             found.pop(n)
         cal = _solve(found, size, extra)
-    cal.rejected, cal.reordered, cal.classic = rejected, [n for n in flipped if n in found], CLASSIC[0]
+    cal.rejected, cal.reordered, cal.classic = rejected, [n for n in flipped if n in found], classic[0]
     cal.singles_skipped = skipped
     cal.warnings = _poor(cal)
     return cal
 
 
 def _single_views(views: list[tuple[str, np.ndarray]], board: Board, size: tuple[int, int],
-                  rejected: dict[str, str]) -> list[tuple[np.ndarray, np.ndarray]]:
+                  rejected: dict[str, str], classic: list[int]) -> list[tuple[np.ndarray, np.ndarray]]:
     """One camera's own board images: (board points, corners) of each whose board is found (the
-    others named in ``rejected``)."""
+    others named in ``rejected``; a view's own order does not matter to its camera's intrinsics)."""
     out = []
     for name, grey in views:
-        got = find_corners(board, grey, classic=True) if grey.shape[::-1] == size else None
+        got = _either_corners(board, grey, classic) if grey.shape[::-1] == size else None
         if got is None:
             rejected[name] = ("board not found" if grey.shape[::-1] == size else
                               f"image size {grey.shape[1]}×{grey.shape[0]} differs from the pairs' {size[0]}×{size[1]}")

@@ -133,18 +133,18 @@ def blob_flags(cols: dict[str, np.ndarray], groups: Collection[str] = ()) -> tup
     for g in groups:
         for cam in np.unique(cams[names == g]):
             rows = np.flatnonzero((names == g) & (cams == cam))
-            merged[rows] = _over_median(frames[rows], area[rows]) & (score[rows] < MERGED_ROUNDNESS)
+            merged[rows] = _over_median(frames[rows], area[rows], score[rows] < MERGED_ROUNDNESS)
     return index, merged
 
 
-def _over_median(frames: np.ndarray, area: np.ndarray) -> np.ndarray:
-    """1 where ``area`` exceeds :data:`MERGED_AREA` × the median of the areas within
-    :data:`MERGED_SPAN` frames (rows sorted or not)."""
+def _over_median(frames: np.ndarray, area: np.ndarray, candidate: np.ndarray) -> np.ndarray:
+    """1 where a ``candidate`` row's ``area`` exceeds :data:`MERGED_AREA` × the median of the areas
+    within :data:`MERGED_SPAN` frames (rows sorted or not; the median only for the candidates)."""
     order = np.argsort(frames, kind="stable")
     f, a = frames[order], area[order]
-    lo = np.searchsorted(f, f - MERGED_SPAN, side="left")
-    hi = np.searchsorted(f, f + MERGED_SPAN, side="right")
-    ref = np.array([np.median(a[i:j]) for i, j in zip(lo, hi, strict=True)])
-    out = np.empty(len(f), dtype=np.int64)
-    out[order] = a > MERGED_AREA * ref
+    out = np.zeros(len(f), dtype=np.int64)
+    for r in np.flatnonzero(candidate[order]):
+        lo = np.searchsorted(f, f[r] - MERGED_SPAN, side="left")
+        hi = np.searchsorted(f, f[r] + MERGED_SPAN, side="right")
+        out[order[r]] = a[r] > MERGED_AREA * np.median(a[lo:hi])
     return out

@@ -143,9 +143,10 @@ def after_gap(run, unseen, returning, had, gated, restart_after: int):
     because of an outlier); after a one-camera stretch (another camera kept observing), at once,
     when the returning pair triangulates plausibly: the depth drifted along the kept camera's ray,
     and its uncertainty grew so large that the gate lets the returning camera in while an update
-    linearised that far off does not bring the depth back. ``had`` and ``unseen`` are per camera (…×N: whether it observed this
-    frame; frames since it last did). One track in Python scalars and lists, or M tracks as arrays.
-    Returns (gated run, frames unseen per camera, returning frames left)."""
+    linearised that far off does not bring the depth back. ``had`` and ``unseen`` are per camera
+    (…×N: whether it observed this frame; frames since it last did). One track in Python scalars
+    and lists, or M tracks as arrays. Returns (gated run, frames unseen per camera, returning
+    frames left)."""
     if np.ndim(run) == 0:
         back = any(h and u >= restart_after for h, u in zip(had, unseen, strict=True))
         kept = any(h and u < restart_after for h, u in zip(had, unseen, strict=True))

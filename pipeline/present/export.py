@@ -32,22 +32,22 @@ class Tracks:
 
 
 def read_tracks(out_dir: Path, method: str, fps: float, predicted: bool = False) -> Tracks:
-    """``out_dir/estimates/<method>.csv`` (through :func:`pipeline.core.clip.read_positions`) as
-    frames × markers × 3; the frames the method only predicted are gaps unless ``predicted``."""
-    from pipeline.core.clip import read_positions
-    from pipeline.core.io import read_csv
+    """``out_dir/estimates/<method>.csv`` as frames × markers × 3 (the columns as
+    :func:`pipeline.core.clip.read_positions` reads them); the frames the method only predicted are
+    gaps unless ``predicted``."""
+    from pipeline.core.clip import positions_from_columns
+    from pipeline.core.io import check_frame_column, read_csv
 
     path = Outputs(out_dir).estimates(method)
-    pos, n = read_positions(path)
+    cols = read_csv(path, ["frame", "marker", "x", "y", "z"], numeric=["x", "y", "z"], finite=["frame"])
+    check_frame_column(cols["frame"], None, path)
+    if not predicted and "predicted" in cols:  # read once: the held frames' positions become gaps
+        only = np.asarray(cols["predicted"], dtype=float) == 1
+        for a in "xyz":
+            cols[a] = np.where(only, np.nan, cols[a])
+    pos, n = positions_from_columns(cols)
     markers = list(pos)
     stacked = np.stack([pos[m] for m in markers], axis=1) if markers else np.empty((n, 0, 3))
-    if not predicted:
-        cols = read_csv(path, ["frame", "marker"])
-        if "predicted" in cols:
-            index = {m: i for i, m in enumerate(markers)}
-            only = np.asarray(cols["predicted"], dtype=float) == 1
-            for k, m in zip(cols["frame"][only].astype(int), cols["marker"][only], strict=True):
-                stacked[k, index[str(m)]] = np.nan
     return Tracks(method, markers, stacked, fps)
 
 

@@ -313,9 +313,9 @@ def _with_reversed_right_views(monkeypatch, turned: set[int]) -> None:
 
     real, calls = calib.find_corners, [0]
 
-    def find(board, grey, **kw):
+    def find(board, grey):
         k, calls[0] = calls[0], calls[0] + 1
-        got = real(board, grey, **kw)
+        got = real(board, grey)
         if got is not None and k % 2 == 1 and k // 2 in turned:
             return got[0], got[1][::-1].copy()
         return got
@@ -358,8 +358,8 @@ def test_an_absurd_calibration_is_not_written(chessboard_pairs, tmp_path, monkey
     real = calib.find_corners
     rng = np.random.default_rng(0)
 
-    def scrambled(board, grey, **kw):  # every view's corners shuffled: no board point is the same in both views
-        got = real(board, grey, **kw)
+    def scrambled(board, grey):  # every view's corners shuffled: no board point is the same in both views
+        got = real(board, grey)
         return None if got is None else (got[0], got[1][rng.permutation(len(got[1]))])
 
     monkeypatch.setattr(calib, "find_corners", scrambled)

@@ -28,8 +28,8 @@ EKFTrack = namedtuple("EKFTrack", ["x", "P", "gate", "scratch_x", "scratch_P"])
 #: only predicted, the NIS and its degrees of freedom, the cameras gated, whether it restarted
 EKFOutput = namedtuple("EKFOutput", ["pos", "vel", "cov", "pred", "nis", "dof", "gated", "restarted"])
 #: a gated track's counters (see :func:`pipeline.estimators.kalman_common.after_gap`): frames in a row
-#: with a camera gated, frames each camera has gone unseen, returning frames left; and, while a restart is asked for, how
-#: many cameras and which the gate dropped at that frame
+#: with a camera gated, frames each camera has gone unseen, returning frames left; and, while a
+#: restart is asked for, how many cameras and which the gate dropped at that frame
 GATE = np.dtype([("run", "i8"), ("unseen", "i8", (2,)), ("returning", "i8"), ("held", "i8"), ("camera", "i8", (2,))])
 
 #: the camera's measurement model, compiled
