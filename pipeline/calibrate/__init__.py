@@ -339,8 +339,9 @@ def _solve(found: dict, size: tuple[int, int], extra: tuple[list, ...] = ([], []
     right = Camera(K2, R, T.ravel(), D2.ravel())
     rig = StereoRig(left, right, (int(size[0]), int(size[1])))
     errors = {n: float(np.sqrt(np.mean(per_view[i] ** 2))) for i, n in enumerate(names)}
-    hulls = ([cv2.convexHull(p.reshape(-1, 1, 2)).reshape(-1, 2) for p in il],
-             [cv2.convexHull(p.reshape(-1, 1, 2)).reshape(-1, 2) for p in ir])
+    # the board's coverage of each image, over every view its intrinsics used (its own images too)
+    hulls = ([cv2.convexHull(p.reshape(-1, 1, 2)).reshape(-1, 2) for p in vl],
+             [cv2.convexHull(p.reshape(-1, 1, 2)).reshape(-1, 2) for p in vr])
     return Calibration(rig, float(rms_l), float(rms_r), float(rms), names, errors, {},
                        (_coverage(hulls[0], size), _coverage(hulls[1], size)), _epipolar(rig, il, ir), hulls,
                        singles=(len(extra[0]), len(extra[1])))
