@@ -47,6 +47,11 @@ def main() -> None:
 
     allocator.tune()  # frames churn through the allocator: keep their pages (see the module)
     warnings.showwarning = _show_warning
+    # multiprocessing's resource tracker (a process started with this interpreter's -W options) still
+    # cleans up what an interrupted pool leaves, but its "leaked semaphore" lines are noise after the
+    # one line an interrupt prints: a worker starting as the signal comes registers a semaphore the
+    # finalizers of _release_semaphores cannot know of (seen once in about forty interrupted batches)
+    sys.warnoptions.append("ignore::UserWarning:multiprocessing.resource_tracker")
     install_signal_handlers()
     try:
         app()
