@@ -6,6 +6,7 @@ import argparse
 import atexit
 import contextlib
 import io
+import os
 import subprocess
 import sys
 import tempfile
@@ -74,7 +75,10 @@ def page(name: str, main: Callable[[], None]) -> None:
         sys.argv.remove("--write-docs")
     tee = _Tee(sys.stdout)
     with contextlib.redirect_stdout(tee):
+        before = os.getloadavg()[0]
         main()
+        print(f"\nMachine: {os.cpu_count()} cores; 1-minute load average {before:.2f} at the start, "
+              f"{os.getloadavg()[0]:.2f} at the end (ratios measured in one run share the load).")
     if write:
         from pipeline.core.io import write_text
 

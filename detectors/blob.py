@@ -11,12 +11,17 @@ from __future__ import annotations
 import colorsys
 import re
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
-import cv2
 import numpy as np
 
 from pipeline.core.errors import StereotrackError
+from pipeline.core.lazy import lazy_module
+
+if TYPE_CHECKING:
+    import cv2
+else:
+    cv2 = lazy_module("cv2")  # imported on first use: --help and `methods` need no OpenCV
 
 #: the 5×5 structuring element that grows a blob by 2 px (its anti-aliased rim)
 DILATE_2PX = np.ones((5, 5), np.uint8)

@@ -11,17 +11,22 @@ is the back-projection centroid inside the final window.
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
-import cv2
 import numpy as np
 
 from detectors.base import Detector, register
 from detectors.blob import BlobDetector, Detection, MarkerColor
 from pipeline.core.alphabeta import ABFilter
 from pipeline.core.errors import StereotrackError
+from pipeline.core.lazy import lazy_module
 
-CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.1)
+if TYPE_CHECKING:
+    import cv2
+else:
+    cv2 = lazy_module("cv2")  # imported on first use: --help and `methods` need no OpenCV
+
+CRITERIA = (2 | 1, 20, 0.1)  # cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT (tested equal)
 
 
 class MeanShiftTracker:

@@ -44,9 +44,11 @@ def outputs_markdown() -> str:
 def settings_markdown() -> str:
     """``clip.yaml``'s keys, from :class:`pipeline.core.clip.ClipSettings`."""
     from pipeline.core.clip import CLIP_SETTINGS, ClipSettings
+    from pipeline.core.docstrings import attribute_docs
 
+    docs = attribute_docs(ClipSettings)
     lines = [f"### `{CLIP_SETTINGS}`", "", "| key | meaning |", "|---|---|"]
-    lines += [f"| `{k}` | {f.description} |" for k, f in ClipSettings.model_fields.items()]
+    lines += [f"| `{k}` | {docs.get(k, '')} |" for k in ClipSettings.model_fields]
     return "\n".join(lines)
 
 

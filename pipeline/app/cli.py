@@ -1,8 +1,6 @@
 """The ``stereotrack`` command line (typer + rich). I/O and presentation only: every command calls
 the library functions the tests call."""
 
-from __future__ import annotations
-
 import sys
 import warnings
 from pathlib import Path

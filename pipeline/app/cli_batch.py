@@ -1,16 +1,10 @@
 """The ``stereotrack`` commands over many clips and recordings: ``view``, ``batch``, ``render-batch``."""
 
-from __future__ import annotations
-
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
-from rich.progress import (
-    Progress,
-    TaskID,
-)
 from rich.table import Table
 
 from pipeline.app.cli_common import (
@@ -32,6 +26,9 @@ from pipeline.app.cli_common import (
 )
 from pipeline.core.errors import StereotrackError
 from pipeline.core.outputs import RECORDING, Outputs
+
+if TYPE_CHECKING:
+    from rich.progress import Progress, TaskID
 
 
 @app.command("view")
@@ -153,7 +150,7 @@ def batch_cmd(
 class _ClipStages:
     """One progress line per clip in flight, saying its stage; removed when the clip is done."""
 
-    def __init__(self, bar: Progress) -> None:
+    def __init__(self, bar: "Progress") -> None:
         self.bar = bar
         self.tasks: dict[str, TaskID] = {}
 

@@ -2,8 +2,6 @@
 ``methods``, ``render``, ``detect``, ``estimate``, ``calibrate``, ``export``, ``report``, ``run``.
 I/O and presentation only: each calls the library functions the tests call."""
 
-from __future__ import annotations
-
 import warnings
 from contextlib import ExitStack
 from pathlib import Path
@@ -119,8 +117,10 @@ def _print_settings(names: list[str], reg: dict) -> None:
     unknown = [n for n in names if n not in reg]
     if unknown:
         raise StereotrackError(f"unknown method(s) {', '.join(unknown)} (known: {', '.join(reg)})")
+    from pipeline.core.docstrings import attribute_docs
+
     for name in names:
-        fields = reg[name].Config.model_fields
+        fields, docs = reg[name].Config.model_fields, attribute_docs(reg[name].Config)
         table = Table(title=f"{name} (a --config file's '{name}:' section)")
         table.add_column("setting", no_wrap=True, min_width=max(len(k) for k in fields))  # a key is never cut
         table.add_column("default", overflow="fold")
@@ -128,7 +128,7 @@ def _print_settings(names: list[str], reg: dict) -> None:
         for key, field in fields.items():
             default = field.get_default(call_default_factory=True)
             shown = default.model_dump() if hasattr(default, "model_dump") else default
-            table.add_row(key, escape(str(shown)), escape(" ".join((field.description or "").replace("``", "").split())))
+            table.add_row(key, escape(str(shown)), escape(" ".join(docs.get(key, "").replace("``", "").split())))
         out.print(table)
 
 

@@ -1,26 +1,17 @@
 """What every ``stereotrack`` command shares: the typer app, the consoles, the progress-bar style, the
 options several commands take, and how results are printed."""
 
-from __future__ import annotations
-
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import TYPE_CHECKING, Annotated, Literal
 
 import typer
 from rich.console import Console
-from rich.progress import (
-    BarColumn,
-    MofNCompleteColumn,
-    Progress,
-    Task,
-    TextColumn,
-    TimeElapsedColumn,
-    TimeRemainingColumn,
-)
 from rich.table import Table
-from rich.text import Text
 
 from pipeline.core.errors import StereotrackError
+
+if TYPE_CHECKING:
+    from rich.progress import Progress
 
 app = typer.Typer(
     help="Track objects in stereo video: render synthetic clips, detect markers, estimate 3-D tracks.",
@@ -46,38 +37,12 @@ def _main(version: Annotated[bool, typer.Option("--version", callback=_version, 
     """Track objects in stereo video: render synthetic clips, detect markers, estimate 3-D tracks."""
 
 
-class RemainingColumn(TimeRemainingColumn):
-    """Time remaining, except for a task whose units take unequal times (``eta=False`` among its
-    fields): the estimate stage counts methods × markers, and its methods differ a hundredfold in
-    cost, so a rate from the first ones said 3:19 for a 21 s stage."""
+def progress_bar() -> "Progress":
+    """The one progress-bar style of every long command (rich's progress module is imported here:
+    commands that show no bar never pay for it)."""
+    from pipeline.app.progress import progress_bar as make
 
-    def render(self, task: Task) -> Text:
-        if task.fields.get("eta", True) is False:
-            return Text("-:--:--", style="progress.remaining")
-        return super().render(task)
-
-
-class CountColumn(MofNCompleteColumn):
-    """``done/total``, or nothing for a task that counts nothing (``count=False`` among its fields:
-    a batch's per-clip lines, which name the clip's stage, used to sit at ``0/?``)."""
-
-    def render(self, task: Task) -> Text:
-        if task.fields.get("count", True) is False:
-            return Text("")
-        return super().render(task)
-
-
-def progress_bar() -> Progress:
-    """The one progress-bar style of every long command."""
-    return Progress(
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        CountColumn(),
-        TimeElapsedColumn(),
-        RemainingColumn(),
-        console=console,
-        transient=False,
-    )
+    return make(console)
 
 
 def stage_eta(name: str) -> bool:

@@ -1,8 +1,6 @@
 """``stereotrack rig``: read a calibration of N cameras in any format stereotrack knows, show it,
 and convert it to another (:mod:`pipeline.core.rigfiles`)."""
 
-from __future__ import annotations
-
 from pathlib import Path
 from typing import Annotated
 

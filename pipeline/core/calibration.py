@@ -7,14 +7,19 @@ from __future__ import annotations
 
 import warnings
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import cv2
 import numpy as np
 
 from pipeline.core.camera import Camera, StereoRig
 from pipeline.core.errors import CalibrationError
 from pipeline.core.io import atomic_path
+from pipeline.core.lazy import lazy_module
+
+if TYPE_CHECKING:
+    import cv2
+else:
+    cv2 = lazy_module("cv2")  # imported on first use: --help and `methods` need no OpenCV
 
 # ---------------------------------------------------------------------------------------------
 # Calibration files

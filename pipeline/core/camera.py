@@ -13,16 +13,21 @@ import math
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
-import cv2
 import numpy as np
 
 from pipeline.core.errors import CalibrationError
+from pipeline.core.lazy import lazy_module
 
-#: Iterations of ``cv2.undistortPoints``: OpenCV's default of 5 leaves strong distortion
-#: under-corrected by tenths of a pixel at the image corners
-UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+if TYPE_CHECKING:
+    import cv2
+else:
+    cv2 = lazy_module("cv2")  # imported on first use: --help and `methods` need no OpenCV
+
+#: Iterations of ``cv2.undistortPoints`` (COUNT | EPS, as numbers: tested equal): OpenCV's default of 5
+#: leaves strong distortion under-corrected by tenths of a pixel at the image corners
+UNDISTORT_CRITERIA = (1 | 2, 100, 1e-12)
 
 #: Flip between OpenCV camera axes (y down, z forward) and OpenGL's (y up, z backward).
 CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])

@@ -61,7 +61,7 @@ CLIP_SETTINGS = "clip.yaml"
 class ClipSettings(BaseModel):
     """``clip.yaml`` in a clip folder: what the footage cannot say about itself."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, use_attribute_docstrings=True)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     fps: float | None = Field(None, gt=0)
     """frames per second of both cameras (frame folders have no rate of their own; `--fps` wins)"""
 

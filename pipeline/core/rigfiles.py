@@ -23,9 +23,8 @@ import math
 import warnings
 import xml.etree.ElementTree as ET
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import cv2
 import numpy as np
 
 from pipeline.core.calibration import (
@@ -39,7 +38,13 @@ from pipeline.core.calibration import (
 from pipeline.core.camera import Camera
 from pipeline.core.errors import CalibrationError
 from pipeline.core.io import atomic_path
+from pipeline.core.lazy import lazy_module
 from pipeline.core.rig import Rig
+
+if TYPE_CHECKING:
+    import cv2
+else:
+    cv2 = lazy_module("cv2")  # imported on first use: --help and `methods` need no OpenCV
 
 #: What :func:`save_rig` and ``stereotrack rig convert`` write, by the output's name.
 FORMATS = {"toml": "Anipose/Pose2Sim TOML", "qca": "Qualisys .qca.txt", "json": "JSON rig",

@@ -24,17 +24,21 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
-from scipy.optimize import linear_sum_assignment
-from scipy.special import chdtri
 
 from pipeline.core.camera import Camera, StereoRig, epipolar_distances, triangulate_views
+from pipeline.core.lazy import lazy_module
 from pipeline.core.rig import Rig
 from pipeline.estimators.base import Track, transition, white_noise_acceleration
 from pipeline.estimators.registration import create
+
+if TYPE_CHECKING:
+    from scipy import optimize, special
+else:  # imported on first use: scipy costs a batch worker ~0.25 s, and only identical markers need it
+    optimize, special = lazy_module("scipy.optimize"), lazy_module("scipy.special")
 
 Mode = Literal["gnn", "greedy", "epipolar"]
 INFEASIBLE = 1e9  # an assignment cost that means "not this pair"
@@ -114,7 +118,7 @@ class _Run:
         self.cameras, self.cfg, self.mode = cameras, cfg, mode
         self.A, self.Q = transition(dt), white_noise_acceleration(dt, cfg.process_noise)
         self.R = np.eye(2) * cfg.pixel_sigma**2
-        self.threshold = float(chdtri(2, 1.0 - cfg.gate))
+        self.threshold = float(special.chdtri(2, 1.0 - cfg.gate))
         self.live: list[_Track] = []
         self.done: list[tuple[_Track, int]] = []
         self.count = 0
@@ -250,7 +254,7 @@ def _merged_tracks(where: np.ndarray, cost: np.ndarray, merge_px: float) -> np.n
 
 
 def _hungarian(cost: np.ndarray) -> dict[int, int]:
-    r, c = linear_sum_assignment(cost)
+    r, c = optimize.linear_sum_assignment(cost)
     return {int(a): int(b) for a, b in zip(r, c, strict=True) if cost[a, b] < INFEASIBLE}
 
 

@@ -90,7 +90,7 @@ def white_noise_acceleration(dt: float, q: float, dim: int = 3) -> np.ndarray:
 class InitConfig(BaseModel):
     """How a track starts (:class:`Initiator`): from triangulations or from a given state."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, use_attribute_docstrings=True)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, defer_build=True)  # built when first validated
     mode: Literal["triangulation", "given"] = "triangulation"
     """'triangulation': start from the first frames both cameras see; 'given': from ``state``"""
     state: tuple[float, float, float, float, float, float] | None = None
@@ -114,8 +114,8 @@ class InitConfig(BaseModel):
 class EstimatorConfig(BaseModel):
     """Settings every estimator accepts (numbers must be finite: ``.inf`` is no setting)."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, use_attribute_docstrings=True)
-    init: InitConfig = InitConfig()
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, defer_build=True)  # built when first validated
+    init: InitConfig = Field(default_factory=InitConfig)
     """how a track starts: ``mode``, ``state``, ``frames``, ``sigma_position``, ``sigma_velocity``"""
     seed: int = 0
     """seed of the method's random numbers (SPSA's perturbations): one seed, one result"""

@@ -10,10 +10,11 @@ channel models as the Kalman–Bucy filter, discretised exactly (``expm`` / Van 
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
-import cv2
 import numpy as np
 
+from pipeline.core.lazy import lazy_module
 from pipeline.estimators.base import Step, expm
 from pipeline.estimators.four_point import (
     TargetEstimator,
@@ -23,6 +24,11 @@ from pipeline.estimators.four_point import (
 )
 from pipeline.estimators.kalman_bucy import C4, G4, KalmanBucyConfig, channel_matrix, propagated_variance
 from pipeline.estimators.registration import register
+
+if TYPE_CHECKING:
+    import cv2
+else:
+    cv2 = lazy_module("cv2")  # imported on first use: --help and `methods` need no OpenCV
 
 #: IPPE_SQUARE wants the corners of a square of side s = R√2 in its own order; our points
 #: 1 (up), 2 (right), 3 (down), 4 (left) are that square turned by 45°: pass them as 4, 1, 2, 3.

@@ -46,7 +46,7 @@ class SPSAConfig(EstimatorConfig):
     th = 0.003 capped a step at 3.7e-5 m per iteration: the update was inert.
     """
 
-    init: InitConfig = InitConfig(frames=5)
+    init: InitConfig = Field(default_factory=lambda: InitConfig(frames=5))
     """starts from a line fitted through the first five triangulations (SPSA learns velocity slowly)"""
     alpha: float = Field(0.1, gt=0)
     """step size α of the update θ ← θ − α d Δ"""

@@ -108,7 +108,7 @@ class SPSAStereoConfig(EstimatorConfig):
     """the per-camera χ² gate on the prediction's reprojection (see :meth:`SPSAStereoEstimator._gate_cameras`; 0 turns it
     off); a track gated ``restart_after`` frames in a row restarts from the detections"""
 
-    init: InitConfig = InitConfig(frames=2)
+    init: InitConfig = Field(default_factory=lambda: InitConfig(frames=2))
     """starts from a line through the first two triangulations"""
     alpha_min: float = Field(0.5, gt=0, le=1)
     """the floor of the gain α_n of the image coordinates x/z, y/z (the memory stops growing there)"""

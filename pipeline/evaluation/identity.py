@@ -14,9 +14,16 @@ counts a track whose matched marker changes between frames.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
+
+from pipeline.core.lazy import lazy_module
+
+if TYPE_CHECKING:
+    from scipy import optimize
+else:  # imported on first use: only clips of identical markers are scored by identity
+    optimize = lazy_module("scipy.optimize")
 
 #: HOTA's localisation thresholds (Luiten et al. 2021, §5): 0.05, 0.10, …, 0.95
 HOTA_ALPHAS = np.arange(0.05, 0.99, 0.05)
@@ -112,7 +119,7 @@ def _clear_pairs(f: Frame, last: dict[int, int], threshold: float) -> list[tuple
         D = f.distance[np.ix_(rows, cols)]
         big = 1e9
         cost = np.where(D < threshold, D, big)
-        r, c = linear_sum_assignment(cost)
+        r, c = optimize.linear_sum_assignment(cost)
         pairs += [(int(f.truth[rows[a]]), int(f.tracks[cols[b]])) for a, b in zip(r, c, strict=True) if cost[a, b] < big]
     return pairs
 
@@ -139,7 +146,7 @@ def identity_scores(seq: list[Frame], n_gt: int, n_tr: int, threshold: float) ->
     big[:n_gt, :n_tr] = gt_len[:, None] + tr_len[None, :] - 2 * common
     big[:n_gt, n_tr:] = np.where(np.eye(n_gt, dtype=bool), gt_len[:, None], 1e12)
     big[n_gt:, :n_tr] = np.where(np.eye(n_tr, dtype=bool), tr_len[None, :], 1e12)
-    r, c = linear_sum_assignment(big)
+    r, c = optimize.linear_sum_assignment(big)
     idtp = sum(common[a, b] for a, b in zip(r, c, strict=True) if a < n_gt and b < n_tr)
     total_gt, total_tr = gt_len.sum(), tr_len.sum()
     idp = idtp / total_tr if total_tr else float("nan")
@@ -176,7 +183,7 @@ def hota(seq: list[Frame], n_gt: int, n_tr: int, d0: float, alphas: np.ndarray =
             fn += len(f.truth)
             fp += len(f.tracks)
             continue
-        r, c = linear_sum_assignment(-(align[f.truth[:, None], f.tracks[None, :]] * s))
+        r, c = optimize.linear_sum_assignment(-(align[f.truth[:, None], f.tracks[None, :]] * s))
         for a, alpha in enumerate(alphas):
             keep = s[r, c] >= alpha - np.finfo(float).eps
             tp[a] += keep.sum()
@@ -205,7 +212,7 @@ def gospa(seq: list[Frame], c: float, p: float = 2.0, switch: float | None = Non
     prev: dict[int, int] = {}
     for f in seq:
         cost = np.minimum(f.distance, c) ** p
-        r, col = linear_sum_assignment(cost) if cost.size else (np.array([], int), np.array([], int))
+        r, col = optimize.linear_sum_assignment(cost) if cost.size else (np.array([], int), np.array([], int))
         keep = cost[r, col] < c**p  # a pair at the cut-off is no better than a miss and a false track
         r, col = r[keep], col[keep]
         lo = float(cost[r, col].sum())

@@ -72,8 +72,7 @@ def test_plugins_register_through_the_entry_point(monkeypatch):
     monkeypatch.setitem(__import__("sys").modules, "plugin_module", module)
     points = [importlib.metadata.EntryPoint("plugged", "plugin_module:Plugged", detectors.ENTRY_POINT_GROUP),
               importlib.metadata.EntryPoint("broken", "plugin_module:NotOne", detectors.ENTRY_POINT_GROUP)]
-    monkeypatch.setattr(importlib.metadata, "entry_points",
-                        lambda group=None: [p for p in points if p.group == group])
+    monkeypatch.setattr("pipeline.core.plugins._entry_points", lambda: importlib.metadata.EntryPoints(points))
     monkeypatch.setattr(detectors, "_plugins_loaded", False)
     monkeypatch.setattr(detectors.base, "_REGISTRY", dict(_REGISTRY))
     monkeypatch.setattr(detectors, "_REGISTRY", detectors.base._REGISTRY)

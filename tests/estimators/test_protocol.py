@@ -336,8 +336,10 @@ def test_chi2_band_matches_scipy_stats():
 def test_every_setting_says_what_it_does():
     """Every setting of every registered method has a description (its attribute docstring), and
     `stereotrack methods NAME` lists each with its default; an unknown name is one error."""
-    undocumented = [(m, k) for m, cls in registry().items() for k, f in cls.Config.model_fields.items()
-                    if not (f.description or "").strip()]
+    from pipeline.core.docstrings import attribute_docs
+
+    undocumented = [(m, k) for m, cls in registry().items() for k in cls.Config.model_fields
+                    if not attribute_docs(cls.Config).get(k, "").strip()]
     assert not undocumented, undocumented
     res = CliRunner().invoke(app, ["methods", "spsa_stereo", "ekf"], env={"COLUMNS": "200"})
     assert res.exit_code == 0, res.output

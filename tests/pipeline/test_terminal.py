@@ -6,7 +6,8 @@ import time
 
 from rich.progress import Progress
 
-from pipeline.app.cli_common import CountColumn, RemainingColumn, stage_eta
+from pipeline.app.cli_common import stage_eta
+from pipeline.app.progress import CountColumn, RemainingColumn
 
 
 def test_no_rate_based_eta_for_the_estimate_stage_and_no_count_for_a_clip_line():

@@ -1,0 +1,47 @@
+"""The progress bar of every long command: its columns and its one style."""
+
+from rich.console import Console
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    Task,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+from rich.text import Text
+
+
+class RemainingColumn(TimeRemainingColumn):
+    """Time remaining, except for a task whose units take unequal times (``eta=False`` among its
+    fields): the estimate stage counts methods × markers, and its methods differ a hundredfold in
+    cost, so a rate from the first ones said 3:19 for a 21 s stage."""
+
+    def render(self, task: Task) -> Text:
+        if task.fields.get("eta", True) is False:
+            return Text("-:--:--", style="progress.remaining")
+        return super().render(task)
+
+
+class CountColumn(MofNCompleteColumn):
+    """``done/total``, or nothing for a task that counts nothing (``count=False`` among its fields:
+    a batch's per-clip lines, which name the clip's stage, used to sit at ``0/?``)."""
+
+    def render(self, task: Task) -> Text:
+        if task.fields.get("count", True) is False:
+            return Text("")
+        return super().render(task)
+
+
+def progress_bar(console: Console) -> Progress:
+    """The one progress-bar style of every long command."""
+    return Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        CountColumn(),
+        TimeElapsedColumn(),
+        RemainingColumn(),
+        console=console,
+        transient=False,
+    )

@@ -1,0 +1,62 @@
+"""What the quick commands and a batch worker import: only what they use (the numerical libraries
+come with the stage or method that needs them)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+
+import pytest
+
+from pipeline.core.lazy import LazyModule
+
+#: libraries none of the quick commands needs (numpy, pydantic, typer and rich they do)
+HEAVY = {"cv2", "scipy", "matplotlib", "filterpy", "numba", "trimesh", "pyrender", "rerun", "dask", "distributed",
+         "ezc3d", "OpenGL"}
+
+_LOADED = "import atexit, sys; atexit.register(lambda: print('LOADED', *sorted({m.split('.')[0] for m in sys.modules})))"
+
+
+def loaded(code: str) -> set[str]:
+    """The top-level modules a fresh interpreter holds after running ``code``."""
+    res = subprocess.run([sys.executable, "-c", f"{_LOADED}\n{code}"], capture_output=True, text=True, timeout=120)
+    line = next(ln for ln in res.stdout.splitlines() if ln.startswith("LOADED"))
+    return set(line.split()[1:])
+
+
+@pytest.mark.parametrize("args", [["--help"], ["methods"], ["methods", "ekf"], ["scenarios"]])
+def test_quick_commands_import_no_numerical_library_beyond_numpy(args: list[str]) -> None:
+    mods = loaded(f"import sys; sys.argv = ['stereotrack', *{args!r}]\nfrom pipeline.app.cli import main\nmain()")
+    assert not mods & HEAVY, sorted(mods & HEAVY)
+
+
+def test_a_batch_worker_imports_no_scipy_filterpy_or_matplotlib() -> None:
+    """The worker's own imports; each stage imports what it needs when it runs."""
+    mods = loaded("import pipeline.app.run")
+    assert not mods & {"scipy", "filterpy", "matplotlib", "numba", "rerun", "pyrender"}, sorted(mods)
+
+
+def test_a_lazy_module_is_the_module_on_first_use_from_many_threads() -> None:
+    """Eight threads touching it first at once all get the real attributes (no half-made module)."""
+    lazy = LazyModule("colorsys")
+    got: list[object] = []
+    threads = [threading.Thread(target=lambda: got.append(lazy.rgb_to_hsv)) for _ in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    import colorsys
+
+    assert got == [colorsys.rgb_to_hsv] * 8 and lazy.rgb_to_hsv is colorsys.rgb_to_hsv
+
+
+def test_opencv_constants_written_as_numbers_are_opencvs() -> None:
+    """The termination criteria spelled as numbers (so that importing the module needs no OpenCV)."""
+    import cv2
+
+    from detectors.meanshift import CRITERIA
+    from pipeline.core.camera import UNDISTORT_CRITERIA
+
+    both = cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS
+    assert UNDISTORT_CRITERIA[0] == both and CRITERIA[0] == both
