@@ -25,8 +25,7 @@ if TYPE_CHECKING:
 else:
     cv2 = lazy_module("cv2")  # imported on first use: --help and `methods` need no OpenCV
 
-#: Iterations of ``cv2.undistortPoints`` (COUNT | EPS, as numbers: tested equal): OpenCV's default of 5
-#: leaves strong distortion under-corrected by tenths of a pixel at the image corners
+#: ``cv2.undistortPoints``' COUNT | EPS criteria: OpenCV's 5 iterations leave corners off by tenths of a pixel
 UNDISTORT_CRITERIA = (1 | 2, 100, 1e-12)
 
 #: Flip between OpenCV camera axes (y down, z forward) and OpenGL's (y up, z backward).
