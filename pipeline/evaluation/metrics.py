@@ -56,6 +56,15 @@ def rmse(a: np.ndarray, b: np.ndarray) -> float | None:
 RUNAWAY = 10.0
 
 
+def ranking(metrics: dict) -> list[str]:
+    """Point methods best first: by 3-D RMSE, or by reprojection RMSE without truth (methods with
+    neither last, in registry order)."""
+    key = "rmse" if metrics.get("has_truth") else "reprojection_rmse_px"
+    vals = {m: e.get(key) for m, e in metrics.get("methods", {}).items() if not e.get("target")}
+    score = {m: float(v) if isinstance(v, (int, float)) and np.isfinite(v) else np.inf for m, v in vals.items()}
+    return sorted(score, key=lambda m: score[m])
+
+
 def runaways(metrics: dict) -> list[str]:
     """Point methods whose 3-D RMSE (reprojection RMSE without truth) is over :data:`RUNAWAY` ×
     the median of the run's point methods (needs three methods to judge)."""

@@ -4,11 +4,11 @@ Entity paths mirror the transform tree: ``/world`` is the left camera's frame; `
 ``/world/right`` carry each camera's ``Transform3D`` (from the calibration) and ``Pinhole``, logged
 once as static data, with the frame images (JPEG, logged as they are decoded), detections and
 truth projections beneath them. Trajectories live under ``/world/truth`` and
-``/world/estimates/<method>`` as one point per marker per frame; the 3-D view shows them over a
-visible time range from the start to the cursor, so each path is drawn from its points instead of
-being re-logged every frame; filters' 95 % position ellipsoids under ``/world/uncertainty/<method>``
-(hidden until shown). Per-frame errors live under ``/metrics/<error|reprojection>/<marker>/<method>``,
-the target's α and z under ``/metrics/target``.
+``/world/estimates/<method>`` as one point per marker per frame (an empty batch where a track
+ends), shown at the cursor over each one's static path, framed on the tracks and not the cameras,
+the best three methods shown and the rest one click away; filters' 95 % position ellipsoids under
+``/world/uncertainty/<method>`` (hidden until shown). Per-frame errors live under
+``/metrics/<error|reprojection>/<marker>/<method>``, the target's α and z under ``/metrics/target``.
 Everything but the images is sent with ``send_columns``: one call per entity, not one per frame,
 so memory does not grow with the clip. The blueprint (3-D view, both camera views, error plots) is
 built in code and saved as the file's default.
@@ -29,7 +29,7 @@ from pipeline.core.errors import StereotrackError
 from pipeline.core.io import partial_beside
 from pipeline.core.rig import Rig
 from pipeline.evaluation.identity import switches_of
-from pipeline.evaluation.metrics import runaways
+from pipeline.evaluation.metrics import ranking, runaways
 from pipeline.evaluation.scores import FrameScores
 from pipeline.present.style import TRUTH_RGB_VIEWER, marker_rgb, method_rgb
 
@@ -37,8 +37,11 @@ if TYPE_CHECKING:
     from pipeline.estimate import EstimateResult
     from pipeline.estimators import Track
 
-#: 3-D sizes (m): truth small and light grey, each method's points larger in its colour, paths thin
-TRUTH_RADIUS, POINT_RADIUS, PATH_RADIUS = 0.005, 0.008, 0.002
+#: 3-D sizes in UI points (negative: rerun's screen-space radii, the same size at any zoom): truth
+#: small and light grey inside each method's larger sphere in its colour, paths thin
+TRUTH_RADIUS, POINT_RADIUS, PATH_RADIUS = -3.0, -5.0, -1.0
+#: methods shown in the 3-D and camera views at first open (the best by the run's ranking); the rest are one click away
+SHOWN_METHODS = 3
 
 
 def _hidden(paths: list[str]):
@@ -79,45 +82,70 @@ def _batches(tracks: list[np.ndarray], n: int, finite: bool = True) -> _Batches:
         A[:m, j] = t[:m]
         ok[:m, j] = np.isfinite(t[:m]).all(axis=1) if finite else True
     rows, cols = np.nonzero(ok)  # row-major: frame by frame, tracks in order
-    frames, lengths = np.unique(rows, return_counts=True)
-    return _Batches(frames.astype(np.int64), lengths, A[rows, cols], cols)
+    counts = np.bincount(rows, minlength=n)
+    keep = _logged_frames(counts)
+    return _Batches(keep, counts[keep], A[rows, cols], cols)
+
+
+def _logged_frames(counts: np.ndarray) -> np.ndarray:
+    """The frames to log given each frame's count of points: those with points, and an empty batch
+    where the last ones went (the views show the latest batch at the cursor, so a track that ended
+    is not left standing where it was last seen)."""
+    return np.flatnonzero((counts > 0) | (np.r_[False, counts[:-1] > 0] & (counts == 0))).astype(np.int64)
 
 
 def blueprint(fps: float = 30.0, target: bool = False, info: bool = False, markers: list[str] | None = None,
               hidden: list[str] | None = None, uncertain: list[str] | None = None,
-              cameras: tuple[str, ...] = ("left", "right")):
-    """3-D view (paths: every point from the start to the cursor) beside the two camera views;
-    below, per marker, the 3-D and reprojection errors with one line per method, and the
-    four-point target's α and z when the run has the target; the run's description when given.
-    ``hidden`` (runaway methods) and the covariance ellipsoids of ``uncertain`` start hidden (one
-    click in the blueprint tree shows them). The time panel opens on the ``frame`` timeline at
-    the clip's frame rate (on rerun's default ``time`` timeline the trail is empty: it is set for
-    ``frame``)."""
+              cameras: tuple[str, ...] = ("left", "right"), tucked: list[str] | None = None,
+              eye: tuple[np.ndarray, np.ndarray] | None = None):
+    """3-D view (each point at the cursor over its static path) beside the camera views; below,
+    per marker, the 3-D and reprojection errors with one line per method, and the four-point
+    target's α and z when the run has the target; the run's description when given. ``hidden``
+    (runaway methods) start hidden everywhere, ``tucked`` (the methods after the best few) in the
+    3-D and camera views, and the covariance ellipsoids of ``uncertain`` too: one click in the
+    blueprint tree shows each. ``eye``: (position, look target) of the 3-D view. The time panel
+    opens on the ``frame`` timeline at the clip's frame rate."""
     import rerun.blueprint as rrb
 
-    hidden, markers = list(hidden or []), list(markers or [])
-    trail = rrb.VisibleTimeRange("frame", start=rrb.TimeRangeBoundary.infinite(),
-                                 end=rrb.TimeRangeBoundary.cursor_relative())
+    hidden, markers, tucked = list(hidden or []), list(markers or []), list(tucked or [])
     plots = [t for t in (_series_tabs("error", "3-D error (mm)", markers, hidden),
                          _series_tabs("reprojection", "reprojection error (px)", markers, hidden)) if t is not None]
     if target:
         plots += [rrb.TimeSeriesView(name="target α (rad)", origin="/metrics/target/alpha"),
                   rrb.TimeSeriesView(name="target z (m)", origin="/metrics/target/distance")]
     side: list[rrb.Spatial2DView | rrb.TextDocumentView | rrb.Grid] = [rrb.Spatial2DView(name=f"{c} camera", origin=f"/world/{c}",
-                              overrides=_hidden([f"/world/{c}/estimates/{m}" for m in hidden]) or None)
+                              overrides=_hidden([f"/world/{c}/estimates/{m}" for m in hidden + tucked]) or None)
             for c in cameras]
     if info:
         side.append(rrb.TextDocumentView(name="this run", origin="/run"))
     if len(cameras) > 2:  # N cameras: a grid of camera views beside the 3-D view
         side = [rrb.Grid(*side)]
-    off = [f"/world/estimates/{m}" for m in hidden] + [f"/world/uncertainty/{m}" for m in uncertain or []]
-    view3d = rrb.Spatial3DView(name="3-D", origin="/world", time_ranges=[trail], overrides=_hidden(off) or None)
+    off = [f"/world/estimates/{m}" for m in hidden + tucked] + [f"/world/uncertainty/{m}" for m in uncertain or []]
+    controls = None if eye is None else rrb.EyeControls3D(position=eye[0], look_target=eye[1], eye_up=(0.0, -1.0, 0.0))
+    view3d = rrb.Spatial3DView(name="3-D", origin="/world", overrides=_hidden(off) or None, eye_controls=controls)
     return rrb.Blueprint(
         rrb.Vertical(rrb.Horizontal(view3d, rrb.Vertical(*side), column_shares=[3, 2]), rrb.Horizontal(*plots),
                      row_shares=[3, 2]),
         rrb.TimePanel(timeline="frame", fps=float(fps), play_state="paused"),
         collapse_panels=True,
     )
+
+
+def framing(points: np.ndarray, fov_deg: float = 60.0) -> tuple[np.ndarray, np.ndarray] | None:
+    """An eye (position, look target) that frames ``points`` (n × 3, left camera frame, y down):
+    the 2–98 % box of the points in a three-quarter view (from the cameras' side, the right and
+    above: a path along the cameras' axis is seen at length, not end on), at the distance where the
+    box's diagonal fills the view's height."""
+    P = points[np.all(np.isfinite(points), axis=1)]
+    if len(P) < 2:
+        return None
+    lo, hi = np.percentile(P, [2, 98], axis=0)
+    centre, size = (lo + hi) / 2, max(float(np.linalg.norm(hi - lo)), 0.05)
+    back = -centre / (np.linalg.norm(centre) or 1.0)  # towards the cameras (the world origin)
+    view = 0.7 * back + np.array([0.7, -0.45, 0.0])  # right of and above the paths (y is down)
+    view /= np.linalg.norm(view)
+    distance = 0.6 * size / np.tan(np.radians(fov_deg) / 2)
+    return centre + distance * view, centre
 
 
 def ellipsoid_columns(cov: np.ndarray, level: float = 0.95) -> tuple[np.ndarray, np.ndarray]:
@@ -159,6 +187,7 @@ class Recorder:
             self.images = 0
             self.logged: list[str] = []  # point methods logged so far (by :meth:`method`)
             self.uncertain: list[str] = []  # those of them with covariance ellipsoids
+            self.extent: dict[str, np.ndarray] = {}  # each method's 2–98 % box of positions (framing without truth)
             self.markers: set[str] = set()
         except BaseException:
             self.abort()
@@ -247,6 +276,9 @@ class Recorder:
         self._track_events(meth, per_marker, scores)
         if self._ellipsoids(meth, per_marker, n):
             self.uncertain.append(meth)
+        P = np.vstack([t.position for t in per_marker.values()] or [np.empty((0, 3))])
+        if np.isfinite(P).all(axis=1).sum() >= 2:
+            self.extent[meth] = np.nanpercentile(P[np.isfinite(P).all(axis=1)], [2, 98], axis=0)
         self.logged.append(meth)
         self.markers.update(per_marker)
 
@@ -291,14 +323,23 @@ class Recorder:
         self._target(est, est.truth_positions, _frames(est))
         if progress is not None:  # the bar completes: n of n, or 1 of 1 when every method was logged as it finished
             progress(max(len(todo), 1), max(len(todo), 1))
+        lost = runaways(est.metrics)
+        best = [m for m in ranking(est.metrics) if m not in lost and m in self.logged]
         self.rec.send_blueprint(blueprint(1.0 / self.dt, bool(est.target_tracks), bool(info), sorted(self.markers),
-                                          runaways(est.metrics), self.uncertain, est.rig.names), make_active=True,
-                            make_default=True)
+                                          lost, self.uncertain, est.rig.names, tucked=best[SHOWN_METHODS:],
+                                          eye=self._eye(est, best)), make_active=True, make_default=True)
         self.rec.flush()
         self.rec.disconnect()
         _check_reads_back(self.tmp, self.path)
         os.replace(self.tmp, self.path)
         return self.path
+
+    def _eye(self, est: EstimateResult, best: list[str]) -> tuple[np.ndarray, np.ndarray] | None:
+        """The 3-D view's eye, framed on the truth's paths, else on the best method's."""
+        truth = est.truth_positions
+        if truth:
+            return framing(np.vstack([np.asarray(p, dtype=float)[:, :3] for p in truth.values()]))
+        return framing(self.extent[best[0]]) if best and best[0] in self.extent else None
 
     def _rig(self, rig: StereoRig | Rig) -> None:
         """Every camera as a static transform and pinhole in OpenCV's axes."""
@@ -356,13 +397,13 @@ class Recorder:
         ok = np.isfinite(pos).all(axis=2) & np.isfinite(cov).all(axis=(2, 3))  # frame-major, markers in order
         if not ok.any():
             return False
-        frames, lengths = np.flatnonzero(ok.any(axis=1)), ok.sum(axis=1)[ok.any(axis=1)]
-        centers = pos[ok]
+        frames = _logged_frames(ok.sum(axis=1))
+        lengths, centers = ok.sum(axis=1)[frames], pos[ok]
         half, quats = ellipsoid_columns(cov[ok])
         cols = rr.Ellipsoids3D.columns(centers=centers, half_sizes=half, quaternions=quats,
                                        colors=np.tile(method_rgb(meth), (len(centers), 1)).astype(np.uint8),
                                        fill_mode=[rr.components.FillMode.MajorWireframe] * len(centers))
-        self._columns(f"world/uncertainty/{meth}", frames.astype(np.int64), cols.partition(lengths.tolist()))
+        self._columns(f"world/uncertainty/{meth}", frames, cols.partition(lengths.tolist()))
         return True
 
     def _target(self, est: EstimateResult, truth: dict | None, n: int) -> None:

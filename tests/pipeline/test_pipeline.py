@@ -173,8 +173,12 @@ def test_recording_read_back(e2e_run):
         tr = e2e_run.estimate.tracks[meth]["red"]
         p = cols[f"/world/estimates/{meth}/points"]
         started = np.flatnonzero(np.all(np.isfinite(tr.position), axis=1))
-        assert p["frame"] == started.tolist()
-        np.testing.assert_allclose(np.array(p["Points3D:positions"])[:, 0], tr.position[started], atol=1e-5)
+        held = [(k, v) for k, v in zip(p["frame"], p["Points3D:positions"], strict=True) if v]
+        assert [k for k, _ in held] == started.tolist()
+        np.testing.assert_allclose(np.array([v[0] for _, v in held]), tr.position[started], atol=1e-5)
+        # where the track has no estimate after having one, an empty batch: the view shows no stale point
+        gone = [k for k in range(1, len(tr.position)) if k - 1 in started and k not in started]
+        assert [k for k, v in zip(p["frame"], p["Points3D:positions"], strict=True) if not v] == gone
         colours.add(p["Points3D:colors"][0][0])
         e = cols[f"/metrics/error/red/{meth}"]
         want = np.linalg.norm(tr.position - truth, axis=1)
@@ -364,8 +368,9 @@ def test_recording_shows_what_the_run_was(e2e_run):
         assert {lab for v in cols[f"/world/estimates/{meth}/points"]["Points3D:labels"] for lab in v} == {"red"}
         tr = e2e_run.estimate.tracks[meth]["red"]
         seen = cols[f"/world/left/estimates/{meth}"]
-        want = e2e_run.estimate.rig.left.project(tr.position[seen["frame"]])
-        np.testing.assert_allclose(np.array(seen["Points2D:positions"])[:, 0], want, atol=1e-3)
+        held = [(k, v[0]) for k, v in zip(seen["frame"], seen["Points2D:positions"], strict=True) if v]
+        want = e2e_run.estimate.rig.left.project(tr.position[[k for k, _ in held]])
+        np.testing.assert_allclose(np.array([v for _, v in held]), want, atol=1e-3)
         for kind in ("error", "reprojection"):  # one plot per marker, one line per method
             series = cols[f"/metrics/{kind}/red/{meth}"]
             assert series["SeriesLines:names"][0] == [meth]
@@ -381,6 +386,19 @@ def test_recording_shows_what_the_run_was(e2e_run):
     hidden = [p for p, c in bp.items() if c.get("EntityBehavior:visible") == [[False]] or
               c.get("EntityBehavior:visible") == [False]]
     assert any("/overrides/world/uncertainty/ekf/" in p for p in hidden), hidden  # shown on one click
+    # the best three methods (by the run's own 3-D RMSE) shown in 3-D, the rest one click away
+    from pipeline.evaluation.metrics import ranking
+
+    order = [m for m in ranking(e2e_run.estimate.metrics) if m in METHODS]
+    tucked = {m for m in METHODS if any(f"/overrides/world/estimates/{m}/" in p for p in hidden)}
+    assert tucked == set(order[3:]), (tucked, order)
+    # the 3-D eye looks at the middle of the truth's path, from where the whole path fits the view
+    eye = next(c for c in bp.values() if "EyeControls3D:look_target" in c)
+    target, position = np.ravel(eye["EyeControls3D:look_target"][0]), np.ravel(eye["EyeControls3D:position"][0])
+    truth = e2e_run.estimate.truth.positions["red"]
+    lo, hi = np.percentile(truth, [2, 98], axis=0)
+    np.testing.assert_allclose(target, (lo + hi) / 2, atol=1e-6)
+    assert np.linalg.norm(hi - lo) < np.linalg.norm(position - target) < 3 * max(np.linalg.norm(hi - lo), 0.05)
 
 
 @pytest.mark.slow
@@ -403,3 +421,16 @@ def test_the_viewer_dies_with_view(e2e_run, tmp_path):
     proc.wait(timeout=10)
     _, alive = psutil.wait_procs(children, timeout=5)
     assert not [p for p in alive if p.status() != psutil.STATUS_ZOMBIE]
+
+
+def test_a_track_that_ends_leaves_no_point_behind():
+    """The views show the latest batch at the cursor: after a track's last estimate an empty batch
+    is logged, and frames before its first and after the empty one log nothing."""
+    from pipeline.present.recording import _batches
+
+    nan = [np.nan] * 3
+    a = np.array([nan, [0, 0, 1], [0, 0, 2], nan, nan, [0, 0, 5], nan], dtype=float)
+    b = np.array([[1, 0, 1], [1, 0, 1], nan, nan, nan, nan, nan], dtype=float)
+    got = _batches([a, b], 7)
+    assert got.frames.tolist() == [0, 1, 2, 3, 5, 6] and got.lengths.tolist() == [1, 2, 1, 0, 1, 0]
+    assert got.which.tolist() == [1, 0, 1, 0, 0]
