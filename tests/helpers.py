@@ -9,6 +9,7 @@ import shutil
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from tests.conftest import REPO
@@ -52,3 +53,40 @@ def snapshot(folder: Path) -> dict[str, str]:
 
 def failed_checks(out: Path) -> dict[str, str]:
     return {c["name"]: c["message"] for c in json.loads((out / "metrics.json").read_text())["checks"] if not c["ok"]}
+
+
+def opensim_tokens(line: str) -> list[str]:
+    """OpenSim 4.x's ``FileAdapter::tokenize`` on tabs: consecutive tabs give empty tokens, but the
+    text after the last tab is a token only when not empty (a row's empty last cell is dropped)."""
+    parts = line.split("\t")
+    return parts[:-1] if parts[-1] == "" else parts
+
+
+def read_trc(path: Path) -> tuple[dict, list[str], np.ndarray]:
+    """An independent TRC reader (the layout OpenSim documents, rows tokenized as OpenSim's reader
+    does and required to hold every value): header values, marker names, frames × markers × 3."""
+    lines = path.read_text().split("\n")
+    keys, values = lines[1].split("\t"), lines[2].split("\t")
+    head = dict(zip(keys, values, strict=True))
+    names = [n for n in lines[3].split("\t")[2:] if n]
+    rows = [opensim_tokens(ln) for ln in lines[5:] if ln.strip()]
+    assert all(len(r) == 2 + 3 * len(names) for r in rows), "a row OpenSim reads a value short"
+    data = np.array([[float(c) if c else np.nan for c in r[2:]] for r in rows]).reshape(len(rows), len(names), 3)
+    p_names, p_data = pose2sim_trc(path)
+    assert p_names == names and p_data.shape == data.shape, "Pose2Sim's layout reads other markers or frames"
+    np.testing.assert_array_equal(p_data, data)  # every value, NaN for NaN: the two readers agree exactly
+    return head, names, data
+
+
+def pose2sim_trc(path: Path) -> tuple[list[str], np.ndarray]:
+    """A TRC read the way Pose2Sim reads one: the marker names every third cell of the fourth line
+    from the third, the values by ``pandas.read_csv(sep="\\t", skiprows=4)`` without the first two
+    columns (a row with too many cells is an error there; a short one is filled with NaN)."""
+    import pandas as pd
+
+    with open(path) as f:
+        header = [next(f) for _ in range(5)]
+    names = [m.strip() for m in header[3].split("\t")[2::3] if m.strip()]
+    df = pd.read_csv(path, sep="\t", skiprows=4, encoding="utf-8")
+    values = df.drop(df.columns[[0, 1]], axis=1).to_numpy(dtype=float)
+    return names, values.reshape(len(df), len(names), 3)

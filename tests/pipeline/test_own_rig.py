@@ -17,7 +17,7 @@ from pipeline.core.clip import Clip
 from pipeline.core.settings import RunSettings
 from pipeline.estimate import estimate_clip
 from tests.conftest import BALL
-from tests.helpers import RED, assert_one_line_error, cli, real_copy
+from tests.helpers import RED, assert_one_line_error, cli, read_trc, real_copy
 
 
 def frame_folders(dest: Path, frames: int = 30) -> Path:
@@ -84,26 +84,6 @@ def test_bad_clip_settings_are_one_line(tmp_path, monkeypatch, capsys, text, exp
     assert_one_line_error(rc, out, err, "clip.yaml: " + expected)
     rc, out, err = cli(monkeypatch, capsys, "run", real_copy(tmp_path / "other"), "--markers", RED, "--fps", "0")
     assert_one_line_error(rc, out, err, "--fps must be a positive number")
-
-
-def opensim_tokens(line: str) -> list[str]:
-    """OpenSim 4.x's ``FileAdapter::tokenize`` on tabs: consecutive tabs give empty tokens, but the
-    text after the last tab is a token only when not empty (a row's empty last cell is dropped)."""
-    parts = line.split("\t")
-    return parts[:-1] if parts[-1] == "" else parts
-
-
-def read_trc(path: Path) -> tuple[dict, list[str], np.ndarray]:
-    """An independent TRC reader (the layout OpenSim documents, rows tokenized as OpenSim's reader
-    does and required to hold every value): header values, marker names, frames × markers × 3."""
-    lines = path.read_text().split("\n")
-    keys, values = lines[1].split("\t"), lines[2].split("\t")
-    head = dict(zip(keys, values, strict=True))
-    names = [n for n in lines[3].split("\t")[2:] if n]
-    rows = [opensim_tokens(ln) for ln in lines[5:] if ln.strip()]
-    assert all(len(r) == 2 + 3 * len(names) for r in rows), "a row OpenSim reads a value short"
-    data = np.array([[float(c) if c else np.nan for c in r[2:]] for r in rows])
-    return head, names, data.reshape(len(rows), len(names), 3)
 
 
 @pytest.fixture(scope="module")
