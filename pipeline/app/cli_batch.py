@@ -171,14 +171,15 @@ def _print_batch(outcomes: list, output: Path) -> None:
     rows = method_rows(outcomes)
     table = Table(title=f"{len(outcomes)} clips: 3-D RMSE (mm) of each method across clips",
                   caption="steps/s is wall-clock on this machine and varies with its load")
-    for col in ("method", "clips", "mean", "95 % CI", "median", "runaway", "failed", "steps/s"):
+    for col in ("method", "clips", "mean", "95 % CI", "vs best, paired", "median", "runaway", "failed", "steps/s"):
         table.add_column(col, justify="left" if col == "method" else "right", no_wrap=True)
-    for r in rows:
-        from pipeline.present.summary import interval
+    from pipeline.present.summary import interval
 
+    for r in rows:  # best first
         ci = interval(r["mean_ci_low_m"], r["mean_ci_high_m"])
+        paired = interval(r["paired_diff_ci_low_m"], r["paired_diff_ci_high_m"], signed=True)
         table.add_row(r["method"], str(r["clips"]), fmt_value(r["mean_rmse_m"] and 1000 * r["mean_rmse_m"], ".2f"), ci,
-                      fmt_value(r["median_rmse_m"] and 1000 * r["median_rmse_m"], ".2f"), str(r["runaways"]),
+                      paired, fmt_value(r["median_rmse_m"] and 1000 * r["median_rmse_m"], ".2f"), str(r["runaways"]),
                       str(r["failures"]), fmt_value(r["median_steps_per_second"], ",.0f"))
     out.print(table)
     bad = [o for o in outcomes if o.status == "failed" or clip_warnings(o)]

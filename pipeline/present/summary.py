@@ -50,6 +50,11 @@ METHODS_SUMMARY = Schema("OUT/summary_methods.csv", "one method across the batch
                        "(a consistent filter: 1; filters only, no truth needed)",
     "median_nis_in_95": "median over the clips of the share of frames whose NIS lies in the 95 % χ² band (filters)",
     "restarts": "restarts over the clips (a track gated too long, or back from a gap, began again)",
+    "paired_clips": "clips where both it and the best method (lowest mean 3-D RMSE) scored",
+    "paired_diff_m": "mean over those clips of its 3-D RMSE minus the best method's, m (clips share difficulty: "
+                     "the paired difference separates methods whose intervals across clips overlap)",
+    "paired_diff_ci_low_m": "Student-t 95 % interval for that paired mean difference, m",
+    "paired_diff_ci_high_m": "Student-t 95 % interval for that paired mean difference, m",
 })
 SUMMARY_COLUMNS, METHOD_COLUMNS = SUMMARY.names, METHODS_SUMMARY.names
 
@@ -73,15 +78,17 @@ def clip_warnings(o: ClipOutcome) -> list[str]:
     return [c.get("message", "") for c in (o.metrics or {}).get("checks", []) if not c.get("ok")]
 
 
-def mean_ci(x: np.ndarray, level: float = 0.95) -> tuple[float, float]:
+def mean_ci(x: np.ndarray, level: float = 0.95, clip: bool = True) -> tuple[float, float]:
     """Student-t interval for the mean of ``x`` (NaNs when fewer than two values), its lower end
-    clipped at 0 (errors are never negative; few, skewed clips can put the t interval below)."""
+    clipped at 0 unless ``clip`` is False (errors are never negative; few, skewed clips can put
+    the t interval below; a difference of errors can be)."""
     from scipy import stats
 
     if len(x) < 2:
         return math.nan, math.nan
     half = stats.t.ppf(0.5 + level / 2, len(x) - 1) * np.std(x, ddof=1) / math.sqrt(len(x))
-    return max(0.0, float(np.mean(x) - half)), float(np.mean(x) + half)
+    lo = float(np.mean(x) - half)
+    return (max(0.0, lo) if clip else lo), float(np.mean(x) + half)
 
 
 def median_ci(x: np.ndarray, level: float = 0.95) -> tuple[float, float]:
@@ -106,6 +113,7 @@ class MethodRow:
     """One method across the batch's clips."""
     method: str
     rmse: list[float] = field(default_factory=list)
+    by_clip: dict[str, float] = field(default_factory=dict)  # the same RMSEs, by clip (to pair methods)
     speed: list[float] = field(default_factory=list)
     runaways: int = 0
     failures: int = 0
@@ -160,18 +168,39 @@ def method_rows(outcomes: list[ClipOutcome]) -> list[dict[str, Any]]:
             v = e.get("rmse")
             if isinstance(v, (int, float)) and math.isfinite(v):
                 row.rmse.append(float(v))
+                row.by_clip[o.clip] = float(v)
             elif (o.metrics or {}).get("has_truth"):
                 row.failures += 1
             if e.get("steps_per_second"):
                 row.speed.append(float(e["steps_per_second"]))
             row.runaways += m in away
             row.measure(e)
-    return [r.values() for r in rows.values()]
+    return ranked([r.values() | {"_by_clip": r.by_clip} for r in rows.values()])
 
 
-def interval(lo: float, hi: float) -> str:
-    """An interval in m as ``lo–hi`` mm (``—`` when there is none)."""
-    return "—" if not (math.isfinite(lo) and math.isfinite(hi)) else f"{1000 * lo:.2f}–{1000 * hi:.2f}"
+def ranked(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The rows sorted by mean 3-D RMSE (methods with none last, in their order), each with its
+    paired difference to the first (the best): over the clips both scored, the mean of its RMSE
+    minus the best's and a Student-t 95 % interval for it. Clips share their difficulty, so
+    intervals across clips overlap for every good method while the paired one separates them."""
+    rows = sorted(rows, key=lambda r: r["mean_rmse_m"] if r["mean_rmse_m"] is not None else math.inf)
+    best = rows[0]["_by_clip"] if rows else {}
+    for r in rows:
+        mine = r.pop("_by_clip")
+        both = [c for c in mine if c in best]
+        d = np.array([mine[c] - best[c] for c in both])
+        lo, hi = mean_ci(d, clip=False)
+        r |= {"paired_clips": len(both), "paired_diff_m": float(d.mean()) if len(d) else None,
+              "paired_diff_ci_low_m": lo, "paired_diff_ci_high_m": hi}
+    return rows
+
+
+def interval(lo: float, hi: float, signed: bool = False) -> str:
+    """An interval in m as ``lo–hi`` mm (``—`` when there is none); ``signed``: with signs (a difference)."""
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        return "—"
+    f = "+.2f" if signed else ".2f"
+    return f"{1000 * lo:{f}} to {1000 * hi:{f}}" if signed else f"{1000 * lo:{f}}–{1000 * hi:{f}}"
 
 
 def leaderboard(rows: list[dict[str, Any]]) -> Table:
@@ -183,12 +212,17 @@ def leaderboard(rows: list[dict[str, Any]]) -> Table:
             Column("95 % CI of mean", [interval(r["mean_ci_low_m"], r["mean_ci_high_m"]) for r in rows]),
             Column("median (mm)", get("median_rmse_m"), mm, "min"),
             Column("95 % CI of median", [interval(r["median_ci_low_m"], r["median_ci_high_m"]) for r in rows]),
+            Column("vs best, paired (mm)", get("paired_diff_m"), number("+.2f", 1000)),
+            Column("95 % CI, paired", [interval(r["paired_diff_ci_low_m"], r["paired_diff_ci_high_m"], signed=True)
+                                       for r in rows]),
             Column("runaways", get("runaways"), number("d"), "min"),
             Column("failures", get("failures"), number("d"), "min"),
             Column("steps/s (median)", get("median_steps_per_second"), number(",.0f"))]
     return Table("method", [r["method"] for r in rows], cols,
-                 ["Intervals across clips: Student t for the mean (lower end clipped at 0), binomial order "
-                  "statistics for the median (none below 6 clips). A runaway's error is over 10× its clip's median; "
+                 ["Best first, by mean 3-D RMSE. Intervals across clips: Student t for the mean (lower end clipped "
+                  "at 0), binomial order statistics for the median (none below 6 clips). Paired: each method's RMSE "
+                  "minus the best method's on the same clips, its mean and Student-t interval (an interval above 0: "
+                  "worse than the best beyond the clips' spread). A runaway's error is over 10× its clip's median; "
                   "a failure scored nothing. steps/s is wall-clock and varies with load."])
 
 

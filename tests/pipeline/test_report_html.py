@@ -135,7 +135,9 @@ def test_batch_summary_html(tmp_path):
     out = tmp_path / "out"
     run_batch(inp, out, RunSettings(methods=["triangulation", "ekf"], images=False, figures=False), workers=1)
     page = parse(out / "summary.html")
-    assert page.rows[:2] == ["triangulation", "ekf"] and {"a", "b", "c"} <= set(page.rows)
+    board = read_csv(out / "summary_methods.csv")
+    assert page.rows[:2] == list(board["method"]) and {"a", "b", "c"} <= set(page.rows)
+    assert list(board["mean_rmse_m"]) == sorted(board["mean_rmse_m"])  # best first
     links = [v for k, v in page.attrs if k == "href"]
     assert len(links) == 3 and all((out / v).is_file() for v in links)
     text = (out / "summary.html").read_text()
@@ -258,3 +260,27 @@ def test_no_filter_is_marked_best_at_consistency_when_all_fail():
     assert all(c.best_row() is None for c in failing.columns)
     mixed = consistency_table({"methods": {"ekf": entry(1.05, 0.90), "ukf": entry(9.0, 0.70), "kf3d": entry(0.7, 0.95)}})
     assert [c.best_row() for c in mixed.columns] == [0, 2, 0, 2]
+
+
+def test_leaderboard_is_best_first_with_paired_differences():
+    """Clips differ in difficulty far more than methods do: every method's interval across clips
+    overlaps the best's, but the paired differences (same clips) separate a method 0.5 mm worse
+    on every clip from one as good as the best, and the board is sorted by mean error."""
+    from pipeline.present.summary import ClipOutcome, leaderboard, method_rows
+
+    rng = np.random.default_rng(3)
+    hard = [0.002, 0.010, 0.030, 0.006, 0.050, 0.015]  # each clip's difficulty, m
+    err = {"worse": [h + 0.0005 + rng.normal(0, 1e-5) for h in hard], "best": list(hard),
+           "twin": [h + rng.normal(0, 1e-5) for h in hard]}
+    outcomes = [ClipOutcome(f"c{i}", "ok", {"has_truth": True, "methods": {m: {"rmse": e[i]} for m, e in err.items()}})
+                for i in range(len(hard))]
+    rows = {r["method"]: r for r in method_rows(outcomes)}
+    assert list(rows) == ["best", "twin", "worse"]  # best first
+    worse, twin = rows["worse"], rows["twin"]
+    assert worse["mean_ci_low_m"] < rows["best"]["mean_rmse_m"] < worse["mean_ci_high_m"]  # unpaired: overlap
+    assert 0 < worse["paired_diff_ci_low_m"] < 0.0005 < worse["paired_diff_ci_high_m"]  # paired: above 0, holds 0.5 mm
+    assert twin["paired_diff_ci_low_m"] < 0 < twin["paired_diff_ci_high_m"] and worse["paired_clips"] == 6
+    assert rows["best"]["paired_diff_m"] == 0.0
+    text = "\n".join(str(c) for c in leaderboard(list(rows.values())).columns)
+    assert "vs best, paired (mm)" in text
+
