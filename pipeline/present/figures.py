@@ -186,12 +186,13 @@ def fig_target(data: ReportData, plt) -> tuple[object, str] | None:
     if not data.target:
         return None
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
-    for ax, col, ylabel in ((axes[0], "alpha", "α (rad)"), (axes[1], "distance", "z (m)")):
+    for ax, col, ylabel in ((axes[0], "alpha", "α (mrad)"), (axes[1], "distance", "z (mm)")):  # as the tables
         if data.target_truth is not None:
-            ax.plot(*_envelope(data.target_truth[col], data.target_truth["t"]), label="truth", **TRUTH_STYLE)
+            ax.plot(*_envelope(1000 * np.asarray(data.target_truth[col], dtype=float), data.target_truth["t"]),
+                    label="truth", **TRUTH_STYLE)
         for meth, cols in data.target.items():
-            ax.plot(*_envelope(cols[col], cols["t"]), method_linestyle(meth), color=method_colour(meth), lw=1,
-                    label=meth)
+            ax.plot(*_envelope(1000 * np.asarray(cols[col], dtype=float), cols["t"]), method_linestyle(meth),
+                    color=method_colour(meth), lw=1, label=meth)
         ax.set(xlabel="t (s)", ylabel=ylabel, title=f"target {ylabel.split()[0]}")
         ax.grid(alpha=0.3)
     _legend(fig, axes)

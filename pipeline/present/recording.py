@@ -40,8 +40,15 @@ if TYPE_CHECKING:
 #: 3-D sizes in UI points (negative: rerun's screen-space radii, the same size at any zoom): truth
 #: small and light grey inside each method's larger sphere in its colour, paths thin
 TRUTH_RADIUS, POINT_RADIUS, PATH_RADIUS = -3.0, -5.0, -1.0
-#: methods shown in the 3-D and camera views at first open (the best by the run's ranking); the rest are one click away
+#: methods shown in the 3-D, camera and error views at first open (the best by the run's ranking); the rest one click away
 SHOWN_METHODS = 3
+
+
+def _legend():
+    """The plots' legend: in the top-right corner (its series one click from hidden)."""
+    import rerun.blueprint as rrb
+
+    return rrb.PlotLegend(corner=rrb.Corner2D.RightTop, visible=True)
 
 
 def _hidden(paths: list[str]):
@@ -51,10 +58,11 @@ def _hidden(paths: list[str]):
 
 
 def _series_tabs(kind: str, title: str, markers: list[str], hidden: list[str]):
-    """One time-series view per marker (one line per method), as tabs; runaway methods hidden."""
+    """One time-series view per marker (one line per method), as tabs; ``hidden`` methods (runaways,
+    and those after the best few) hidden until shown, so the legend in its corner stays short."""
     import rerun.blueprint as rrb
 
-    views = [rrb.TimeSeriesView(name=f"{title} · {mk}", origin=f"/metrics/{kind}/{mk}",
+    views = [rrb.TimeSeriesView(name=f"{title} · {mk}", origin=f"/metrics/{kind}/{mk}", plot_legend=_legend(),
                                 overrides=_hidden([f"/metrics/{kind}/{mk}/{m}" for m in hidden]) or None)
              for mk in markers]
     return rrb.Tabs(*views) if views else None
@@ -102,17 +110,18 @@ def blueprint(fps: float = 30.0, target: bool = False, info: bool = False, marke
     per marker, the 3-D and reprojection errors with one line per method, and the four-point
     target's α and z when the run has the target; the run's description when given. ``hidden``
     (runaway methods) start hidden everywhere, ``tucked`` (the methods after the best few) in the
-    3-D and camera views, and the covariance ellipsoids of ``uncertain`` too: one click in the
+    3-D, camera and error views, and the covariance ellipsoids of ``uncertain`` too: one click in the
     blueprint tree shows each. ``eye``: (position, look target) of the 3-D view. The time panel
     opens on the ``frame`` timeline at the clip's frame rate."""
     import rerun.blueprint as rrb
 
     hidden, markers, tucked = list(hidden or []), list(markers or []), list(tucked or [])
-    plots = [t for t in (_series_tabs("error", "3-D error (mm)", markers, hidden),
-                         _series_tabs("reprojection", "reprojection error (px)", markers, hidden)) if t is not None]
+    plots = [t for t in (_series_tabs("error", "3-D error (mm)", markers, hidden + tucked),
+                         _series_tabs("reprojection", "reprojection error (px)", markers, hidden + tucked))
+             if t is not None]
     if target:
-        plots += [rrb.TimeSeriesView(name="target α (rad)", origin="/metrics/target/alpha"),
-                  rrb.TimeSeriesView(name="target z (m)", origin="/metrics/target/distance")]
+        plots += [rrb.TimeSeriesView(name="target α (mrad)", origin="/metrics/target/alpha", plot_legend=_legend()),
+                  rrb.TimeSeriesView(name="target z (mm)", origin="/metrics/target/distance", plot_legend=_legend())]
     side: list[rrb.Spatial2DView | rrb.TextDocumentView | rrb.Grid] = [rrb.Spatial2DView(name=f"{c} camera", origin=f"/world/{c}",
                               overrides=_hidden([f"/world/{c}/estimates/{m}" for m in hidden + tucked]) or None)
             for c in cameras]
@@ -359,7 +368,8 @@ class Recorder:
         tp = _batches([truth[m] for m in there], n, finite=False) if truth is not None else None
         for c, name in enumerate(est.rig.names):
             det = _batches([obs[m][:, 2 * c : 2 * c + 2] for m in markers], n)
-            self._points(f"world/{name}/detections", det, mcol[det.which], [markers[j] for j in det.which], "2d", 3.0)
+            self._points(f"world/{name}/detections", det, mcol[det.which], [markers[j] for j in det.which], "2d", 3.0,
+                         show_labels=False)  # labels on hover: drawn, they cover the blobs at the pane's size
             if tp is not None:
                 proj = _Batches(tp.frames, tp.lengths, est.rig.cameras[c].project(tp.points), tp.which)
                 self._points(f"world/{name}/truth", proj, np.tile(TRUTH_RGB_VIEWER, (len(proj.points), 1)), None, "2d", 2.0)
@@ -427,12 +437,12 @@ class Recorder:
             self._points(f"world/estimates/{meth}/points", pts, np.tile(rgb, (len(pts.points), 1)),
                          ["centre"] * len(pts.points), "3d", POINT_RADIUS, show_labels=False)
             self._paths(f"world/estimates/{meth}/path", [tr.position], rgb)
-            self._scalars(f"metrics/target/alpha/{meth}", tr.extra["alpha"], meth, rgb)
-            self._scalars(f"metrics/target/distance/{meth}", tr.extra["distance"], meth, rgb)
+            self._scalars(f"metrics/target/alpha/{meth}", 1000.0 * tr.extra["alpha"], meth, rgb)  # mrad, mm: as the tables
+            self._scalars(f"metrics/target/distance/{meth}", 1000.0 * tr.extra["distance"], meth, rgb)
         tg = est.target
         if tg.alpha is not None and tg.distance is not None:
-            self._scalars("metrics/target/alpha/truth", tg.alpha, "truth", TRUTH_RGB_VIEWER)
-            self._scalars("metrics/target/distance/truth", tg.distance, "truth", TRUTH_RGB_VIEWER)
+            self._scalars("metrics/target/alpha/truth", 1000.0 * np.asarray(tg.alpha), "truth", TRUTH_RGB_VIEWER)
+            self._scalars("metrics/target/distance/truth", 1000.0 * np.asarray(tg.distance), "truth", TRUTH_RGB_VIEWER)
 
     def abort(self) -> None:
         """Stop recording and remove the partial file (after the file sink has closed it, so that

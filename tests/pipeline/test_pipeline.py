@@ -202,6 +202,10 @@ def test_run_cli_on_sample_clip(tmp_path):
     assert cols["/metrics/target/alpha/kalman_bucy"]["SeriesLines:names"][0] == ["kalman_bucy"]
     assert cols["/metrics/target/alpha/truth"]["SeriesLines:colors"][0] == [packed(TRUTH_RGB_VIEWER)]
     assert len(cols["/world/truth/plate"]["LineStrips3D:strips"][0][0]) == 5  # a closed outline of 4 corners
+    est = read_csv(clip / "out" / "estimates" / "kalman_bucy.csv", ["frame", "alpha", "distance"])
+    for key, name in (("alpha", "alpha"), ("distance", "distance")):  # mrad and mm, as the report's tables
+        series = cols[f"/metrics/target/{name}/kalman_bucy"]
+        np.testing.assert_allclose(np.ravel(series["Scalars:scalars"]), 1000 * est[key][series["frame"]], rtol=1e-6)
     centre = cols["/world/estimates/kalman_bucy/points"]["Points3D:positions"]
     truth = read_csv(clip / "truth.csv")
     corners = np.array([truth["x"], truth["y"], truth["z"]]).T[truth["frame"] == 10]
@@ -392,6 +396,8 @@ def test_recording_shows_what_the_run_was(e2e_run):
     order = [m for m in ranking(e2e_run.estimate.metrics) if m in METHODS]
     tucked = {m for m in METHODS if any(f"/overrides/world/estimates/{m}/" in p for p in hidden)}
     assert tucked == set(order[3:]), (tucked, order)
+    plotted_off = {m for m in METHODS if any(f"/overrides/metrics/error/red/{m}" in p for p in hidden)}
+    assert plotted_off == set(order[3:]), plotted_off  # the error plots show the same three
     # the 3-D eye looks at the middle of the truth's path, from where the whole path fits the view
     eye = next(c for c in bp.values() if "EyeControls3D:look_target" in c)
     target, position = np.ravel(eye["EyeControls3D:look_target"][0]), np.ravel(eye["EyeControls3D:position"][0])
