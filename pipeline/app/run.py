@@ -76,6 +76,20 @@ def run_description(clip: Path, detector: str, metrics: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _reference_videos(recorder: Recorder, clip: Clip) -> None:
+    """Each camera whose footage is an H.264 video the recording references instead of copying its
+    frames; only where frame k of the run is the video's k-th frame (no ``timestamps.csv`` pairing
+    frames by time)."""
+    from pipeline.core.frames import VIDEO_EXTS, find_camera_source
+
+    if clip.timestamps is not None:
+        return
+    for cam in clip.cameras:
+        src = find_camera_source(clip.folder, cam)
+        if src.suffix.lower() in VIDEO_EXTS:
+            recorder.reference_video(cam, src)
+
+
 def _process_clip(clip_: Clip, out_dir: Path, settings: RunSettings, hooks: RunHooks, keep_tracks: bool) -> RunResult:
     t0 = time.perf_counter()
     clip = clip_.path  # the clip is read once, handed to every stage
@@ -84,6 +98,8 @@ def _process_clip(clip_: Clip, out_dir: Path, settings: RunSettings, hooks: RunH
         if settings.recording:
             recorder = Recorder(Outputs(out_dir).recording, dt, name=f"{clip.name} · stereotrack run",
                                 cameras=clip_.cameras)
+        if recorder is not None and settings.images:
+            _reference_videos(recorder, clip_)
         hooks.say("detect (frame pairs)")
         sink = recorder.log_frame if recorder is not None and settings.images else None
         det = detect_clip(clip_, settings, out_dir, replace(hooks, frame=sink))

@@ -24,6 +24,17 @@ IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 _FRAME_NUMBER = re.compile(r"(\d+)$")
 
 
+def video_codec(path: Path) -> str:
+    """A video file's codec tag as FFmpeg reports it, lower case (``avc1``/``h264`` for H.264,
+    ``fmp4`` for MPEG-4 Part 2); empty when it is no video OpenCV opens."""
+    cap = cv2.VideoCapture(str(path))
+    try:
+        tag = int(cap.get(cv2.CAP_PROP_FOURCC)) if cap.isOpened() else 0
+    finally:
+        cap.release()
+    return tag.to_bytes(4, "little").decode("ascii", "replace").strip("\x00 ").lower() if tag > 0 else ""
+
+
 def find_camera_source(clip_dir: Path, name: str) -> Path:
     """``<name>.<video ext>`` or a ``<name>/`` folder of frames inside ``clip_dir``."""
     for ext in VIDEO_EXTS:

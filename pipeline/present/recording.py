@@ -42,6 +42,8 @@ if TYPE_CHECKING:
 TRUTH_RADIUS, POINT_RADIUS, PATH_RADIUS = -3.0, -5.0, -1.0
 #: methods shown in the 3-D, camera and error views at first open (the best by the run's ranking); the rest one click away
 SHOWN_METHODS = 3
+#: video codecs (FFmpeg's tags) the viewer decodes in every build: H.264; MPEG-4 Part 2 it cannot
+VIEWER_CODECS = frozenset({"avc1", "h264"})
 
 
 def _legend():
@@ -105,18 +107,19 @@ def _logged_frames(counts: np.ndarray) -> np.ndarray:
 def blueprint(fps: float = 30.0, target: bool = False, info: bool = False, markers: list[str] | None = None,
               hidden: list[str] | None = None, uncertain: list[str] | None = None,
               cameras: tuple[str, ...] = ("left", "right"), tucked: list[str] | None = None,
-              eye: tuple[np.ndarray, np.ndarray] | None = None):
+              eye: tuple[np.ndarray, np.ndarray] | None = None, truth: bool = True):
     """3-D view (each point at the cursor over its static path) beside the camera views; below,
     per marker, the 3-D and reprojection errors with one line per method, and the four-point
     target's α and z when the run has the target; the run's description when given. ``hidden``
     (runaway methods) start hidden everywhere, ``tucked`` (the methods after the best few) in the
     3-D, camera and error views, and the covariance ellipsoids of ``uncertain`` too: one click in the
-    blueprint tree shows each. ``eye``: (position, look target) of the 3-D view. The time panel
-    opens on the ``frame`` timeline at the clip's frame rate."""
+    blueprint tree shows each. ``eye``: (position, look target) of the 3-D view; without ``truth``
+    no 3-D error plots (they would stay empty). The time panel opens on the ``frame`` timeline at
+    the clip's frame rate."""
     import rerun.blueprint as rrb
 
     hidden, markers, tucked = list(hidden or []), list(markers or []), list(tucked or [])
-    plots = [t for t in (_series_tabs("error", "3-D error (mm)", markers, hidden + tucked),
+    plots = [t for t in (_series_tabs("error", "3-D error (mm)", markers if truth else [], hidden + tucked),
                          _series_tabs("reprojection", "reprojection error (px)", markers, hidden + tucked))
              if t is not None]
     if target:
@@ -198,6 +201,7 @@ class Recorder:
             self.uncertain: list[str] = []  # those of them with covariance ellipsoids
             self.extent: dict[str, np.ndarray] = {}  # each method's 2–98 % box of positions (framing without truth)
             self.markers: set[str] = set()
+            self.videos: set[str] = set()  # cameras whose video file is referenced (no JPEG copies)
         except BaseException:
             self.abort()
             raise
@@ -213,9 +217,31 @@ class Recorder:
         self.rec.set_time("frame", sequence=k)
         self.rec.set_time("time", duration=k * self.dt)
 
+    def reference_video(self, camera: str, path: Path) -> bool:
+        """Log ``camera``'s video file itself, once (``AssetVideo``: its H.264 stream, not a JPEG copy
+        of every frame), and a reference to each of its frames on the ``frame`` timeline (frame k:
+        the k-th in presentation order, as the detect stage decodes them). False, logging nothing,
+        for a codec the viewer cannot decode everywhere (MPEG-4 Part 2, as rendered clips are):
+        :meth:`log_frame` then logs that camera's frames as JPEG."""
+        import rerun as rr
+
+        from pipeline.core.frames import video_codec
+
+        if video_codec(path) not in VIEWER_CODECS:
+            return False
+        asset = rr.AssetVideo(path=path)
+        entity = f"world/{camera}/video"
+        self.rec.log(entity, asset, static=True)
+        ts = np.asarray(asset.read_frame_timestamps_nanos(), dtype=np.int64)
+        k = np.arange(len(ts), dtype=np.int64)
+        self.rec.send_columns(entity, indexes=[rr.TimeColumn("frame", sequence=k), rr.TimeColumn("time", duration=k * self.dt)],
+                              columns=rr.VideoFrameReference.columns_nanos(ts))
+        self.videos.add(camera)
+        return True
+
     def log_frame(self, k: int, *images: np.ndarray | None) -> None:
         """Every camera's image of frame ``k`` as JPEG, in :attr:`cameras`' order (a missing frame
-        is skipped)."""
+        is skipped, and so is a camera whose video is referenced: :meth:`reference_video`)."""
         import cv2
         import rerun as rr
 
@@ -223,7 +249,7 @@ class Recorder:
             return
         self._time(k)
         for img, name in zip(images, self.cameras, strict=False):
-            if img is not None:
+            if img is not None and name not in self.videos:
                 ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, self.quality])
                 if ok:
                     self.rec.log(f"world/{name}/image", rr.EncodedImage(contents=buf.tobytes(), media_type="image/jpeg"))
@@ -336,7 +362,8 @@ class Recorder:
         best = [m for m in ranking(est.metrics) if m not in lost and m in self.logged]
         self.rec.send_blueprint(blueprint(1.0 / self.dt, bool(est.target_tracks), bool(info), sorted(self.markers),
                                           lost, self.uncertain, est.rig.names, tucked=best[SHOWN_METHODS:],
-                                          eye=self._eye(est, best)), make_active=True, make_default=True)
+                                          eye=self._eye(est, best), truth=bool(est.truth_positions)),
+                                make_active=True, make_default=True)
         self.rec.flush()
         self.rec.disconnect()
         _check_reads_back(self.tmp, self.path)

@@ -440,3 +440,55 @@ def test_a_track_that_ends_leaves_no_point_behind():
     got = _batches([a, b], 7)
     assert got.frames.tolist() == [0, 1, 2, 3, 5, 6] and got.lengths.tolist() == [1, 2, 1, 0, 1, 0]
     assert got.which.tolist() == [1, 0, 1, 0, 0]
+
+
+def h264_copy(src: Path, dst: Path) -> None:
+    """``src`` re-encoded as H.264 (PyAV's libx264, near-lossless), as a real camera's footage is."""
+    import av
+    import cv2
+
+    cap = cv2.VideoCapture(str(src))
+    fps = round(cap.get(cv2.CAP_PROP_FPS) or 30)
+    with av.open(str(dst), "w") as out:
+        stream = out.add_stream("libx264", rate=fps, options={"crf": "12", "preset": "veryfast"})
+        ok, frame = cap.read()
+        stream.width, stream.height, stream.pix_fmt = frame.shape[1], frame.shape[0], "yuv420p"
+        while ok:
+            out.mux(stream.encode(av.VideoFrame.from_ndarray(frame, format="bgr24")))
+            ok, frame = cap.read()
+        out.mux(stream.encode())
+
+
+@pytest.mark.slow
+def test_an_h264_clip_is_referenced_not_copied(tmp_path):
+    """#41 (video instead of copies): a clip whose cameras are H.264 videos: the recording holds
+    each video once (AssetVideo) and a frame reference per frame, at each frame's own video time,
+    and no JPEG copy; the same clip in MPEG-4 Part 2 (which the viewer cannot decode) keeps its
+    JPEG frames. The recording of the H.264 clip is several times smaller."""
+    from rerun import AssetVideo
+
+    from pipeline.app.run import process_clip
+
+    mpeg4, h264 = tmp_path / "mpeg4", tmp_path / "h264"
+    shutil.copytree(REPO / "data" / "clips" / "sample_small", mpeg4)
+    (mpeg4 / "truth.csv").unlink()  # footage from a real rig: no truth
+    shutil.copytree(mpeg4, h264)
+    for cam in ("left", "right"):
+        h264_copy(mpeg4 / f"{cam}.mp4", h264 / f"{cam}.mp4")
+    settings = RunSettings(methods=["triangulation"])
+    runs = {c.name: process_clip(c, settings=settings) for c in (mpeg4, h264)}
+    cols, static, reader = read_recording(runs["h264"].recording)
+    for cam in ("left", "right"):
+        assert f"/world/{cam}/image" not in cols and f"/world/{cam}/video" in static
+        refs = cols[f"/world/{cam}/video"]
+        want = AssetVideo(path=h264 / f"{cam}.mp4").read_frame_timestamps_nanos()
+        n = len(want)
+        assert refs["frame"][-n:] == list(range(n)) and n == runs["h264"].estimate.n_frames
+        got = [v[0] for v in refs["VideoFrameReference:timestamp"] if v]
+        assert got == list(want)
+    origins = [o for c in blueprint_columns(reader).values() for v in c.get("ViewBlueprint:space_origin", []) for o in v]
+    assert not any(o.startswith("/metrics/error") for o in origins)  # no truth: no 3-D error plot to stay empty
+    assert any(o.startswith("/metrics/reprojection") for o in origins)
+    old, _, _ = read_recording(runs["mpeg4"].recording)
+    assert "/world/left/video" not in old and len(old["/world/left/image"]["frame"]) == runs["mpeg4"].estimate.n_frames
+    assert runs["h264"].recording.stat().st_size * 2 < runs["mpeg4"].recording.stat().st_size
