@@ -17,7 +17,6 @@ from pipeline.app.cli_common import (
     TimeOffsetOption,
     app,
     clip_format,
-    fmt_value,
     marker_specs,
     method_configs,
     method_list,
@@ -169,18 +168,14 @@ def _print_batch(outcomes: list, output: Path) -> None:
     from pipeline.present.summary import clip_warnings, method_rows
 
     rows = method_rows(outcomes)
-    table = Table(title=f"{len(outcomes)} clips: 3-D RMSE (mm) of each method across clips",
-                  caption="steps/s is wall-clock on this machine and varies with its load")
-    for col in ("method", "clips", "mean", "95 % CI", "vs best, paired", "median", "runaway", "failed", "steps/s"):
+    table = Table(title=f"{len(outcomes)} clips: 3-D RMSE (mm) of each method, best first",
+                  caption="vs best: paired, same clips · away: runaways · more in summary.html")
+    for col in ("method", "clips", "mean ±95%", "vs best ±95%", "away", "failed"):  # fits 80 columns
         table.add_column(col, justify="left" if col == "method" else "right", no_wrap=True)
-    from pipeline.present.summary import interval
-
     for r in rows:  # best first
-        ci = interval(r["mean_ci_low_m"], r["mean_ci_high_m"])
-        paired = interval(r["paired_diff_ci_low_m"], r["paired_diff_ci_high_m"], signed=True)
-        table.add_row(r["method"], str(r["clips"]), fmt_value(r["mean_rmse_m"] and 1000 * r["mean_rmse_m"], ".2f"), ci,
-                      paired, fmt_value(r["median_rmse_m"] and 1000 * r["median_rmse_m"], ".2f"), str(r["runaways"]),
-                      str(r["failures"]), fmt_value(r["median_steps_per_second"], ",.0f"))
+        table.add_row(r["method"], str(r["clips"]), _plus_minus(r["mean_rmse_m"], r["mean_ci_low_m"], r["mean_ci_high_m"]),
+                      _plus_minus(r["paired_diff_m"], r["paired_diff_ci_low_m"], r["paired_diff_ci_high_m"], "+.2f"),
+                      str(r["runaways"]), str(r["failures"]))
     out.print(table)
     bad = [o for o in outcomes if o.status == "failed" or clip_warnings(o)]
     if bad:
@@ -191,6 +186,17 @@ def _print_batch(outcomes: list, output: Path) -> None:
     n_ok = sum(o.status != "failed" for o in outcomes)
     out.print(f"{n_ok} of {len(outcomes)} clips done; summary: {output / 'summary.html'} (and summary.md, "
               f"summary.csv)", highlight=False)
+
+
+def _plus_minus(mean: float | None, lo: float, hi: float, spec: str = ".2f") -> str:
+    """``mean ± half-width`` in mm (the interval's larger half, as a clipped interval is uneven)."""
+    import math
+
+    if mean is None or not math.isfinite(mean):
+        return "—"
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        return f"{1000 * mean:{spec}}"
+    return f"{1000 * mean:{spec}} ± {1000 * max(hi - mean, mean - lo):.2f}"
 
 
 @app.command("render-batch")

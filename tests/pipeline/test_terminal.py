@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import os
+import re
 import time
 
+import pytest
 from rich.progress import Progress
 
 from pipeline.app.cli_common import stage_eta
@@ -27,3 +30,32 @@ def test_no_rate_based_eta_for_the_estimate_stage_and_no_count_for_a_clip_line()
     remaining, count = RemainingColumn(), CountColumn()
     assert remaining.render(tasks[blind]).plain == "-:--:--" and remaining.render(tasks[timed]).plain != "-:--:--"
     assert count.render(tasks[clip]).plain == "" and count.render(tasks[timed]).plain == " 2/10"
+
+
+@pytest.mark.slow
+def test_run_and_batch_end_with_no_bar_at_zero_and_a_table_that_fits(tmp_path):
+    """#41 (terminal): `run` and `batch` as a user's 80-column terminal shows them: every progress
+    line left on screen is complete (no ``0/`` count, no ``?`` total), and the batch's table is
+    whole (no cell cut to ``…``), best method first."""
+    import shutil
+    import subprocess
+    import sys
+
+    from tests.conftest import REPO
+
+    clips = tmp_path / "in"
+    for name in ("a", "b"):
+        shutil.copytree(REPO / "data" / "clips" / "sample_small", clips / name)
+    env = {**os.environ, "COLUMNS": "80"}
+    cli = [sys.executable, "-m", "pipeline.app.cli"]
+    run = subprocess.run([*cli, "run", str(clips / "a"), "--methods", "triangulation,ekf"], capture_output=True,
+                         text=True, env=env, timeout=300)
+    batch = subprocess.run([*cli, "batch", str(clips), "-o", str(tmp_path / "out"), "--workers", "1", "--methods",
+                            "triangulation,ekf,alphabetagamma"], capture_output=True, text=True, env=env, timeout=300)
+    for res in (run, batch):
+        assert res.returncode == 0, res.stderr
+        bars = [ln for ln in res.stderr.splitlines() if "━" in ln]
+        assert bars and not any(re.search(r"\b0/|/\?", ln) for ln in bars), bars
+    table = [ln for ln in batch.stdout.splitlines() if ln.startswith("│")]
+    assert table and not any("…" in ln for ln in batch.stdout.splitlines()), batch.stdout
+    assert table[-1].split("│")[1].strip() == "alphabetagamma"  # the worst last
