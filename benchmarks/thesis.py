@@ -2,7 +2,7 @@
 simulated observations; writes thesis.md and figures/ to --out (a temporary folder by default; docs/
 with --write-docs), printing each row as it is measured.
 
-    python benchmarks/thesis.py [--seeds 10] [--out DIR | --write-docs]
+    python benchmarks/thesis.py [--seeds 10] [--seed-sets 3] [--out DIR | --write-docs]
 
 Settings (the thesis gives no units; ours): the `receding` and `maneuvering` built-in scenarios
 (640×480, f = 600 px, baseline 0.3 m, 2° toe-in, 30 fps, the point receding from 1.5 m to 7.5 m
@@ -46,6 +46,83 @@ def setup(name: str, frames: int = 300):
     return s.rig.build(), s.dt, tr.positions[:, 0], tr.velocities[:, 0]
 
 
+#: (b) noise-free; (c)–(e) σ_img = 2 px; (f) `maneuvering`, σ_img = 1 px: the methods and their settings
+B_CFGS = {"spsa": ("spsa", {}), "spsa_vgg": ("spsa_vgg", {}), "spsa_stereo": ("spsa_stereo", {}),
+          "predict_only": ("predict_only", {}), "predict_only (static)": ("predict_only", {})}
+S_IMG_C = 2.0
+_GOOD = {"pixel_sigma": S_IMG_C, "process_noise": 1e-4}
+C_CFGS = {
+    "spsa": ("spsa", {}), "spsa, no projection rule": ("spsa", {"th": 1e12}),
+    "ekf, correct covariances": ("ekf", _GOOD),
+    "ekf, q×100, R×0.01": ("ekf", {**_GOOD, "q_scale": 100.0, "r_scale": 0.01}),
+    "ekf, q×0.01, R×100": ("ekf", {**_GOOD, "q_scale": 0.01, "r_scale": 100.0}),
+    "spsa_stereo": ("spsa_stereo", {}),
+    "triangulation": ("triangulation", {}),
+    "predict_only": ("predict_only", {}),
+}
+F_CFGS = {"spsa": ("spsa", {}), "spsa, th = 0.003 (earlier default)": ("spsa", {"th": 0.003}),
+          "spsa, no projection": ("spsa", {"th": None}), "spsa_stereo": ("spsa_stereo", {}),
+          "ekf (q = 1)": ("ekf", {"pixel_sigma": 1.0, "process_noise": 1.0}), "triangulation": ("triangulation", {}),
+          "predict_only": ("predict_only", {})}
+
+
+def headlines(first_seed: int, seeds: int) -> dict[str, tuple[float, bool]]:
+    """The figures the sentences of (b)–(f) quote, and each claim's verdict, on the seeds
+    ``first_seed`` … ``first_seed + seeds − 1``: (label → (value, supported))."""
+    rig, dt, X, V = setup("receding")
+    fb = {k: final(v) for k, v in run_methods(rig, dt, X, V, 0.0, seeds, B_CFGS, first_seed=first_seed).items()}
+    c = run_methods(rig, dt, X, V, S_IMG_C, seeds, C_CFGS, first_seed=first_seed)
+    r, fin = {k: rmse(v) for k, v in c.items()}, {k: final(v) for k, v in c.items()}
+    rig_m, dt_m, Xm, Vm = setup("maneuvering")
+    rf = {k: rmse(v) for k, v in run_methods(rig_m, dt_m, Xm, Vm, 1.0, seeds, F_CFGS, first_seed=first_seed).items()}
+    return {
+        "(b) 2009 SPSA final error ÷ start held (latches: > 0.5)": (fb["spsa_vgg"] / fb["predict_only (static)"],
+                                                                   fb["spsa_vgg"] > 0.5 * fb["predict_only (static)"]),
+        "(b) 2009 SPSA ÷ Algorithm 1, final error (follows: > 2)": (fb["spsa_vgg"] / fb["spsa"],
+                                                                   fb["spsa"] < 0.5 * fb["spsa_vgg"]),
+        "(c) no projection rule ÷ with it, final error (> 2)": (fin["spsa, no projection rule"] / fin["spsa"],
+                                                               fin["spsa, no projection rule"] > 2 * fin["spsa"]),
+        "(d) Algorithm 1 ÷ EKF (correct), RMSE (> 1)": (r["spsa"] / r["ekf, correct covariances"],
+                                                       r["ekf, correct covariances"] < r["spsa"]),
+        "(e) EKF (q×100, R×0.01) ÷ Algorithm 1, RMSE (> 1)": (r["ekf, q×100, R×0.01"] / r["spsa"],
+                                                             r["ekf, q×100, R×0.01"] > r["spsa"]),
+        "(f) Algorithm 1 RMSE, m (below predict-only and triangulation)": (
+            rf["spsa"], rf["spsa"] < rf["predict_only"] and rf["spsa"] < rf["triangulation"]),
+        "(f) Algorithm 1 without projection, RMSE, m (runs away: > 10× with it)": (
+            rf["spsa, no projection"], rf["spsa, no projection"] > 10 * rf["spsa"]),
+        "(f) spsa_stereo RMSE, m (below Algorithm 1)": (rf["spsa_stereo"], rf["spsa_stereo"] < rf["spsa"]),
+    }
+
+
+def across(runs: list[dict[str, tuple[float, bool]]], label: str) -> str:
+    """A headline's spread for its sentence: on how many seed sets the claim holds, the figure's
+    median and range over them."""
+    vals = np.array([r[label][0] for r in runs])
+    holds = sum(r[label][1] for r in runs)
+    return (f" [over {len(runs)} seed sets: holds on {holds} of {len(runs)}; figure median {np.median(vals):.3g}, "
+            f"range {vals.min():.3g}–{vals.max():.3g}]")
+
+
+def spread(runs: list[dict[str, tuple[float, bool]]], seeds: int) -> list[str]:
+    """The last section: each headline figure and verdict on the disjoint seed sets of ``runs``
+    (the first is the one the sentences above quote)."""
+    sets = len(runs)
+    cols = [f"seeds {k * seeds}–{(k + 1) * seeds - 1}" for k in range(sets)]
+    rows = ["## Spread over seed sets", "",
+            f"The sentences above quote one seed set (seeds 0–{seeds - 1}). Each figure they rest on, on {sets} "
+            f"disjoint sets of {seeds} seeds, with the median and range over the sets and on how many sets the "
+            "claim holds:", "",
+            "| figure (claim) | " + " | ".join(cols) + " | median | range | claim holds |",
+            "|---|" + "---|" * (len(cols) + 3)]
+    for label in runs[0]:
+        vals = np.array([r[label][0] for r in runs])
+        holds = sum(r[label][1] for r in runs)
+        rows.append(f"| {label} | " + " | ".join(f"{v:.3g}" for v in vals)
+                    + f" | {np.median(vals):.3g} | {vals.min():.3g}–{vals.max():.3g} | {holds} of {sets} |")
+    return [*rows, "", "A claim that holds on some sets and not others rests on seed luck; a ratio whose range spans "
+            "orders of magnitude (a runaway's error) says only that it runs away.", ""]
+
+
 def verdict(ok: bool) -> str:
     return "**Supported**" if ok else "**Not supported**"
 
@@ -59,10 +136,10 @@ def err(P, X):
     return np.linalg.norm(P - X, axis=1)
 
 
-def run_methods(rig, dt, X, V, sigma, seeds, cfgs, sigma_start=0.05):
-    """method key → list over seeds of per-frame error arrays."""
+def run_methods(rig, dt, X, V, sigma, seeds, cfgs, sigma_start=0.05, first_seed=0):
+    """method key → list over seeds (``first_seed`` on) of per-frame error arrays."""
     out: dict[str, list[np.ndarray]] = {k: [] for k in cfgs}
-    for seed in range(seeds):
+    for seed in range(first_seed, first_seed + seeds):
         rng = np.random.default_rng(seed)
         Y = rig.project(X) + rng.normal(0, sigma, (len(X), 4))
         init = given(X, V, rng, sigma_start)
@@ -99,14 +176,18 @@ def save(fig, path: Path):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, default=10)
+    ap.add_argument("--seed-sets", type=int, default=3, help="disjoint seed sets for the headline figures' spread")
     add_output_args(ap)
     args = ap.parse_args()
     args.out = output_dir(args, "thesis")
     figs = args.out / "figures"
     md = LiveDoc(["# The thesis reproduced (Krivokon 2011)", "",
-          "Generated by `python benchmarks/thesis.py` — settings in its docstring. "
-          f"{args.seeds} seeds per cell; numbers are means over seeds.", ""])
+          f"Generated by `python benchmarks/thesis.py --seeds {args.seeds} --seed-sets {args.seed_sets}` — settings "
+          f"in its docstring. {args.seeds} seeds per cell (seeds 0–{args.seeds - 1}, one seed set); numbers are means "
+          f"over seeds. The last section gives every headline figure over {args.seed_sets} disjoint seed sets.", ""])
     rig, dt, X, V = setup("receding")
+    runs = [headlines(k * args.seeds, args.seeds) for k in range(args.seed_sets)]  # runs[0]: the seeds quoted below
+    H = list(runs[0])  # the headline labels, in order: (b) ×2, (c), (d), (e), (f) ×3
 
     # (a) triangulation error vs image noise (thesis Fig. 2)
     sig = [0.25, 0.5, 1.0, 2.0, 4.0]
@@ -128,9 +209,7 @@ def main() -> None:
     save(fig, figs / "thesis_a_triangulation.png")
 
     # (b) noise-free: unmodified SPSA latches, Algorithm 1 follows
-    b = run_methods(rig, dt, X, V, 0.0, args.seeds, {
-        "spsa": ("spsa", {}), "spsa_vgg": ("spsa_vgg", {}), "spsa_stereo": ("spsa_stereo", {}),
-        "predict_only": ("predict_only", {}), "predict_only (static)": ("predict_only", {})})
+    b = run_methods(rig, dt, X, V, 0.0, args.seeds, B_CFGS)
     md += ["## (b) Noise-free: the unmodified SPSA latches, Algorithm 1 follows", "",
            "| method | 3-D RMSE (m) | final error (m) |", "|---|---|---|"]
     md += [f"| {k} | {rmse(v):.3f} | {final(v):.3f} |" for k, v in b.items()]
@@ -139,9 +218,10 @@ def main() -> None:
     md += ["", "`predict_only` is Algorithm 1's baseline (the true velocity carried forward); `predict_only "
            "(static)` the 2009 algorithm's (the start held).", "",
            f"- The unmodified SPSA latches: {verdict(latches)} — final error {fb['spsa_vgg']:.2f} m against "
-           f"{fb['predict_only (static)']:.2f} m for holding the start.",
+           f"{fb['predict_only (static)']:.2f} m for holding the start{across(runs, H[0])}.",
            f"- Algorithm 1 follows: {verdict(fb['spsa'] < 0.5 * fb['spsa_vgg'])} relative to the 2009 SPSA "
-           f"({fb['spsa']:.3f} m final, {fb['spsa_vgg'] / fb['spsa']:.1f}× lower) — but the following is its "
+           f"({fb['spsa']:.3f} m final, {fb['spsa_vgg'] / fb['spsa']:.1f}× lower{across(runs, H[1])}) — but the "
+           "following is its "
            f"prediction's: with the true velocity given and no noise, predict-only is exact "
            f"({fb['predict_only']:.3f} m, the start error), and Algorithm 1's update "
            + ("improves on it." if fb["spsa"] < fb["predict_only"] else "only adds error to it.")
@@ -158,18 +238,8 @@ def main() -> None:
     save(fig, figs / "thesis_b_latching.png")
 
     # (c)–(e) with image noise
-    s_img = 2.0
-    good = {"pixel_sigma": s_img, "process_noise": 1e-4}
-    cfgs = {
-        "spsa": ("spsa", {}), "spsa, no projection rule": ("spsa", {"th": 1e12}),
-        "ekf, correct covariances": ("ekf", good),
-        "ekf, q×100, R×0.01": ("ekf", {**good, "q_scale": 100.0, "r_scale": 0.01}),
-        "ekf, q×0.01, R×100": ("ekf", {**good, "q_scale": 0.01, "r_scale": 100.0}),
-        "spsa_stereo": ("spsa_stereo", {}),
-        "triangulation": ("triangulation", {}),
-        "predict_only": ("predict_only", {}),
-    }
-    c = run_methods(rig, dt, X, V, s_img, args.seeds, cfgs)
+    s_img = S_IMG_C
+    c = run_methods(rig, dt, X, V, s_img, args.seeds, C_CFGS)
     md += [f"## (c)–(e) With image noise (σ_img = {s_img:g} px, σ_start = 5 cm)", "",
            "| method | 3-D RMSE (m) | final error (m) | worst error (m) |", "|---|---|---|---|"]
     for k, v in c.items():
@@ -178,18 +248,20 @@ def main() -> None:
     fin = {k: final(v) for k, v in c.items()}
     md += ["",
            f"- **(c)** {verdict(fin['spsa, no projection rule'] > 2 * fin['spsa'])}: without the projection rule "
-           f"the final error is {fin['spsa, no projection rule'] / fin['spsa']:.3g}× larger; with it the estimate stays "
+           f"the final error is {fin['spsa, no projection rule'] / fin['spsa']:.3g}× larger{across(runs, H[2])}; with "
+           "it the estimate stays "
            f"bounded ({fin['spsa']:.3f} m final) — but it is worse than its predict-only baseline "
            f"({fin['predict_only']:.3f} m, the true velocity carried forward) and than triangulation "
            f"({r['triangulation']:.3f} m RMSE against {r['spsa']:.3f} m)."
            if fin["spsa"] > fin["predict_only"] else
            f"- **(c)** {verdict(fin['spsa, no projection rule'] > 2 * fin['spsa'])}: without the projection rule the "
-           f"final error is {fin['spsa, no projection rule'] / fin['spsa']:.3g}× larger; with it, "
+           f"final error is {fin['spsa, no projection rule'] / fin['spsa']:.3g}× larger{across(runs, H[2])}; with it, "
            f"{fin['spsa']:.3f} m (predict-only {fin['predict_only']:.3f} m).",
            f"- **(d)** {verdict(r['ekf, correct covariances'] < r['spsa'])}: the EKF with correct covariances has "
-           f"{r['spsa'] / r['ekf, correct covariances']:.1f}× lower RMSE than Algorithm 1.",
+           f"{r['spsa'] / r['ekf, correct covariances']:.1f}× lower RMSE than Algorithm 1{across(runs, H[3])}.",
            f"- **(e)** {verdict(r['ekf, q×100, R×0.01'] > r['spsa'])} for Algorithm 1: with q×100 and R×0.01 the EKF "
-           f"has {r['ekf, q×100, R×0.01']:.3f} m RMSE against Algorithm 1's {r['spsa']:.3f} m; with q×0.01 and R×100 "
+           f"has {r['ekf, q×100, R×0.01']:.3f} m RMSE against Algorithm 1's {r['spsa']:.3f} m{across(runs, H[4])}; "
+           "with q×0.01 and R×100 "
            f"{r['ekf, q×0.01, R×100']:.3f} m (on a constant-velocity track that error agrees with the true dynamics). "
            f"`spsa_stereo`, which needs no noise statistics either, has {r['spsa_stereo']:.3f} m.",
            "", "![noise](figures/thesis_cde.png)", ""]
@@ -203,24 +275,21 @@ def main() -> None:
 
     # (f) maneuvering
     rig_m, dt_m, Xm, Vm = setup("maneuvering")
-    f = run_methods(rig_m, dt_m, Xm, Vm, 1.0, args.seeds, {
-        "spsa": ("spsa", {}), "spsa, th = 0.003 (earlier default)": ("spsa", {"th": 0.003}),
-        "spsa, no projection": ("spsa", {"th": None}), "spsa_stereo": ("spsa_stereo", {}),
-        "ekf (q = 1)": ("ekf", {"pixel_sigma": 1.0, "process_noise": 1.0}), "triangulation": ("triangulation", {}),
-        "predict_only": ("predict_only", {})})
+    f = run_methods(rig_m, dt_m, Xm, Vm, 1.0, args.seeds, F_CFGS)
     md += ["## (f) Curved trajectories (process noise: `maneuvering`, σ_img = 1 px)", "",
            "| method | 3-D RMSE (m) | final error (m) |", "|---|---|---|"]
     md += [f"| {k} | {rmse(v):.3f} | {final(v):.3f} |" for k, v in f.items()]
     rf = {k: rmse(v) for k, v in f.items()}
     md += ["", f"{verdict(rf['spsa'] < rf['predict_only'] and rf['spsa'] < rf['triangulation'])} in the sense that "
-           f"matters: Algorithm 1 ({rf['spsa']:.3f} m) "
+           f"matters{across(runs, H[5])}: Algorithm 1 ({rf['spsa']:.3f} m) "
            + ("beats" if rf["spsa"] < rf["predict_only"] else "does not beat")
            + f" its predict-only baseline ({rf['predict_only']:.3f} m) and "
            + ("beats" if rf["spsa"] < rf["triangulation"] else "does not beat")
            + f" triangulation ({rf['triangulation']:.3f} m). It adapts to direction changes only partly: the "
            "projection rule that bounds it also caps how fast it turns, and without the rule it "
            + ("runs away" if rf["spsa, no projection"] > 10 * rf["spsa"] else "is no better")
-           + f" ({rf['spsa, no projection']:.3g} m). `spsa_stereo` has {rf['spsa_stereo']:.3f} m and the EKF with a "
+           + f" ({rf['spsa, no projection']:.3g} m{across(runs, H[6])}). `spsa_stereo` has {rf['spsa_stereo']:.3f} m"
+           f"{across(runs, H[7])} and the EKF with a "
            f"matching process noise {rf['ekf (q = 1)']:.3f} m.", ""]
 
     # the thesis's own settings
@@ -325,6 +394,7 @@ def main() -> None:
            "unknown (its gains may well be larger, which an accelerating target favours) we compare shapes: the "
            "ordering αβγ < αβ under acceleration " + ("holds" if r4["accelerated"][1] < r4["accelerated"][0]
                                                      else "does not hold") + " here, the absolute values do not.", ""]
+    md += spread(runs, args.seeds)
     out = args.out / "thesis.md"
     write_text(out, "\n".join(md) + "\n")
     print(f"\nwrote {out}")
