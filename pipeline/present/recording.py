@@ -2,9 +2,8 @@
 
 Entity paths mirror the transform tree: ``/world`` is the left camera's frame; ``/world/left`` and
 ``/world/right`` carry each camera's ``Transform3D`` (from the calibration) and ``Pinhole``, logged
-once as static data, with the frame images (JPEG, logged as they are decoded; an H.264 camera's
-video logged once and referenced frame by frame instead), detections and truth projections beneath
-them. Trajectories live under ``/world/truth`` and
+once as static data, with the frame images (JPEG as decoded; an H.264 camera's video once, referenced
+frame by frame), detections and truth projections beneath them. Trajectories live under ``/world/truth`` and
 ``/world/estimates/<method>`` as one point per marker per frame (an empty batch where a track
 ends), shown at the cursor over each one's static path, framed on the tracks and not the cameras,
 the best three methods shown and the rest one click away; filters' 95 % position ellipsoids under
