@@ -10,11 +10,11 @@ from detectors import blob_tracker, meanshift  # noqa: F401  (the imports regist
 from detectors.base import _REGISTRY, Detector, register
 from detectors.blob import MarkerColor
 from pipeline.core.errors import StereotrackError
-from pipeline.core.plugins import load_entry_points
+from pipeline.core.plugins import DETECTOR_GROUP, load_entry_points
 
 #: the entry-point group a plugin package registers its detectors under (as estimators use
 #: ``stereotrack.estimators``): ``[project.entry-points."stereotrack.detectors"] NAME = "module:Class"``
-ENTRY_POINT_GROUP = "stereotrack.detectors"
+ENTRY_POINT_GROUP = DETECTOR_GROUP
 _plugins_loaded = False
 
 

@@ -96,18 +96,20 @@ def methods_cmd(
         help="Methods whose settings to list (the keys of a --config file), with defaults and what each does.")] = None,
 ) -> None:
     """List every estimator and detector (built-in and plugins), or the settings of the methods named."""
-    from detectors import registry as detectors
-    from pipeline.estimators import registry
-
     if names:
+        from pipeline.estimators import registry
+
         return _print_settings(names, registry())
+    from pipeline.app.catalogue import listing
+
+    estimators, detectors = listing()  # no estimator or detector module imported unless a plugin is installed
     table = Table("method", "kind", "cameras", "description", title="estimators (--methods, --config)")
-    for name, cls in registry().items():
-        table.add_row(name, cls.kind, "N" if cls.any_cameras else "2", cls.description())
+    for name, (kind, cameras, description) in estimators.items():
+        table.add_row(name, kind, cameras, description)
     out.print(table)
     found = Table("detector", "description", title="detectors (--detector)")
-    for name, det in detectors().items():
-        found.add_row(name, (det.__doc__ or "").strip().splitlines()[0])
+    for name, description in detectors.items():
+        found.add_row(name, description)
     out.print(found)
     out.print("settings of a method: stereotrack methods NAME", highlight=False)
 

@@ -8,6 +8,9 @@ from collections.abc import Callable
 from functools import cache
 from typing import Any
 
+#: the entry-point groups plugin packages register under, one per role
+ESTIMATOR_GROUP, DETECTOR_GROUP = "stereotrack.estimators", "stereotrack.detectors"
+
 
 @cache
 def _entry_points() -> Any:
@@ -29,3 +32,8 @@ def load_entry_points(group: str, role: str, register: Callable[[type], object])
                 register(obj)
         except Exception as exc:
             warnings.warn(f"{role} plugin {ep.name!r} ({ep.value}) failed to load: {exc}", stacklevel=3)
+
+
+def has_plugins(*groups: str) -> bool:
+    """Whether any installed package names an entry point in one of ``groups``."""
+    return any(True for g in groups for _ in _entry_points().select(group=g))

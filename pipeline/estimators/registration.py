@@ -7,11 +7,11 @@ import warnings
 
 from pipeline.core.camera import StereoRig
 from pipeline.core.errors import StereotrackError
-from pipeline.core.plugins import load_entry_points
+from pipeline.core.plugins import ESTIMATOR_GROUP, load_entry_points
 from pipeline.core.rig import Rig
 from pipeline.estimators.base import Estimator, EstimatorConfig, Kind
 
-ENTRY_POINT_GROUP = "stereotrack.estimators"
+ENTRY_POINT_GROUP = ESTIMATOR_GROUP
 REGISTRY: dict[str, type[Estimator]] = {}
 _plugins_loaded = False
 

@@ -31,6 +31,22 @@ def test_quick_commands_import_no_numerical_library_beyond_numpy(args: list[str]
     assert not mods & HEAVY, sorted(mods & HEAVY)
 
 
+def test_listing_the_methods_imports_no_method() -> None:
+    """`stereotrack methods` prints from the written-down catalogue: not even numpy or pydantic."""
+    mods = loaded("import sys; sys.argv = ['stereotrack', 'methods']\nfrom pipeline.app.cli import main\nmain()")
+    assert not mods & {"numpy", "pydantic", "detectors"}, sorted(mods & {"numpy", "pydantic", "detectors"})
+
+
+def test_the_catalogue_is_what_the_registries_say() -> None:
+    """The written-down listing equals the registries' built-ins (after adding or renaming a method or
+    detector, or changing its docstring: `python -m pipeline.app.catalogue`)."""
+    from pipeline.app._catalogue import DETECTORS, ESTIMATORS
+    from pipeline.app.catalogue import live
+
+    est, det = live(builtin_only=True)
+    assert (ESTIMATORS, DETECTORS) == (est, det), "stale: run `python -m pipeline.app.catalogue`"
+
+
 def test_a_batch_worker_imports_no_scipy_filterpy_or_matplotlib() -> None:
     """The worker's own imports; each stage imports what it needs when it runs."""
     mods = loaded("import pipeline.app.run")
