@@ -186,6 +186,8 @@ def _print_batch(outcomes: list, output: Path) -> None:
     n_ok = sum(o.status != "failed" for o in outcomes)
     out.print(f"{n_ok} of {len(outcomes)} clips done; summary: {output / 'summary.html'} (and summary.md, "
               f"summary.csv)", highlight=False)
+    if any(Outputs(output / o.clip).recording.is_file() for o in outcomes if o.status != "failed"):
+        out.print(f"replay every clip: stereotrack view {output}", highlight=False, soft_wrap=True)
 
 
 def _plus_minus(mean: float | None, lo: float, hi: float, spec: str = ".2f") -> str:
