@@ -24,7 +24,7 @@ from pipeline.core.checks import (
     warn_failed,
 )
 from pipeline.core.clip import CLIP_INFO, DETECTION_WRITTEN, MARKERS_FILE, TIMESTAMPS, Clip, FootageInfo
-from pipeline.core.detections import Detections, GroupDetections, blob_flags, split_groups
+from pipeline.core.detections import Detections, GroupDetections, GroupFlags, blob_flags, group_names, split_groups
 from pipeline.core.errors import StereotrackError
 from pipeline.core.frames import CameraReader, StereoFrameSource
 from pipeline.core.io import write_csv, write_json
@@ -62,11 +62,12 @@ class DetectResult:
     observations: dict[str, np.ndarray] = field(default_factory=dict)  # marker → frames × [u1, v1, u2, v2]
     footage: FootageInfo | None = None  # what the estimate stage needs to know of the frames
     groups: dict[str, GroupDetections] = field(default_factory=dict)  # identical markers: per frame, per camera
+    merged: dict[str, GroupFlags] = field(default_factory=dict)  # beside ``groups``: blobs of merged images
 
     def detections(self) -> Detections:
         """What the estimate stage takes of this result, in memory."""
         assert self.footage is not None  # the detect stage always says what it saw
-        return Detections(self.observations, self.footage, self.groups)
+        return Detections(self.observations, self.footage, self.groups, self.merged)
 
 
 def markers_for_clip(clip: Clip, specs: list[str] | None, left_frame: Callable[[int], np.ndarray | None] | None = None,
@@ -300,8 +301,9 @@ def _write_detections(out_dir: Path, clip: Clip, source: StereoFrameSource, scan
     """``detections.csv`` and ``detect.json`` (``cols``: the scan's rows as columns); the result the
     estimate stage takes in memory."""
     path = Outputs(out_dir).detections
-    observations, groups = split_groups(cols, scan.frames, path, clip.identical_groups(), clip.cameras)
-    index, merged = blob_flags(cols, groups)
+    index, merged = blob_flags(cols, group_names(cols, clip.identical_groups(), clip.cameras, path))
+    observations, groups, flags = split_groups({**cols, "merged": merged}, scan.frames, path, clip.identical_groups(),
+                                               clip.cameras)
     write_csv(path, DETECTION_WRITTEN, ((*row, i, m) for row, i, m in zip(scan.rows, index, merged, strict=True)))
     summaries = summarize(cols, clip, scan.frames, scan.cameras)
     cameras = [asdict(s) for s in summaries]
@@ -310,7 +312,7 @@ def _write_detections(out_dir: Path, clip: Clip, source: StereoFrameSource, scan
         **record, "checks": [c.as_dict() for c in checks], "cameras": cameras})
     return DetectResult(path, scan.rows, summaries, learned=record["learned"], checks=checks,
                         marker_colours=record["marker_colours"],
-                        observations=observations, groups=groups,
+                        observations=observations, groups=groups, merged=flags,
                         footage=FootageInfo(scan.frames, tuple(source.size), checks, cameras))
 
 

@@ -24,7 +24,7 @@ from pipeline.core.clip import (
     find_target,
     footage_info,
 )
-from pipeline.core.detections import Detections, GroupDetections, split_groups
+from pipeline.core.detections import Detections, GroupDetections, GroupFlags, split_groups
 from pipeline.core.errors import StereotrackError, first_line
 from pipeline.core.io import read_csv, write_csv, write_json
 from pipeline.core.outputs import Outputs
@@ -98,6 +98,8 @@ class Observed:
     group_truth: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)
     #: N cameras: each camera's offset against the first (``sync`` summarises them)
     sync_views: dict[str, SyncEstimate] = field(default_factory=dict)
+    #: each group's ``merged`` flags beside its detections (blobs of several images: no one's position)
+    merged: dict[str, GroupFlags] = field(default_factory=dict)
 
 
 def estimate_clip(clip: str | Path | Clip, settings: RunSettings | None = None, out_dir: str | Path | None = None,
@@ -185,8 +187,8 @@ def observe(clip: Clip, in_dir: Path, detections: Detections | None, settings: R
     truth = clip.truth(truth_frames)
     if detections is None:
         cols = read_csv(det_path, DETECTION_COLUMNS, numeric=["area", "score"], finite=["frame", "u", "v"])
-        singles, found = split_groups(cols, footage.frames, det_path, clip.identical_groups(), clip.cameras)
-        detections = Detections(singles, footage, found)
+        singles, found, flags = split_groups(cols, footage.frames, det_path, clip.identical_groups(), clip.cameras)
+        detections = Detections(singles, footage, found, flags)
     obs, groups = detections.observations, detections.groups
     if not obs and not groups:
         raise StereotrackError("no detections in this clip", det_path)
@@ -195,6 +197,8 @@ def observe(clip: Clip, in_dir: Path, detections: Detections | None, settings: R
     width = 2 * len(rig.cameras)
     obs = {k: np.vstack([v, np.full((n - len(v), width), np.nan)]) for k, v in obs.items()}
     groups = {g: [*v, *([[np.zeros((0, 2)) for _ in rig.cameras]] * (n - len(v)))] for g, v in groups.items()}
+    merged = {g: [*v, *([[np.zeros(0, dtype=bool) for _ in rig.cameras]] * (n - len(v)))]
+              for g, v in detections.merged.items()}
     views: dict[str, SyncEstimate] = {}
     if isinstance(rig, Rig):  # N cameras: each against the first
         views, aligned = resolve_view_sync(settings.time_offset if obs else "off", rig, obs, clip.fps, ts)
@@ -209,7 +213,7 @@ def observe(clip: Clip, in_dir: Path, detections: Detections | None, settings: R
     warn_failed(new_checks)
     return Observed(rig, 1.0 / clip.fps, n, obs, aligned, sync, truth, find_target(clip, settings.target_radius, obs),
                     checks + new_checks, footage, estimate_pixel_sigma(rig, aligned), groups,
-                    group_truth=clip.group_truth(truth_frames) if groups else {}, sync_views=views)
+                    group_truth=clip.group_truth(truth_frames) if groups else {}, sync_views=views, merged=merged)
 
 
 def _rig_for_footage(clip: Clip, footage: FootageInfo, calib_units: str | None,
@@ -265,7 +269,8 @@ def _run_group(m: str, seen: Observed, group: str, config: dict | None
     (``<group>#<n>``), their scores against the truth marker each follows frame by frame, and the
     identity metrics (None without truth)."""
     if group not in seen.associations:
-        seen.associations[group] = associate(list(seen.rig.cameras), seen.dt, seen.groups[group])
+        seen.associations[group] = associate(list(seen.rig.cameras), seen.dt, seen.groups[group],
+                                             merged=seen.merged.get(group))
     tracks = filter_tracks(seen.rig, seen.dt, seen.associations[group], m, group, config)
     truth = seen.group_truth.get(group, {})
     if not truth:

@@ -16,6 +16,8 @@ from pipeline.core.io import check_frame_column, read_csv
 
 #: a group's detections: per frame, per camera, k × 2 pixels (no identity)
 GroupDetections = list[list[np.ndarray]]
+#: beside a group's detections: per frame, per camera, k flags, True for a blob of merged images
+GroupFlags = list[list[np.ndarray]]
 
 
 @dataclass
@@ -26,6 +28,8 @@ class Detections:
     observations: dict[str, np.ndarray]
     footage: FootageInfo
     groups: dict[str, GroupDetections] = field(default_factory=dict)
+    #: each group's ``merged`` flags, beside its detections (absent: none known)
+    merged: dict[str, GroupFlags] = field(default_factory=dict)
 
 
 STEREO = ("left", "right")
@@ -43,30 +47,67 @@ def _camera_index(cols: dict[str, np.ndarray], cameras: tuple[str, ...], path: s
 
 def split_groups(cols: dict[str, np.ndarray], n_frames: int | None, path: str | Path,
                  groups: Collection[str] = (), cameras: tuple[str, ...] = STEREO
-                 ) -> tuple[dict[str, np.ndarray], dict[str, GroupDetections]]:
+                 ) -> tuple[dict[str, np.ndarray], dict[str, GroupDetections], dict[str, GroupFlags]]:
     """Detection columns → (single markers' observations, as :func:`observations_from_columns`;
-    groups' detections). A name is a group when ``groups`` declares it or when it has several rows
-    in one frame and camera (identical markers: the detector reports every blob of their colour)."""
+    groups' detections; their ``merged`` flags, all False without that column). A name is a group
+    when ``groups`` declares it or when it has several rows in one frame and camera (identical
+    markers: the detector reports every blob of their colour)."""
     frames = np.asarray(cols["frame"], dtype=float)
     if not len(frames):
-        return {}, {}
+        return {}, {}, {}
     check_frame_column(frames, n_frames, path)
     n = max(int(frames.max()) + 1, n_frames or 0)
     cams = _camera_index(cols, cameras, path)
     names = np.asarray(cols["marker"]).astype(str)
-    keys = frames.astype(np.int64) * len(cameras) + cams
-    many = set(groups) | {str(m) for m in np.unique(names) if len(np.unique(keys[names == m])) < (names == m).sum()}
+    many = group_names(cols, groups, cameras, path)
     single = ~np.isin(names, sorted(many))
     obs = observations_from_columns({k: np.asarray(v)[single] for k, v in cols.items()}, n_frames, path, cameras)
+    merged = _merged_column(cols, path)
     out: dict[str, GroupDetections] = {}
+    flags: dict[str, GroupFlags] = {}
     for g in sorted(many & set(names.tolist())):
-        mine = names == g
+        mine = np.flatnonzero(names == g)
         table: GroupDetections = [[np.zeros((0, 2)) for _ in cameras] for _ in range(n)]
-        for k, c, u, v in zip(frames[mine].astype(int), cams[mine], np.asarray(cols["u"])[mine],
-                              np.asarray(cols["v"])[mine], strict=True):
+        flag: GroupFlags = [[np.zeros(0, dtype=bool) for _ in cameras] for _ in range(n)]
+        for k, c, u, v, m in zip(frames[mine].astype(int), cams[mine], np.asarray(cols["u"])[mine],
+                                 np.asarray(cols["v"])[mine], merged[mine], strict=True):
             table[k][c] = np.vstack([table[k][c], [u, v]])
-        out[g] = table
-    return obs, out
+            flag[k][c] = np.append(flag[k][c], m)
+        out[g], flags[g] = table, flag
+    return obs, out, flags
+
+
+def group_names(cols: dict[str, np.ndarray], groups: Collection[str] = (), cameras: tuple[str, ...] = STEREO,
+                path: str | Path = "detections.csv") -> set[str]:
+    """The names that are groups of identical markers: those ``groups`` declares and those with
+    several rows in one frame and camera."""
+    frames = np.asarray(cols["frame"], dtype=float)
+    names = np.asarray(cols["marker"]).astype(str)
+    keys = frames.astype(np.int64) * len(cameras) + _camera_index(cols, cameras, path)
+    return set(groups) | {str(m) for m in np.unique(names) if len(np.unique(keys[names == m])) < (names == m).sum()}
+
+
+def _merged_column(cols: dict[str, np.ndarray], path: str | Path) -> np.ndarray:
+    """The optional ``merged`` column as booleans (all False without it); anything but 0/1 (or
+    empty, read as 0) is an error naming the line."""
+    n = len(cols["frame"])
+    if "merged" not in cols:
+        return np.zeros(n, dtype=bool)
+    raw = np.asarray(cols["merged"])
+    if raw.dtype == object:
+        raw = np.array([0.0 if str(x).strip() == "" else _number(x) for x in raw])
+    vals = np.nan_to_num(raw.astype(float), nan=0.0)
+    bad = np.flatnonzero((vals != 0) & (vals != 1))
+    if len(bad):
+        raise StereotrackError(f"line {bad[0] + 2}: merged must be 0 or 1, got {cols['merged'][bad[0]]!r}", path)
+    return vals == 1
+
+
+def _number(x: object) -> float:
+    try:
+        return float(str(x))
+    except ValueError:
+        return float("inf")  # not a number: reported by the caller as not 0 or 1
 
 
 def load_detections(path: str | Path, n_frames: int | None = None, cameras: tuple[str, ...] = STEREO

@@ -83,7 +83,8 @@ DETECTIONS = Schema("out/detections.csv", "one detection (a camera may have none
              "your own may leave it out)",
     "merged": "1 where a group's blob has over 1.4× the group's median blob area in this camera (the median over "
               "the frame and the 15 on either side) and a roundness under 0.8: the images of two or more markers "
-              "merged; else 0 (written by detect; a file of your own may leave it out)",
+              "merged; else 0 (written by detect; a file of your own may leave it out). The association updates no "
+              "track from a merged blob's centroid and starts none from it",
 })
 
 ESTIMATES = Schema("out/estimates/<method>.csv", "one marker at one frame", "estimate", {

@@ -69,6 +69,9 @@ class AssociationConfig(BaseModel):
     merge_px: float = Field(4.0, ge=0)
     """two tracks whose images lie closer than this (px) and share fewer detections than they are
     were merged into one blob: neither updates from it in that camera"""
+    merged_sigma: float = Field(4.0, gt=0)
+    """spread (px) of a blob of merged images about each marker's own image: the noise added when a
+    track that found no blob of its own updates from a merged one"""
     link_distance: float = Field(0.3, gt=0)
     """the epipolar baseline's largest 3-D step (m) between frames that links two points"""
 
@@ -83,6 +86,7 @@ class _Track:
     obs: list[np.ndarray] = field(default_factory=list)  # per frame since birth: 2·cameras pixels
     hits: deque = field(default_factory=lambda: deque(maxlen=64))
     coasted: int = 0
+    covered: bool = False  # this frame: updated from a blob of merged images only
     number: int | None = None  # given at confirmation, in order, never reused
 
     def position_sigma(self) -> float:
@@ -100,14 +104,19 @@ class Association:
 
 
 def associate(cameras: list[Camera], dt: float, detections: list[list[np.ndarray]],
-              config: AssociationConfig | None = None, mode: Mode = "gnn") -> Association:
-    """Associate ``detections`` (per frame, per camera: k × 2 undistorted pixels) into tracks."""
+              config: AssociationConfig | None = None, mode: Mode = "gnn",
+              merged: list[list[np.ndarray]] | None = None) -> Association:
+    """Associate ``detections`` (per frame, per camera: k × 2 undistorted pixels) into tracks.
+    ``merged`` (beside them: k flags) marks blobs of several markers' merged images (the detect
+    stage's ``merged`` column): such a blob is no one's position, so no track updates from it and
+    none starts from it; the tracks it covers coast in that camera until their images part (the
+    others still update them)."""
     cfg = config or AssociationConfig()
     if mode == "epipolar":
         return _epipolar_baseline(cameras, detections, cfg)
     run = _Run(cameras, dt, cfg, mode)
     for k, frame in enumerate(detections):
-        run.frame(k, frame)
+        run.frame(k, frame, merged[k] if merged is not None and k < len(merged) else None)
     return run.finish(len(detections))
 
 
@@ -123,21 +132,24 @@ class _Run:
         self.done: list[tuple[_Track, int]] = []
         self.count = 0
 
-    def frame(self, k: int, frame: list[np.ndarray]) -> None:
-        """Predict, assign camera by camera, start tracks from what is left, manage the tracks."""
+    def frame(self, k: int, frame: list[np.ndarray], merged: list[np.ndarray] | None = None) -> None:
+        """Predict, assign camera by camera, start tracks from what is left, manage the tracks;
+        ``merged`` flags (per camera) mark blobs that no track updates from and none starts from."""
         for t in self.live:
             t.x, t.P = self.A @ t.x, self.A @ t.P @ self.A.T + self.Q
             t.obs.append(np.full(2 * len(self.cameras), np.nan))
         left = []
         frame = [np.asarray(d, dtype=float).reshape(-1, 2) for d in frame]
+        whole = [np.ones(len(d), dtype=bool) if merged is None or len(merged[c]) != len(d) else ~np.asarray(merged[c], bool)
+                 for c, d in enumerate(frame)]
         for c, dets in enumerate(frame):
-            ahead = frame[c + 1] if c + 1 < len(frame) and self.mode == "gnn" else None
-            near = self._assign(c, dets, ahead) if self.live and len(dets) else set()
-            left.append(np.array([d for j, d in enumerate(dets) if j not in near]).reshape(-1, 2))
+            ahead = frame[c + 1][whole[c + 1]] if c + 1 < len(frame) and self.mode == "gnn" else None
+            near = self._assign(c, dets, ahead, whole[c]) if self.live and len(dets) else set()
+            left.append(np.array([d for j, d in enumerate(dets) if j not in near and whole[c][j]]).reshape(-1, 2))
         self._births(k, left)
         self._manage(k)
 
-    def _assign(self, c: int, dets: np.ndarray, ahead: np.ndarray | None) -> set[int]:
+    def _assign(self, c: int, dets: np.ndarray, ahead: np.ndarray | None, whole: np.ndarray) -> set[int]:
         """Camera ``c``'s detections to the live tracks, each assigned detection applied to its track
         at once (the next camera sees the update); returns the detections inside some track's gate,
         assigned or not (a blob two tracks share, or a track's second blob, starts no new track).
@@ -160,12 +172,38 @@ class _Run:
         near = {int(j) for j in np.flatnonzero((cost < INFEASIBLE).any(axis=0))}
         if self.mode == "gnn":
             cost[_merged_tracks(h, cost, self.cfg.merge_px)] = INFEASIBLE
+            cost[:, ~whole] = INFEASIBLE  # a blob of merged images updates no one (it still starts no track)
         pairs = _greedy(cost) if self.mode == "greedy" else _hungarian(cost)
         for i, d in pairs.items():  # the Kalman update (Joseph form), its gain and covariance made above
             t = self.live[i]
             t.x, t.P = X[i] + K[i] @ (dets[d] - h[i]), Pn[i]
             t.obs[-1][2 * c : 2 * c + 2] = dets[d]
+        if not whole.all():
+            self._covered(np.setdiff1d(np.arange(len(self.live)), list(pairs)), X, h, J, S, dets[~whole])
         return near
+
+    def _covered(self, free: np.ndarray, X: np.ndarray, h: np.ndarray, J: np.ndarray, S: np.ndarray,
+                 blobs: np.ndarray) -> None:
+        """Tracks that took no detection in this camera but lie under a blob of merged images: each
+        is updated from the nearest such blob in its gate with the blob's spread added to the noise
+        (``merged_sigma``), which keeps it alive and near its marker through the merge without
+        pulling its velocity to the blob's centroid; the blob goes into no track's observations,
+        so the filters behind the association coast in this camera."""
+        extra = np.eye(2) * self.cfg.merged_sigma**2
+        for i in free:
+            if not np.isfinite(h[i]).all():
+                continue
+            Sm = S[i] + extra
+            r = blobs - h[i]
+            nis = np.einsum("ki,ij,kj->k", r, np.linalg.inv(Sm), r)
+            if nis.min() >= self.threshold:
+                continue
+            t, H = self.live[i], np.hstack([J[i], np.zeros((2, 3))])
+            Kg = t.P @ H.T @ np.linalg.inv(Sm)
+            IKH = np.eye(6) - Kg @ H
+            t.x = X[i] + Kg @ r[int(np.argmin(nis))]
+            t.P = IKH @ t.P @ IKH.T + Kg @ (self.R + extra) @ Kg.T
+            t.covered = True
 
     def _gains(self, J: np.ndarray, Si: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every live track's Kalman gain for one camera (T × 6 × 2) and its covariance once updated
@@ -212,7 +250,7 @@ class _Run:
         """Hits and coasting counted; tentative tracks confirmed or dropped; lost tracks ended."""
         keep = []
         for t in self.live:
-            hit = bool(np.isfinite(t.obs[-1]).any())
+            hit, t.covered = bool(np.isfinite(t.obs[-1]).any()) or t.covered, False
             t.hits.append(hit)
             t.coasted = 0 if hit else t.coasted + 1
             if t.number is None and sum(list(t.hits)[-self.cfg.confirm_window :]) >= self.cfg.confirm_hits:
