@@ -172,7 +172,7 @@ class _Run:
         near = {int(j) for j in np.flatnonzero((cost < INFEASIBLE).any(axis=0))}
         if self.mode == "gnn":
             cost[_merged_tracks(h, cost, self.cfg.merge_px)] = INFEASIBLE
-            cost[:, ~whole] = INFEASIBLE  # a blob of merged images updates no one (it still starts no track)
+        cost[:, ~whole] = INFEASIBLE  # a blob flagged merged updates no one (it still starts no track)
         pairs = _greedy(cost) if self.mode == "greedy" else _hungarian(cost)
         for i, d in pairs.items():  # the Kalman update (Joseph form), its gain and covariance made above
             t = self.live[i]
