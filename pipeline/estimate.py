@@ -33,9 +33,8 @@ from pipeline.core.settings import RunHooks, RunSettings
 from pipeline.core.sync import SyncEstimate, describe_views, grid_length, resolve_sync, resolve_view_sync
 from pipeline.core.version import stereotrack_version
 from pipeline.estimators import Estimator, Track, create, registry
-from pipeline.estimators import methods as registered_methods
 from pipeline.estimators.association import Association, associate, filter_tracks
-from pipeline.estimators.registration import is_builtin, origin
+from pipeline.estimators.registration import default_methods, is_builtin, origin
 from pipeline.evaluation.identity import MATCH_M, identity_metrics, matched_truth
 from pipeline.evaluation.metrics import compute_metrics, method_metrics
 from pipeline.evaluation.noise import estimate_pixel_sigma
@@ -130,7 +129,7 @@ def estimate_clip(clip: str | Path | Clip, settings: RunSettings | None = None, 
         if m not in reg:
             raise StereotrackError(f"unknown method {m!r} (known: {', '.join(reg)})")
     seen = observe(clip_, Path(in_dir) if in_dir else out_dir, detections, settings)
-    methods = methods or registered_methods("point") + (registered_methods("target") if seen.target else [])
+    methods = methods or default_methods(seen.target is not None)
     if isinstance(seen.rig, Rig):  # N cameras: the methods that take them (asked-for others: an error naming them)
         methods = [m for m in methods if reg[m].any_cameras] if not settings.methods else methods
     point = [m for m in methods if reg[m].kind == "point"]

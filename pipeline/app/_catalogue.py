@@ -16,6 +16,7 @@ ESTIMATORS = {
     'kalman_bucy': ('target', '2', 'Four-point measurement → Kalman–Bucy filter on [α, α̇, z, ż].'),
     'pnp_kf': ('target', '2', 'IPPE-square planar PnP per camera (averaged over cameras) → discrete KF on [α, α̇, z, ż].'),
     'predict_only': ('point', 'N', 'Start as configured, then constant-velocity prediction only (no update): the baseline.'),
+    'ekf_imm': ('point', 'N', 'IMM of two EKFs (smooth and manoeuvring motion); run when --methods names it.'),
 }
 DETECTORS = {
     'blob': 'Blob detection with per-marker search windows and target labelling (one per camera).',

@@ -8,6 +8,7 @@ import typer
 from rich.table import Table
 
 from pipeline.app.cli_common import (
+    METHODS_HELP,
     AllowUnequalOption,
     CalibUnitsOption,
     ConfigOption,
@@ -111,7 +112,7 @@ def batch_cmd(
     dask: Annotated[str | None, typer.Option("--dask", help="'local' runs a Dask LocalCluster here.")] = None,
     force: Annotated[bool, typer.Option("--force", help="Redo clips whose outputs are complete.")] = False,
     detector: DetectorOption = "blob",
-    methods: Annotated[str | None, typer.Option(help="Comma-separated methods (default: all).")] = None,
+    methods: Annotated[str | None, typer.Option(help=METHODS_HELP)] = None,
     markers: MarkersOption = None,
     calib_units: CalibUnitsOption = None,
     config: ConfigOption = None,

@@ -12,6 +12,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from pipeline.app.cli_common import (
+    METHODS_HELP,
     AllowUnequalOption,
     CalibUnitsOption,
     ConfigOption,
@@ -205,7 +206,7 @@ def detect_cmd(
 @app.command("estimate")
 def estimate_cmd(
     clip: Annotated[Path, typer.Argument(help="Clip folder with calib.yaml and out/detections.csv.")],
-    methods: Annotated[str | None, typer.Option(help="Comma-separated methods (default: all point methods).")] = None,
+    methods: Annotated[str | None, typer.Option(help=METHODS_HELP)] = None,
     output: Annotated[Path | None, typer.Option("-o", "--output", help="Where the outputs go (default CLIP/out); "
                                                 "inputs are always read from CLIP/out.")] = None,
     calib_units: CalibUnitsOption = None,
@@ -330,7 +331,7 @@ def run_cmd(
     frames: Annotated[int | None, typer.Option(help="Override the scenario's frame count.")] = None,
     seed: Annotated[int | None, typer.Option(help="Override the scenario's seed.")] = None,
     detector: DetectorOption = "blob",
-    methods: Annotated[str | None, typer.Option(help="Comma-separated methods (default: all).")] = None,
+    methods: Annotated[str | None, typer.Option(help=METHODS_HELP)] = None,
     fmt: Annotated[str, typer.Option("--format", help="Rendered clip format: mp4 or png.")] = "mp4",
     markers: MarkersOption = None,
     calib_units: CalibUnitsOption = None,

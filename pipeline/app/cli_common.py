@@ -10,6 +10,9 @@ from rich.table import Table
 
 from pipeline.core.errors import StereotrackError
 
+#: ``--methods``' help: what runs when it is not given
+METHODS_HELP = "Comma-separated methods (default: those run by default; `stereotrack methods` lists every one)."
+
 if TYPE_CHECKING:
     from rich.progress import Progress
 

@@ -19,10 +19,11 @@ from pipeline.estimators import (  # noqa: F401  (imported to register, in this 
     kalman_bucy,
     pnp_kf,
     predict_only,
+    imm,
 )
 # isort: on
 from pipeline.estimators.base import Estimator, EstimatorConfig, Initiator, Step, Track
-from pipeline.estimators.registration import ENTRY_POINT_GROUP, create, methods, register, registry
+from pipeline.estimators.registration import ENTRY_POINT_GROUP, create, default_methods, methods, register, registry
 
-__all__ = ["ENTRY_POINT_GROUP", "Estimator", "EstimatorConfig", "Initiator", "Step", "Track", "create", "methods",
-           "register", "registry"]
+__all__ = ["ENTRY_POINT_GROUP", "Estimator", "EstimatorConfig", "Initiator", "Step", "Track", "create", "default_methods",
+           "methods", "register", "registry"]

@@ -340,6 +340,9 @@ class Estimator(ABC):
     #: whether the method takes a :class:`~pipeline.core.camera.Rig` of any number of cameras (its
     #: observations 2N wide); the others take a two-camera :class:`StereoRig`
     any_cameras: ClassVar[bool] = False
+    #: whether ``estimate`` runs the method when ``--methods`` does not name it (False: an option
+    #: for one kind of motion, run when asked)
+    default: ClassVar[bool] = True
 
     def __init__(self, rig: StereoRig | Rig, dt: float, config: EstimatorConfig | dict[str, Any] | None = None,
                  time_offset: float = 0.0) -> None:

@@ -59,6 +59,14 @@ def methods(kind: Kind | None = None) -> list[str]:
     return [n for n, c in registry().items() if kind is None or c.kind == kind]
 
 
+def default_methods(target: bool = False) -> list[str]:
+    """What ``estimate`` runs unless ``--methods`` says: every point method that is run by default
+    (:attr:`Estimator.default`), then the target methods when the clip has a target."""
+    reg = registry()
+    point = [n for n, c in reg.items() if c.kind == "point" and c.default]
+    return point + ([n for n, c in reg.items() if c.kind == "target" and c.default] if target else [])
+
+
 def create(name: str, rig: StereoRig | Rig, dt: float, config: EstimatorConfig | dict | None = None,
            time_offset: float = 0.0) -> Estimator:
     """Build a registered estimator by name (``time_offset``: δ of the rig, for the methods that
