@@ -128,3 +128,20 @@ def test_the_manoeuvre_model_takes_over_in_the_turns():
         turning = np.convolve(burst, np.ones(4), "full")[: len(burst)] > 0
         ratios.append(np.nanmean(mu[turning]) / np.nanmean(mu[~turning]))
     assert np.median(ratios) >= 2.0, ratios
+
+
+def test_estimate_runs_it_only_when_named(tmp_path):
+    """Not among the methods ``estimate`` runs by default; named, it runs through the pipeline."""
+    import shutil
+    from pathlib import Path
+
+    from pipeline.app.run import process_clip
+    from pipeline.core.settings import RunSettings
+    from pipeline.estimators import default_methods
+
+    assert "ekf" in default_methods() and "ekf_imm" not in default_methods()
+    clip = tmp_path / "clip"
+    shutil.copytree(Path(__file__).resolve().parents[2] / "data" / "clips" / "sample_small", clip)
+    res = process_clip(clip, settings=RunSettings(methods=("ekf", "ekf_imm"), images=False, recording=False))
+    ms = res.estimate.metrics["methods"]
+    assert ms["ekf_imm"]["rmse"] < 2 * ms["ekf"]["rmse"] and (clip / "out" / "estimates" / "ekf_imm.csv").is_file()
