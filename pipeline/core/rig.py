@@ -199,3 +199,17 @@ def triangulate_robust(rig: Rig | StereoRig, Y: np.ndarray, limit_px: float) -> 
             used[r] = False
             used[np.ix_(r, list(cams))] = True
     return X, used
+
+
+def ray_distances(rig: Rig | StereoRig, X: np.ndarray, Y: np.ndarray) -> np.ndarray:
+    """Distance from each point ``X`` (F×3) to each camera's ray through its observation in ``Y``
+    (F×2N undistorted pixels): F×N, NaN where a camera has none. Motion-capture systems report a
+    reconstructed point's residual as these distances' mean (the C3D format's point residual)."""
+    X, Y = np.asarray(X, dtype=float), np.asarray(Y, dtype=float)
+    out = np.full((len(X), rig.n), np.nan)
+    for c, cam in enumerate(rig.cameras):
+        xy = cam.normalize(Y[:, 2 * c : 2 * c + 2])
+        d = np.column_stack([xy, np.ones(len(xy))]) @ cam.R  # Rᵀ [x, y, 1] per row: the ray's direction
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        out[:, c] = np.linalg.norm(np.cross(X - cam.center, d), axis=1)
+    return out

@@ -23,12 +23,17 @@ FORMATS = ("trc", "c3d", "csv")
 
 @dataclass
 class Tracks:
-    """One method's estimates as an array: frames × markers × 3 (metres, NaN where none)."""
+    """One method's estimates as an array: frames × markers × 3 (metres, NaN where none), the
+    frames it only predicted (frames × markers), and for C3D each measured point's residual (m) and
+    the cameras that saw it (bit c: camera c), where the clip's detections say."""
 
     method: str
     markers: list[str]
     positions: np.ndarray
     fps: float
+    predicted: np.ndarray | None = None
+    residuals: np.ndarray | None = None
+    camera_masks: np.ndarray | None = None
 
 
 def read_tracks(out_dir: Path, method: str, fps: float, predicted: bool = False) -> Tracks:
@@ -41,14 +46,16 @@ def read_tracks(out_dir: Path, method: str, fps: float, predicted: bool = False)
     path = Outputs(out_dir).estimates(method)
     cols = read_csv(path, ["frame", "marker", "x", "y", "z"], numeric=["x", "y", "z"], finite=["frame"])
     check_frame_column(cols["frame"], None, path)
-    if not predicted and "predicted" in cols:  # read once: the held frames' positions become gaps
-        only = np.asarray(cols["predicted"], dtype=float) == 1
+    only = np.asarray(cols["predicted"], dtype=float) == 1 if "predicted" in cols else np.zeros(len(cols["x"]), bool)
+    held, _ = positions_from_columns({**cols, "x": only.astype(float), "y": only.astype(float), "z": only.astype(float)})
+    if not predicted:  # read once: the held frames' positions become gaps
         for a in "xyz":
             cols[a] = np.where(only, np.nan, cols[a])
     pos, n = positions_from_columns(cols)
     markers = list(pos)
     stacked = np.stack([pos[m] for m in markers], axis=1) if markers else np.empty((n, 0, 3))
-    return Tracks(method, markers, stacked, fps)
+    flags = np.stack([held[m][:, 0] == 1 for m in markers], axis=1) if markers else np.zeros((n, 0), bool)
+    return Tracks(method, markers, stacked, fps, flags)
 
 
 def clip_fps(out_dir: Path) -> float:
@@ -79,20 +86,35 @@ def write_trc(path: Path, t: Tracks) -> None:
             f.write(f"{k + 1}\t{k / t.fps:.6f}\t" + "\t".join(cells) + "\n")
 
 
+#: C3D stores a point's residual as a byte of POINT:SCALE units: 0.1 mm, so residuals up to 25.5 mm
+RESIDUAL_UNIT_M = 1e-4
+
+
 def write_c3d(path: Path, t: Tracks) -> None:
-    """C3D through ezc3d: POINT:LABELS the marker names, POINT:RATE the frame rate, POINT:UNITS m;
-    a missing point is NaN with residual −1."""
+    """C3D through ezc3d: POINT:LABELS the marker names, POINT:RATE the frame rate, POINT:UNITS m.
+    Each point's residual follows the format's convention: −1 where there is none (NaN), 0 where
+    it was computed rather than measured (a frame the method only predicted, with ``--predicted``),
+    and for a measured point the mean distance to the rays of the cameras that saw it (set bits of
+    its camera mask), in units of 0.1 mm (POINT:SCALE −0.0001), at least one unit and at most 255."""
     import ezc3d
 
     c = ezc3d.c3d()
     c["parameters"]["POINT"]["RATE"]["value"] = [float(t.fps)]
     c["parameters"]["POINT"]["LABELS"]["value"] = tuple(t.markers)
     c["parameters"]["POINT"]["UNITS"]["value"] = ["m"]
+    c["parameters"]["POINT"]["SCALE"]["value"] = [-RESIDUAL_UNIT_M]
     pts = np.ones((4, len(t.markers), len(t.positions)))
     pts[:3] = t.positions.transpose(2, 1, 0)
     c["data"]["points"] = pts
-    residuals = np.where(np.isfinite(t.positions).all(axis=2).T, 0.0, -1.0)[None]
-    c["data"]["meta_points"]["residuals"] = residuals
+    have = np.isfinite(t.positions).all(axis=2)
+    measured = have & ~(t.predicted if t.predicted is not None else np.zeros_like(have))
+    res = np.full(have.shape, RESIDUAL_UNIT_M)  # measured, residual unknown: the smallest positive value
+    if t.residuals is not None:
+        res = np.where(np.isfinite(t.residuals), np.clip(t.residuals, RESIDUAL_UNIT_M, 255 * RESIDUAL_UNIT_M), res)
+    c["data"]["meta_points"]["residuals"] = np.where(measured, res, np.where(have, 0.0, -1.0)).T[None]
+    if t.camera_masks is not None:
+        bits = (t.camera_masks[..., None] >> np.arange(7)) & 1  # frames × markers × 7 (C3D keeps 7 cameras)
+        c["data"]["meta_points"]["camera_masks"] = (bits.astype(bool) & measured[..., None]).transpose(2, 1, 0)
     with atomic_path(path) as tmp:
         c.write(str(tmp))
 
@@ -105,6 +127,65 @@ def write_wide_csv(path: Path, t: Tracks) -> None:
 
 
 WRITERS = {"trc": write_trc, "c3d": write_c3d, "csv": write_wide_csv}
+#: a group track's detection in a camera: the group's blob nearest the point's image, within this (px)
+GROUP_MATCH_PX = 5.0
+
+
+def add_ray_residuals(t: Tracks, seen) -> None:
+    """Each point's residual (the mean of its distances to the rays through the detections the
+    estimate read, :func:`pipeline.core.rig.ray_distances`) and camera mask, from ``seen`` (what
+    :func:`pipeline.estimate.observe` makes of the clip). A track of identical markers takes, in
+    each camera, the group's blob nearest its image within :data:`GROUP_MATCH_PX`."""
+    from pipeline.core.rig import ray_distances
+
+    n, m = t.positions.shape[:2]
+    t.residuals, t.camera_masks = np.full((n, m), np.nan), np.zeros((n, m), dtype=np.int64)
+    for j, name in enumerate(t.markers):
+        Y = _observations(seen, name, t.positions[:, j])
+        if Y is None:
+            continue
+        k = min(n, len(Y))
+        d = ray_distances(seen.rig, t.positions[:k, j], Y[:k])
+        seen_by = np.isfinite(d)
+        count = seen_by.sum(axis=1)
+        t.residuals[:k, j] = np.where(count > 0, np.where(seen_by, d, 0.0).sum(axis=1) / np.maximum(count, 1), np.nan)
+        t.camera_masks[:k, j] = (seen_by * (1 << np.arange(seen_by.shape[1]))).sum(axis=1)
+
+
+def _observations(seen, name: str, X: np.ndarray) -> np.ndarray | None:
+    """The detections a track of ``name`` was estimated from (frames × 2N), or None if unknown."""
+    if name in seen.aligned:
+        return seen.aligned[name]
+    group = name.split("#", 1)[0]
+    if "#" not in name or group not in seen.groups:
+        return None
+    Y = np.full((len(X), 2 * seen.rig.n), np.nan)
+    for k, frame in enumerate(seen.groups[group][: len(X)]):
+        if not np.isfinite(X[k]).all():
+            continue
+        for c, dets in enumerate(frame):
+            if len(dets):
+                d = np.linalg.norm(dets - seen.rig.cameras[c].project(X[k][None])[0], axis=1)
+                if d.min() < GROUP_MATCH_PX:
+                    Y[k, 2 * c : 2 * c + 2] = dets[int(np.argmin(d))]
+    return Y
+
+
+def _seen(clip: Path, in_dir: Path):
+    """The clip's detections and rig as ``estimate`` read them (its input checks not repeated on
+    screen), or None when they cannot be read (residuals are then left unknown)."""
+    import warnings
+
+    from pipeline.core.clip import Clip
+    from pipeline.core.settings import RunSettings
+    from pipeline.estimate import observe
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return observe(Clip.open(clip), in_dir, None, RunSettings())
+    except StereotrackError:
+        return None
 
 
 def _current(in_dir: Path, have: list[str], asked: list[str]) -> list[str]:
@@ -145,9 +226,13 @@ def export_clip(clip: str | Path, fmt: str, methods: list[str] | None = None, ou
     written = []
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / EXPORT_MARK).touch()
+    seen = _seen(Path(clip), in_dir) if fmt == "c3d" else None
     for m in methods or have:
         path = out_dir / f"{m}.{fmt}"
         path.parent.mkdir(parents=True, exist_ok=True)
-        WRITERS[fmt](path, read_tracks(in_dir, m, fps, predicted))
+        tracks = read_tracks(in_dir, m, fps, predicted)
+        if seen is not None:
+            add_ray_residuals(tracks, seen)
+        WRITERS[fmt](path, tracks)
         written.append(path)
     return written
