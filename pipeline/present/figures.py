@@ -29,10 +29,20 @@ def _legend(fig, axes) -> None:
     for ax in np.atleast_1d(axes):
         for h, lab in zip(*ax.get_legend_handles_labels(), strict=True):
             handles.setdefault(lab, h)
-    fig.tight_layout(rect=(0, 0, 0.84 if handles else 1, 1))
+    _margins(fig, 0.84 if handles else 1.0)
     if handles:
         fig.legend(list(handles.values()), list(handles), fontsize=8, loc="center left", bbox_to_anchor=(0.845, 0.5),
                    ncol=2 if len(handles) > 16 else 1)
+
+
+def _margins(fig, right: float) -> None:
+    """Fixed margins in inches (room for tick labels, axis labels and titles) instead of
+    ``tight_layout``, which measures every tick label's text and took half of each figure's time;
+    the axes end at ``right`` (the legend's column beyond)."""
+    w, h = fig.get_size_inches()
+    rows = max(1, len({round(ax.get_position().y0, 3) for ax in fig.axes}))
+    fig.subplots_adjust(left=0.85 / w, right=right - 0.1 / w, bottom=0.6 / h, top=1 - 0.45 / h, wspace=2.0 / w * 1.6,
+                        hspace=1.1 / (h / rows - 1.1))
 
 
 def _limits(arrays: list[np.ndarray], pad: float = 0.08) -> tuple[float, float] | None:
