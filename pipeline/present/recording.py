@@ -164,11 +164,11 @@ def ellipsoid_columns(cov: np.ndarray, level: float = 0.95) -> tuple[np.ndarray,
     """Half-axes and rotations (quaternions, xyzw) of the ``level`` ellipsoids of 3×3 position
     covariances (``n × 3 × 3``): the axes are the eigenvectors, the half-lengths √(χ²₃(level) λ)."""
     from scipy.spatial.transform import Rotation
-    from scipy.stats import chi2
+    from scipy.special import gammaincinv  # χ²'s quantile without scipy.stats' ~1 s import
 
     vals, vecs = np.linalg.eigh(cov)
     vecs[np.linalg.det(vecs) < 0, :, 0] *= -1  # a proper rotation
-    half = np.sqrt(chi2.ppf(level, 3) * np.clip(vals, 0, None))
+    half = np.sqrt(2 * gammaincinv(1.5, level) * np.clip(vals, 0, None))
     return half, Rotation.from_matrix(vecs).as_quat()
 
 
