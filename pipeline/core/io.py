@@ -152,7 +152,7 @@ class Schema:
 
 
 def write_csv(path: str | Path, header: Sequence[str], rows: Iterable[Sequence[Any]]) -> None:
-    """Write a CSV table atomically; floats with 9 significant digits, NaN as ``nan``."""
+    """Write a CSV table atomically; floats with 10 significant digits, NaN as ``nan``."""
     with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
         writer = csv.writer(fh)
         writer.writerow(header)

@@ -145,3 +145,19 @@ def test_estimate_runs_it_only_when_named(tmp_path):
     res = process_clip(clip, settings=RunSettings(methods=("ekf", "ekf_imm"), images=False, recording=False))
     ms = res.estimate.metrics["methods"]
     assert ms["ekf_imm"]["rmse"] < 2 * ms["ekf"]["rmse"] and (clip / "out" / "estimates" / "ekf_imm.csv").is_file()
+
+
+def test_more_cameras():
+    """A ring of four cameras (2N-wide observations, one camera missing now and then): with one
+    model it is the EKF there too, and with two it follows the turning marker at least as well."""
+    from pipeline.core.rig import ring_rig
+
+    rig = ring_rig(4).in_frame_of(0)
+    X, _ = manoeuvring(150, 21)
+    X = X - [0.0, 0.0, 2.2] + rig.cameras[0].center + 2.0 * rig.cameras[0].R[2]  # in front of the ring
+    rng = np.random.default_rng(21)
+    Y = rig.project(X) + rng.normal(0, 1.0, (150, 8))
+    Y[rng.random((150, 4)).repeat(2, axis=1) < 0.1] = np.nan
+    one = create("ekf_imm", rig, DT, {"manoeuvre_q_scale": 1.0}).run(Y)
+    np.testing.assert_allclose(one.position, Estimator.run(create("ekf", rig, DT), Y).position, atol=1e-9)
+    assert rmse(create("ekf_imm", rig, DT).run(Y), X) <= 1.05 * rmse(create("ekf", rig, DT).run(Y), X)
