@@ -1,7 +1,8 @@
 """The IMM EKF (pipeline.estimators.imm): one model is the EKF; on a marker that cruises and then
 turns hard it follows where the single-q EKF overshoots, without costing the smooth case, and its
 manoeuvre model takes over during the turns. Held out: the rigs (second camera above, left) and
-the seeds (10–14); the motions were made for this test, the IMM's defaults set before it ran."""
+the seeds (10–14); the motions (renderers.paths) were made for this test, the IMM's defaults set
+before it ran."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import pytest
 from pipeline.core.camera import Camera, StereoRig
 from pipeline.estimators import create
 from pipeline.estimators.base import Estimator
+from renderers.paths import sinusoid, turning
 
 RIG = StereoRig.from_parameters(640, 480, (600.0, 600.0), (319.5, 239.5), 0.3)
 LAYOUTS = {"above": StereoRig(RIG.left, Camera(RIG.left.K, np.eye(3), np.array([0.0, 0.3, 0.0])), RIG.image_size),
@@ -19,30 +21,11 @@ DT = 1 / 30
 
 
 def manoeuvring(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """(positions, burst flags): a marker cruising about a point 2.2 m away (pulled back to it, its
-    speed damped) that, at random (4 % of frames), turns hard for 3–8 frames at 8–14 m/s² (peaks of
-    11–15 m/s² with the pull back); it stays in both images."""
-    rng = np.random.default_rng(seed)
-    x, v = np.array([-0.3, 0.0, 2.2]), rng.normal(0, 0.3, 3) * [1, 1, 0.5]
-    out, bursts, left, a = [], [], 0, np.zeros(3)
-    for _ in range(n):
-        if left == 0 and rng.random() < 0.04:
-            left, a = int(rng.integers(3, 9)), rng.normal(0, 1, 3)
-            a *= rng.uniform(8, 14) / np.linalg.norm(a)
-        acc = (a if left else 0.0) - 6.0 * (x - [0.0, 0.0, 2.2]) - 1.5 * v
-        bursts.append(left > 0)
-        left = max(0, left - 1)
-        v = v + acc * DT
-        x = x + v * DT
-        out.append(x.copy())
-    return np.array(out), np.array(bursts)
+    return turning(n, seed, DT)
 
 
 def smooth(n: int, seed: int) -> np.ndarray:
-    t, rng = np.arange(n) * DT, np.random.default_rng(seed)
-    f, ph = rng.uniform(0.2, 0.6, 3), rng.uniform(0, 6, 3)
-    return np.c_[0.3 * np.sin(2 * np.pi * f[0] * t + ph[0]), 0.15 * np.sin(2 * np.pi * f[1] * t + ph[1]),
-                 2.2 + 0.4 * np.sin(2 * np.pi * f[2] * t + ph[2])]
+    return sinusoid(n, seed, DT)
 
 
 def observe(rig: StereoRig, X: np.ndarray, seed: int) -> np.ndarray:
