@@ -21,7 +21,7 @@ from _common import page
 
 from pipeline.core.camera import Camera, StereoRig
 from pipeline.estimators import create
-from renderers.paths import sinusoid, turning
+from renderers.paths import observed, sinusoid, turning
 
 DT = 1 / 30
 BASE = StereoRig.from_parameters(640, 480, (600.0, 600.0), (319.5, 239.5), 0.3)
@@ -29,15 +29,6 @@ RIGS = {"above": StereoRig(BASE.left, Camera(BASE.left.K, np.eye(3), np.array([0
         "left": StereoRig(BASE.left, Camera(BASE.left.K, np.eye(3), np.array([0.3, 0.0, 0.0])), BASE.image_size)}
 METHODS = ("ekf_imm", "ekf", "triangulation", "spsa_stereo", "predict_only")
 CHI2_3_MEDIAN = 2.365973884375338
-
-
-def observe(rig: StereoRig, X: np.ndarray, seed: int) -> np.ndarray:
-    """Projections with 1 px noise; a camera whose image does not hold the marker gives nothing."""
-    Y = rig.project(X) + np.random.default_rng(seed + 50).normal(0, 1.0, (len(X), 4))
-    for c in range(2):
-        u, v = Y[:, 2 * c], Y[:, 2 * c + 1]
-        Y[~((u >= 0) & (u < 640) & (v >= 0) & (v < 480)), 2 * c : 2 * c + 2] = np.nan
-    return Y
 
 
 def scores(track, X: np.ndarray) -> tuple[float, float]:
@@ -72,7 +63,7 @@ def main() -> None:
             got: dict[str, list[tuple[float, float]]] = {m: [] for m in METHODS}
             for seed in range(lo, hi + 1):
                 X = turning(args.frames, seed, DT)[0] if motion == "turning" else sinusoid(args.frames, seed, DT)
-                Y = observe(rig, X, seed)
+                Y = observed(rig, X, seed)
                 for m in METHODS:
                     got[m].append(scores(create(m, rig, DT).run(Y), X))
             for m in METHODS:

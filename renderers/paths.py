@@ -36,3 +36,15 @@ def sinusoid(n: int, seed: int, dt: float = 1 / 30) -> np.ndarray:
     f, ph = rng.uniform(0.2, 0.6, 3), rng.uniform(0, 6, 3)
     return CENTRE + np.c_[0.3 * np.sin(2 * np.pi * f[0] * t + ph[0]), 0.15 * np.sin(2 * np.pi * f[1] * t + ph[1]),
                           0.4 * np.sin(2 * np.pi * f[2] * t + ph[2])]
+
+
+def observed(rig, X: np.ndarray, seed: int, sigma: float = 1.0) -> np.ndarray:
+    """What a detector would report of positions ``X`` (n × 3) through a stereo ``rig``: the
+    projections with Gaussian noise ``sigma`` (px; drawn from ``seed + 50``), NaN where a camera's
+    image does not hold the marker."""
+    Y = rig.project(X) + np.random.default_rng(seed + 50).normal(0, sigma, (len(X), 4))
+    w, h = rig.image_size
+    for c in range(2):
+        u, v = Y[:, 2 * c], Y[:, 2 * c + 1]
+        Y[~((u >= 0) & (u < w) & (v >= 0) & (v < h)), 2 * c : 2 * c + 2] = np.nan
+    return Y

@@ -12,7 +12,7 @@ import pytest
 from pipeline.core.camera import Camera, StereoRig
 from pipeline.estimators import create
 from pipeline.estimators.base import Estimator
-from renderers.paths import sinusoid, turning
+from renderers.paths import observed, sinusoid, turning
 
 RIG = StereoRig.from_parameters(640, 480, (600.0, 600.0), (319.5, 239.5), 0.3)
 LAYOUTS = {"above": StereoRig(RIG.left, Camera(RIG.left.K, np.eye(3), np.array([0.0, 0.3, 0.0])), RIG.image_size),
@@ -30,11 +30,7 @@ def smooth(n: int, seed: int) -> np.ndarray:
 
 def observe(rig: StereoRig, X: np.ndarray, seed: int) -> np.ndarray:
     """1 px noise; a camera that does not see the marker (outside its image) gives nothing."""
-    Y = rig.project(X) + np.random.default_rng(seed + 50).normal(0, 1.0, (len(X), 4))
-    for c in range(2):
-        u, v = Y[:, 2 * c], Y[:, 2 * c + 1]
-        Y[~((u >= 0) & (u < 640) & (v >= 0) & (v < 480)), 2 * c : 2 * c + 2] = np.nan
-    return Y
+    return observed(rig, X, seed)
 
 
 def rmse(track, X: np.ndarray) -> float:
