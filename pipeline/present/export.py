@@ -184,7 +184,9 @@ def _seen(clip: Path, in_dir: Path):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             return observe(Clip.open(clip), in_dir, None, RunSettings())
-    except StereotrackError:
+    except StereotrackError as exc:
+        warnings.warn(f"C3D residuals and camera masks left unknown (measured points get the smallest residual): "
+                      f"{exc}", stacklevel=3)
         return None
 
 

@@ -68,3 +68,20 @@ def test_c3d_residuals_and_camera_masks(exported, monkeypatch, capsys):
                 assert r > 0 and abs(r - np.clip(approx, 1e-4, 0.0255)) <= 0.05 * approx + 1e-4, (method, name, k, r, approx)
                 checked += 1
         assert checked >= 60  # of the 80 points (40 frames, two markers): the rest held or before the start
+
+
+def test_c3d_without_the_detections_says_what_it_left_out(exported, tmp_path, monkeypatch, capsys):
+    """detections.csv gone after the estimate: the C3D is still written, every measured point with
+    the smallest positive residual and no camera mask, and a warning says why."""
+    import ezc3d
+
+    clip = tmp_path / "clip"
+    shutil.copytree(exported, clip)
+    (clip / "out" / "detections.csv").unlink()
+    rc, _, err = cli(monkeypatch, capsys, "export", clip, "--format", "c3d", "--methods", "ekf")
+    assert rc == 0, err
+    assert "residuals and camera masks left unknown" in err and "detections.csv" in err
+    c3d = ezc3d.c3d(str(clip / "out" / "export" / "ekf.c3d"))
+    r = c3d["data"]["meta_points"]["residuals"][0]
+    assert np.all(np.isin(np.round(r[r > 0], 6), [1e-4])) and (r > 0).sum() > 60
+    assert not c3d["data"]["meta_points"]["camera_masks"].any()
