@@ -108,9 +108,9 @@ def associate(cameras: list[Camera], dt: float, detections: list[list[np.ndarray
               merged: list[list[np.ndarray]] | None = None) -> Association:
     """Associate ``detections`` (per frame, per camera: k × 2 undistorted pixels) into tracks.
     ``merged`` (beside them: k flags) marks blobs of several markers' merged images (the detect
-    stage's ``merged`` column): such a blob is no one's position, so no track updates from it and
-    none starts from it; the tracks it covers coast in that camera until their images part (the
-    others still update them)."""
+    stage's ``merged`` column): such a blob is no one's position, so it is assigned to no track,
+    goes into no track's observations and starts no track; a track it covers is only held near it
+    with widened noise (:meth:`_Run._covered`) until their images part."""
     cfg = config or AssociationConfig()
     if mode == "epipolar":
         return _epipolar_baseline(cameras, detections, cfg)

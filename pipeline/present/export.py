@@ -46,16 +46,18 @@ def read_tracks(out_dir: Path, method: str, fps: float, predicted: bool = False)
     path = Outputs(out_dir).estimates(method)
     cols = read_csv(path, ["frame", "marker", "x", "y", "z"], numeric=["x", "y", "z"], finite=["frame"])
     check_frame_column(cols["frame"], None, path)
-    only = np.asarray(cols["predicted"], dtype=float) == 1 if "predicted" in cols else np.zeros(len(cols["x"]), bool)
-    held, _ = positions_from_columns({**cols, "x": only.astype(float), "y": only.astype(float), "z": only.astype(float)})
-    if not predicted:  # read once: the held frames' positions become gaps
-        for a in "xyz":
-            cols[a] = np.where(only, np.nan, cols[a])
     pos, n = positions_from_columns(cols)
     markers = list(pos)
     stacked = np.stack([pos[m] for m in markers], axis=1) if markers else np.empty((n, 0, 3))
-    flags = np.stack([held[m][:, 0] == 1 for m in markers], axis=1) if markers else np.zeros((n, 0), bool)
-    return Tracks(method, markers, stacked, fps, flags)
+    held = np.zeros((n, len(markers)), dtype=bool)
+    if "predicted" in cols:
+        only = np.asarray(cols["predicted"], dtype=float) == 1
+        column = {m: j for j, m in enumerate(markers)}
+        for k, name in zip(cols["frame"][only].astype(int), cols["marker"][only], strict=True):
+            held[k, column[str(name)]] = True
+    if not predicted:  # the held frames' positions become gaps
+        stacked[held] = np.nan
+    return Tracks(method, markers, stacked, fps, held)
 
 
 def clip_fps(out_dir: Path) -> float:
