@@ -40,9 +40,16 @@ def _margins(fig, right: float) -> None:
     ``tight_layout``, which measures every tick label's text and took half of each figure's time;
     the axes end at ``right`` (the legend's column beyond)."""
     w, h = fig.get_size_inches()
+    left, right, bottom, top = 0.85 / w, right - 0.1 / w, 0.6 / h, 1 - 0.45 / h
+    cols = max(1, len({round(ax.get_position().x0, 3) for ax in fig.axes}))
     rows = max(1, len({round(ax.get_position().y0, 3) for ax in fig.axes}))
-    fig.subplots_adjust(left=0.85 / w, right=right - 0.1 / w, bottom=0.6 / h, top=1 - 0.45 / h, wspace=2.0 / w * 1.6,
-                        hspace=1.1 / (h / rows - 1.1))
+    gap_w, gap_h = 0.9, 1.1  # inches between axes: the next one's tick labels and y label; a title and x label
+
+    def space(extent: float, n: int, gap: float) -> float:  # matplotlib's spacing: a gap over one axis' extent
+        return gap / max(extent / n - gap * (n - 1) / n, 0.1)
+
+    fig.subplots_adjust(left=left, right=right, bottom=bottom, top=top, wspace=space((right - left) * w, cols, gap_w),
+                        hspace=space((top - bottom) * h, rows, gap_h))
 
 
 def _limits(arrays: list[np.ndarray], pad: float = 0.08) -> tuple[float, float] | None:
