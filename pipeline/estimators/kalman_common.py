@@ -265,7 +265,7 @@ def rts_smooth(est: GatedFilter, track: Track) -> Track:
 def _smoother(est: GatedFilter, frames: int) -> Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
     """The backward pass for this filter: the compiled :func:`kernels.rts_backward` for the
     constant-velocity transition every built-in filter uses (tested equal to filterpy's) where
-    compiling pays (:func:`~pipeline.estimators.base.use_compiled`), else filterpy's ``rts_smoother``."""
+    compiling pays (:func:`~pipeline.estimators.base.use_compiled`), else the numpy one (filterpy's ``rts_smoother``)."""
     if est.A.shape == (6, 6) and np.array_equal(est.A, transition(est.dt)) and use_compiled(frames):
         import pipeline.estimators.compiled as kernels
 
@@ -274,17 +274,17 @@ def _smoother(est: GatedFilter, frames: int) -> Callable[[np.ndarray, np.ndarray
             return xs, Ps
 
         return compiled
-    from filterpy.kalman import KalmanFilter  # imported when a filter is built (see base.py)
+    from pipeline.estimators.filters import KalmanFilter
 
-    kf = KalmanFilter(dim_x=6, dim_z=1)
+    kf = KalmanFilter(dim_x=len(est.A), dim_z=1)
     kf.F, kf.Q = est.A, est.Q
-    return lambda xs, Ps: kf.rts_smoother(xs, Ps)[:2]
+    return kf.rts_smoother
 
 
 def filtered_step(x: np.ndarray, P: np.ndarray, predicted: bool, f=None, innovation: np.ndarray | None = None,
                   innovation_covariance: np.ndarray | None = None) -> Step:
     """A Kalman-family step from the filter's state; the update's innovation ``y`` and covariance
-    ``S`` (from ``f``, a filterpy filter that just updated, or given) are kept for NIS."""
+    ``S`` (from ``f``, a filter that just updated, or given) are kept for NIS."""
     x = np.ravel(x)
     if f is not None:
         innovation, innovation_covariance = np.ravel(f.y), np.array(f.S, dtype=float)

@@ -16,6 +16,7 @@ import numpy as np
 from pydantic import Field
 
 from pipeline.estimators.base import Estimator, Step, not_started, transition, white_noise_acceleration
+from pipeline.estimators.filters import KalmanFilter
 from pipeline.estimators.kalman_common import GatedFilter, KalmanConfig, RTSMixin, filtered_step, gated_step, kalman_batch
 from pipeline.estimators.registration import register
 
@@ -44,8 +45,6 @@ class KF3DEstimator(GatedFilter, Estimator):
         cfg = self.config
         self.A = transition(self.dt)
         self.Q = white_noise_acceleration(self.dt, cfg.process_noise * cfg.q_scale)
-        from filterpy.kalman import KalmanFilter  # imported when a filter is built (see base.py)
-
         self.filter = KalmanFilter(dim_x=6, dim_z=3)
         self.filter.F, self.filter.Q, self.filter.H = self.A, self.Q, H3
 

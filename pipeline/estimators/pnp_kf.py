@@ -3,8 +3,8 @@
 ``cv2.solvePnPGeneric(..., SOLVEPNP_IPPE_SQUARE)`` returns both poses of a planar target consistent with
 the image (the well-known two-fold ambiguity); we keep the one nearer the previous frame's pose
 (the lower reprojection error on the first frame), convert it to α and z in the left camera's
-frame, and filter [α, α̇, z, ż] with ``filterpy.kalman.KalmanFilter`` on the same second-order
-channel models as the Kalman–Bucy filter, discretised exactly (``expm`` / Van Loan).
+frame, and filter [α, α̇, z, ż] with a linear Kalman filter (:mod:`~pipeline.estimators.filters`, filterpy's
+equations) on the same second-order channel models as the Kalman–Bucy filter, discretised exactly (``expm`` / Van Loan).
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ import numpy as np
 
 from pipeline.core.lazy import lazy_module
 from pipeline.estimators.base import Step, expm
+from pipeline.estimators.filters import KalmanFilter
 from pipeline.estimators.four_point import (
     TargetEstimator,
     TargetMeasurement,
@@ -72,8 +73,6 @@ class PnPKFEstimator(TargetEstimator):
 
         A = block_diag(channel_matrix(c.a_alpha, c.alpha_feedback), channel_matrix(c.a_z, c.z_feedback))
         F, Qd = van_loan(A, G4 @ np.diag([c.q_alpha, c.q_z]) @ G4.T, self.dt)
-        from filterpy.kalman import KalmanFilter  # imported when a filter is built (see base.py)
-
         self.kf = KalmanFilter(dim_x=4, dim_z=2)
         self.kf.F, self.kf.Q, self.kf.H = F, Qd, C4
         self.prev_normals: dict[int, np.ndarray] = {}

@@ -1,4 +1,5 @@
-"""Unscented Kalman filter (``filterpy.kalman.UnscentedKalmanFilter``) on the same model as the EKF:
+"""Unscented Kalman filter (filterpy's ``UnscentedKalmanFilter`` equations, :mod:`~pipeline.estimators.filters`) on the
+same model as the EKF:
 sigma points (Van der Merwe's scaled set) through ``x ↦ A x`` and the measurement model's
 ``function``; no Jacobian needed."""
 
@@ -7,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.estimators.base import Estimator, Step, not_started, transition, white_noise_acceleration
+from pipeline.estimators.filters import MerweSigmaPoints, UnscentedKalmanFilter
 from pipeline.estimators.kalman_common import GatedFilter, KalmanConfig, available_rows, filtered_step, gated_step
 from pipeline.estimators.registration import register
 
@@ -27,13 +29,11 @@ class UKFEstimator(GatedFilter, Estimator):
         self.A = transition(self.dt)
         self.Q = white_noise_acceleration(self.dt, cfg.process_noise * cfg.q_scale)
         self.R = self.model.covar() * cfg.r_scale
-        from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter  # when built (see base.py)
-
-        points = MerweScaledSigmaPoints(6, alpha=0.3, beta=2.0, kappa=-3.0)
-        A, h = self.A, self.model.function
-        self.filter = UnscentedKalmanFilter(dim_x=6, dim_z=self.model.ndim_meas, dt=self.dt, hx=h, fx=lambda x, dt: A @ x,
-                                            points=points)
-        self.filter.Q, self.filter.R = self.Q, self.R
+        points = MerweSigmaPoints(6, alpha=0.3, beta=2.0, kappa=-3.0)
+        A = self.A
+        # row by row, as filterpy: one matrix product over all points differs in the last bit
+        self.filter = UnscentedKalmanFilter(6, points, fx=lambda sigmas: np.array([A @ s for s in sigmas]))
+        self.filter.Q = self.Q
 
     def _step(self, y: np.ndarray) -> Step:
         f = self.filter
@@ -53,7 +53,5 @@ class UKFEstimator(GatedFilter, Estimator):
         if not len(rows):
             f.x, f.P = f.x_prior.copy(), f.P_prior.copy()
             return gated_step(filtered_step(f.x, f.P, True), n_gated)
-        # every sigma point through the measurement model at once; filterpy asks for them in order
-        h = iter(self.model.function(f.sigmas_f)[:, rows])
-        f.update(y[rows], R=self.R[np.ix_(rows, rows)], hx=lambda _x: next(h))
+        f.update(y[rows], self.R[np.ix_(rows, rows)], self.model.function(f.sigmas_f)[:, rows])  # all points at once
         return gated_step(filtered_step(f.x, f.P, False, f), n_gated)

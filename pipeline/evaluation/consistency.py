@@ -33,8 +33,7 @@ def nees(track: Track, truth_position: np.ndarray, truth_velocity: np.ndarray | 
 
 def band(dof: np.ndarray | int, p: float = 0.95) -> tuple[np.ndarray, np.ndarray]:
     """The two-sided ``p`` band of χ²(dof): ``χ²_q(k) = 2·P⁻¹(k/2, q)``, the inverse regularised
-    lower incomplete gamma function (scipy.special: a process that builds no filterpy filter, which
-    imports scipy.stats itself, need not pay scipy.stats' ~0.5 s import)."""
+    lower incomplete gamma function (scipy.special: an estimate stage need not pay scipy.stats' ~0.5 s import)."""
     k = np.asarray(dof, dtype=float) / 2
     from scipy.special import gammaincinv  # imported here: 0.15 s at start-up
 
