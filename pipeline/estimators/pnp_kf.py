@@ -130,7 +130,7 @@ class PnPKFEstimator(TargetEstimator):
                 va, vz = propagated_variance(self.pnp, np.asarray(obs, dtype=float), m, c.pixel_sigma)
                 self.prev_normals = saved
                 var = [var[0] or va, var[1] or vz]
-            self.kf.R = np.diag(var)
+            self.kf.R = np.diag(np.array(var, dtype=float))
             self.kf.x = np.array([[m.alpha], [0.0], [m.distance], [0.0]])
             self.kf.P = np.diag([var[0], c.sigma_rate0**2, var[1], c.sigma_rate0**2])
             self.initialized = True
