@@ -76,6 +76,7 @@ def main() -> None:
         against_revision(md, args.against, rig, dt, Y, Yb, args)
     first_run_cost(md)
     ekf_against_filterpy(md, rig, dt, Y, args.frames)
+    ekf_against_fixed_size(md, args.long)
     path = out / "bench_estimators.md"
     write_text(path, "\n".join(md) + "\n")
     print(f"\nwrote {path}")
@@ -295,6 +296,49 @@ def ekf_against_filterpy(md: LiveDoc, rig, dt: float, Y: np.ndarray, frames: int
         md.append(f"| {label} | {frames / t:,.0f} | {t_ref / t:.2f} | {t_plain / t:.2f} |")
     md += ["", f"Largest difference of the estimates from filterpy's: stereotrack ekf (gate off) {diff:.1e} m, plain "
            f"loop {diff_plain:.1e} m. spsa_stereo (compiled) / plain loop: {t_plain / t_spsa:.1f}×."]
+
+def ekf_against_fixed_size(md: LiveDoc, frames: int) -> None:
+    """The compiled EKF's core (``ekf_frames``) and its whole ``run`` against a fixed-size compiled
+    EKF (``benchmarks/_fixed_ekf.py``: constant sizes, no gate, no gaps, positions only), from the same
+    start on the same observations, on 300 frames and on ``frames``; the largest difference of the estimates."""
+    from _fixed_ekf import run_fixed
+
+    import pipeline.estimators.compiled as kernels
+    from pipeline.core.camera import StereoMeasurementModel
+    from pipeline.estimators.base import InitConfig, Initiator
+
+    md += ["", "## The compiled EKF against a fixed-size compiled EKF", "",
+           "`benchmarks/_fixed_ekf.py` is the plainest fast EKF for two cameras: every size a constant, a few arrays "
+           "allocated once, loops the compiler unrolls, the innovation covariance inverted through its Cholesky factor; "
+           "no gate, no missing rows, no covariance or NIS kept. Both start from the initiator's start and filter the "
+           "same observations. \"Core\" times `ekf_frames` alone (it also writes each frame's covariance, NIS and "
+           "gate record); \"whole run\" is `run` as a user calls it (the initiator, the output arrays and the track "
+           "built around the core). Best of 300 calls each (50 for `run`), one after the other.", "",
+           "| frames | gate | fixed-size (µs/step) | core (µs/step) | fixed / core | whole run (µs/step) | fixed / run "
+           "| largest difference (m) |", "|---:|---|---:|---:|---:|---:|---:|---:|"]
+    for n in (300, frames):
+        s = load_scenario("receding").with_overrides(frames=n)
+        rig, dt = s.rig.build(), s.dt
+        Y = rig.project(simulate_truth(s).positions[:, 0]) + np.random.default_rng(0).normal(0, 1.0, (n, 4))
+        start = Initiator(InitConfig(), StereoMeasurementModel(rig, 1.0), dt, propagate=True).first(Y)
+        ref, fixed = run_fixed(rig, dt, Y, start)
+        for gate in ("off", "on (default)"):
+            est = create("ekf", rig, dt, {"pixel_sigma": 1.0, "process_noise": 0.5, **({"gate": 0} if gate == "off" else {})})
+            diff = float(np.nanmax(np.abs(est.run(Y).position - ref)))
+            model, out = est._kernel_model(kernels), est._compiled(Y)  # the arrays the core writes into
+            outputs = kernels.EKFOutput(out["pos"], out["vel"], out["cov"], out["pred"], out["nis"], out["dof"],
+                                        out["gated"], out["restart"])
+
+            def core(Y=Y, start=start, model=model, outputs=outputs) -> None:
+                track = kernels.new_track(start.state.copy(), start.covariance.copy())
+                kernels.ekf_frames(Y, start.frame + 1, 0, model, track, outputs)
+
+            t_fixed, t_core = timed(fixed, 300, 0.0), timed(core, 300, 0.0)
+            t_run = timed(lambda est=est, Y=Y: est.run(Y), 50, 0.0)
+            md.append(f"| {n:,} | {gate} | {t_fixed / n * 1e6:.2f} | {t_core / n * 1e6:.2f} | {t_fixed / t_core:.2f}× "
+                      f"| {t_run / n * 1e6:.2f} | {t_fixed / t_run:.2f}× | {diff:.1e} |")
+    md.append("")
+
 
 if __name__ == "__main__":
     main()
