@@ -34,9 +34,21 @@ class CountColumn(MofNCompleteColumn):
         return super().render(task)
 
 
+class StageProgress(Progress):
+    """A progress display that leaves no bar behind when its stage fails: the error line follows
+    the command directly, not a frozen ``0/?`` bar above it."""
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            super().__exit__(exc_type, exc, tb)
+            return
+        self.live.transient = True  # erased from a terminal, never printed to a file or pipe
+        self.live.stop()  # (Progress.stop would end a line that is no longer there)
+
+
 def progress_bar(console: Console) -> Progress:
     """The one progress-bar style of every long command."""
-    return Progress(
+    return StageProgress(
         TextColumn("[bold]{task.description}"),
         BarColumn(),
         CountColumn(),

@@ -64,3 +64,19 @@ def test_run_and_batch_end_with_no_bar_at_zero_and_a_table_that_fits(tmp_path):
                           env={k: v for k, v in env.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}, timeout=60)
     listed = view.stdout.replace("\n", "")  # rich folds long paths at 80 columns
     assert view.returncode == 0 and listed.count("run.rrd") == 2, view.stdout + view.stderr  # both recordings
+
+
+def test_a_stage_that_fails_leaves_no_bar_behind(tmp_path):
+    """A stage stopped by bad input ends on its one error line: no frozen ``0/?`` bar above it and
+    no blank line (piped output, as a log or CI sees it)."""
+    import shutil
+    import subprocess
+    import sys
+
+    from tests.conftest import REPO
+
+    shutil.copytree(REPO / "data" / "clips" / "sample_small", tmp_path / "c")  # no detections.csv yet
+    res = subprocess.run([sys.executable, "-m", "pipeline.app.cli", "estimate", str(tmp_path / "c")], capture_output=True,
+                         text=True, env={**os.environ, "COLUMNS": "80"}, timeout=120)
+    assert res.returncode == 2 and res.stderr.startswith("error: ") and "detections.csv" in res.stderr, res.stderr
+    assert "━" not in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr
