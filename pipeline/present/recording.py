@@ -31,6 +31,7 @@ from pipeline.core.rig import Rig
 from pipeline.evaluation.identity import switches_of
 from pipeline.evaluation.metrics import ranking, runaways
 from pipeline.evaluation.scores import FrameScores
+from pipeline.present.layout import SHOWN_METHODS, blueprint, framing
 from pipeline.present.style import TRUTH_RGB_VIEWER, marker_rgb, method_rgb
 
 if TYPE_CHECKING:
@@ -40,34 +41,12 @@ if TYPE_CHECKING:
 #: 3-D sizes in UI points (negative: rerun's screen-space radii, the same size at any zoom): truth
 #: small and light grey inside each method's larger sphere in its colour, paths thin
 TRUTH_RADIUS, POINT_RADIUS, PATH_RADIUS = -3.0, -5.0, -1.0
-#: methods shown in the 3-D, camera and error views at first open (the best by the run's ranking); the rest one click away
-SHOWN_METHODS = 3
+#: camera panes, in image pixels: a detection's ring, the truth's smaller ring, a method's cross (half
+#: its arm); line widths in UI points (negative: the same on screen at any zoom)
+DETECTION_RING, TRUTH_RING, CROSS_ARM, LINE_WIDTH = 7.0, 3.0, 5.0, -1.0
+_RING = np.stack([np.cos(np.linspace(0, 2 * np.pi, 17)), np.sin(np.linspace(0, 2 * np.pi, 17))], axis=1)  # closed
 #: video codecs (FFmpeg's tags) the viewer decodes in every build: H.264; MPEG-4 Part 2 it cannot
 VIEWER_CODECS = frozenset({"avc1", "h264"})
-
-
-def _legend():
-    """The plots' legend: in the top-right corner (its series one click from hidden)."""
-    import rerun.blueprint as rrb
-
-    return rrb.PlotLegend(corner=rrb.Corner2D.RightTop, visible=True)
-
-
-def _hidden(paths: list[str]):
-    import rerun.blueprint as rrb
-
-    return {p: rrb.EntityBehavior(visible=False) for p in paths}
-
-
-def _series_tabs(kind: str, title: str, markers: list[str], hidden: list[str]):
-    """One time-series view per marker (one line per method), as tabs; ``hidden`` methods (runaways,
-    and those after the best few) hidden until shown, so the legend in its corner stays short."""
-    import rerun.blueprint as rrb
-
-    views = [rrb.TimeSeriesView(name=f"{title} · {mk}", origin=f"/metrics/{kind}/{mk}", plot_legend=_legend(),
-                                overrides=_hidden([f"/metrics/{kind}/{mk}/{m}" for m in hidden]) or None)
-             for mk in markers]
-    return rrb.Tabs(*views) if views else None
 
 
 @dataclass
@@ -104,62 +83,6 @@ def _logged_frames(counts: np.ndarray) -> np.ndarray:
     return np.flatnonzero((counts > 0) | (np.r_[False, counts[:-1] > 0] & (counts == 0))).astype(np.int64)
 
 
-def blueprint(fps: float = 30.0, target: bool = False, info: bool = False, markers: list[str] | None = None,
-              hidden: list[str] | None = None, uncertain: list[str] | None = None,
-              cameras: tuple[str, ...] = ("left", "right"), tucked: list[str] | None = None,
-              eye: tuple[np.ndarray, np.ndarray] | None = None, truth: bool = True):
-    """3-D view (each point at the cursor over its static path) beside the camera views; below,
-    per marker, the 3-D and reprojection errors with one line per method, and the four-point
-    target's α and z when the run has the target; the run's description when given. ``hidden``
-    (runaway methods) start hidden everywhere, ``tucked`` (the methods after the best few) in the
-    3-D, camera and error views, and the covariance ellipsoids of ``uncertain`` too: one click in the
-    blueprint tree shows each. ``eye``: (position, look target) of the 3-D view; without ``truth``
-    no 3-D error plots (they would stay empty). The time panel opens on the ``frame`` timeline at
-    the clip's frame rate."""
-    import rerun.blueprint as rrb
-
-    hidden, markers, tucked = list(hidden or []), list(markers or []), list(tucked or [])
-    plots = [t for t in (_series_tabs("error", "3-D error (mm)", markers if truth else [], hidden + tucked),
-                         _series_tabs("reprojection", "reprojection error (px)", markers, hidden + tucked))
-             if t is not None]
-    if target:
-        plots += [rrb.TimeSeriesView(name="target α (mrad)", origin="/metrics/target/alpha", plot_legend=_legend()),
-                  rrb.TimeSeriesView(name="target z (mm)", origin="/metrics/target/distance", plot_legend=_legend())]
-    side: list[rrb.Spatial2DView | rrb.TextDocumentView | rrb.Grid] = [rrb.Spatial2DView(name=f"{c} camera", origin=f"/world/{c}",
-                              overrides=_hidden([f"/world/{c}/estimates/{m}" for m in hidden + tucked]) or None)
-            for c in cameras]
-    if info:
-        side.append(rrb.TextDocumentView(name="this run", origin="/run"))
-    if len(cameras) > 2:  # N cameras: a grid of camera views beside the 3-D view
-        side = [rrb.Grid(*side)]
-    off = [f"/world/estimates/{m}" for m in hidden + tucked] + [f"/world/uncertainty/{m}" for m in uncertain or []]
-    controls = None if eye is None else rrb.EyeControls3D(position=eye[0], look_target=eye[1], eye_up=(0.0, -1.0, 0.0))
-    view3d = rrb.Spatial3DView(name="3-D", origin="/world", overrides=_hidden(off) or None, eye_controls=controls)
-    return rrb.Blueprint(
-        rrb.Vertical(rrb.Horizontal(view3d, rrb.Vertical(*side), column_shares=[3, 2]), rrb.Horizontal(*plots),
-                     row_shares=[3, 2]),
-        rrb.TimePanel(timeline="frame", fps=float(fps), play_state="paused"),
-        collapse_panels=True,
-    )
-
-
-def framing(points: np.ndarray, fov_deg: float = 60.0) -> tuple[np.ndarray, np.ndarray] | None:
-    """An eye (position, look target) that frames ``points`` (n × 3, left camera frame, y down):
-    the 2–98 % box of the points in a three-quarter view (from the cameras' side, the right and
-    above: a path along the cameras' axis is seen at length, not end on), at the distance where the
-    box's diagonal fills the view's height."""
-    P = points[np.all(np.isfinite(points), axis=1)]
-    if len(P) < 2:
-        return None
-    lo, hi = np.percentile(P, [2, 98], axis=0)
-    centre, size = (lo + hi) / 2, max(float(np.linalg.norm(hi - lo)), 0.05)
-    back = -centre / (np.linalg.norm(centre) or 1.0)  # towards the cameras (the world origin)
-    view = 0.7 * back + np.array([0.7, -0.45, 0.0])  # right of and above the paths (y is down)
-    view /= np.linalg.norm(view)
-    distance = 0.6 * size / np.tan(np.radians(fov_deg) / 2)
-    return centre + distance * view, centre
-
-
 def ellipsoid_columns(cov: np.ndarray, level: float = 0.95) -> tuple[np.ndarray, np.ndarray]:
     """Half-axes and rotations (quaternions, xyzw) of the ``level`` ellipsoids of 3×3 position
     covariances (``n × 3 × 3``): the axes are the eigenvectors, the half-lengths √(χ²₃(level) λ)."""
@@ -175,6 +98,19 @@ def ellipsoid_columns(cov: np.ndarray, level: float = 0.95) -> tuple[np.ndarray,
 def _frames(est: EstimateResult) -> int:
     """The frames a run's series span: the clip's, or its longest observations'."""
     return max([len(v) for v in est.observations.values()] + [est.n_frames])
+
+
+def rings(centres: np.ndarray, radius: float) -> np.ndarray:
+    """A closed 16-gon of ``radius`` around each centre (n × 2 → n × 17 × 2): a detection drawn as an
+    outline leaves the blob it found visible inside it."""
+    return centres[:, None, :] + radius * _RING[None]
+
+
+def crosses(centres: np.ndarray, arm: float) -> np.ndarray:
+    """An upright cross at each centre as two 2-point strips (n × 2 → 2n × 2 × 2, the pair of each point
+    together): a method's reprojection, told from the rings at a glance."""
+    d = np.array([[[-arm, 0.0], [arm, 0.0]], [[0.0, -arm], [0.0, arm]]])
+    return (centres[:, None, None, :] + d[None]).reshape(-1, 2, 2)
 
 
 class Recorder:
@@ -279,6 +215,24 @@ class Recorder:
                             radii=np.full(len(batches.points), radius, np.float32), labels=labels)
         self._columns(entity, batches.frames, cols.partition(batches.lengths.tolist()))
 
+    def _strips2d(self, entity: str, batches: _Batches, colours: np.ndarray, labels: list[str] | None, shape: str,
+                  size: float) -> None:
+        """Each point of ``batches`` drawn as a ring (``shape`` "ring") or a cross ("cross") of ``size`` image
+        pixels, one batch per frame as partitioned columns; labels shown on hover only."""
+        import rerun as rr
+
+        if not len(batches.frames):
+            return
+        per = 1 if shape == "ring" else 2
+        strips = rings(batches.points, size) if shape == "ring" else crosses(batches.points, size)
+        rgb = np.repeat(np.asarray(colours, dtype=np.uint8).reshape(-1, 3), per, axis=0)
+        if labels is not None:
+            labels = [lab for lab in labels for _ in range(per)]
+            self.rec.log(entity, rr.LineStrips2D.from_fields(show_labels=False), static=True)
+        cols = rr.LineStrips2D.columns(strips=list(strips), colors=rgb, radii=np.full(len(strips), LINE_WIDTH, np.float32),
+                                       labels=labels)
+        self._columns(entity, batches.frames, cols.partition((per * batches.lengths).tolist()))
+
     def _scalars(self, entity: str, series: np.ndarray, name: str | None = None, rgb=None) -> None:
         """A scalar series as columns, named and coloured (static ``SeriesLines``) as the report draws it."""
         import rerun as rr
@@ -362,7 +316,8 @@ class Recorder:
         best = [m for m in ranking(est.metrics) if m not in lost and m in self.logged]
         self.rec.send_blueprint(blueprint(1.0 / self.dt, bool(est.target_tracks), bool(info), sorted(self.markers),
                                           lost, self.uncertain, est.rig.names, tucked=best[SHOWN_METHODS:],
-                                          eye=self._eye(est, best), truth=bool(est.truth_positions)),
+                                          eye=self._eye(est, best), truth=bool(est.truth_positions),
+                                          camera_off=[m for m in self.logged if m not in best[:1]]),
                                 make_active=True, make_default=True)
         self.rec.flush()
         self.rec.disconnect()
@@ -395,11 +350,12 @@ class Recorder:
         tp = _batches([truth[m] for m in there], n, finite=False) if truth is not None else None
         for c, name in enumerate(est.rig.names):
             det = _batches([obs[m][:, 2 * c : 2 * c + 2] for m in markers], n)
-            self._points(f"world/{name}/detections", det, mcol[det.which], [markers[j] for j in det.which], "2d", 3.0,
-                         show_labels=False)  # labels on hover: drawn, they cover the blobs at the pane's size
+            self._strips2d(f"world/{name}/detections", det, mcol[det.which], [markers[j] for j in det.which], "ring",
+                           DETECTION_RING)  # labels on hover: drawn, they cover the blobs at the pane's size
             if tp is not None:
                 proj = _Batches(tp.frames, tp.lengths, est.rig.cameras[c].project(tp.points), tp.which)
-                self._points(f"world/{name}/truth", proj, np.tile(TRUTH_RGB_VIEWER, (len(proj.points), 1)), None, "2d", 2.0)
+                self._strips2d(f"world/{name}/truth", proj, np.tile(TRUTH_RGB_VIEWER, (len(proj.points), 1)), None, "ring",
+                               TRUTH_RING)
         if truth is not None and tp is not None:
             self._points("world/truth/points", tp, np.tile(TRUTH_RGB_VIEWER, (len(tp.points), 1)),
                          [there[j] for j in tp.which], "3d", TRUTH_RADIUS)
@@ -415,7 +371,7 @@ class Recorder:
         self._points(f"world/estimates/{meth}/points", cur, colours, labels, "3d", POINT_RADIUS, show_labels=False)
         for c, cam in enumerate(rig.names):  # the estimates seen through each camera
             seen = _Batches(cur.frames, cur.lengths, rig.cameras[c].project(cur.points), cur.which)
-            self._points(f"world/{cam}/estimates/{meth}", seen, colours, labels, "2d", 2.5, show_labels=False)
+            self._strips2d(f"world/{cam}/estimates/{meth}", seen, colours, labels, "cross", CROSS_ARM)
         self._paths(f"world/estimates/{meth}/path", [t.position for t in per_marker.values()], rgb)
         for marker, t in per_marker.items():
             if (error := scores[marker].error) is not None:

@@ -18,6 +18,7 @@ from pipeline.app.cli import app
 from pipeline.app.run import process_clip
 from pipeline.core.io import read_csv
 from pipeline.core.settings import RunSettings
+from pipeline.present.recording import DETECTION_RING
 from pipeline.present.style import TRUTH_RGB_VIEWER
 from renderers.render import render_clip
 from renderers.scenario import parse_scenario
@@ -160,11 +161,12 @@ def test_recording_read_back(e2e_run):
         assert img["frame"] == list(range(40)) and {m[0] for m in img["EncodedImage:media_type"]} == {"image/jpeg"}
         first = cv2.imdecode(np.frombuffer(bytes(img["EncodedImage:blob"][0][0]), np.uint8), cv2.IMREAD_COLOR)
         assert first.shape == (240, 320, 3)
-    # detections: the pixel coordinates of detections.csv, labelled with the marker
+    # detections: rings around the pixel coordinates of detections.csv, labelled with the marker
     det = e2e_run.estimate.observations["red"]
     d = cols["/world/left/detections"]
-    for k, pos, lab in zip(d["frame"], d["Points2D:positions"], d["Points2D:labels"], strict=True):
-        np.testing.assert_allclose(pos[0], det[k, :2], atol=1e-3)
+    for k, ring, lab in zip(d["frame"], d["LineStrips2D:strips"], d["LineStrips2D:labels"], strict=True):
+        np.testing.assert_allclose(np.mean(ring[0][:-1], axis=0), det[k, :2], atol=1e-3)  # closed: last = first
+        np.testing.assert_allclose(np.linalg.norm(np.array(ring[0]) - det[k, :2], axis=1), DETECTION_RING, atol=1e-3)
         assert lab == ["red"]
     truth = e2e_run.estimate.truth.positions["red"]
     np.testing.assert_allclose(np.array(cols["/world/truth/points"]["Points3D:positions"])[:, 0], truth, atol=1e-5)
@@ -371,10 +373,11 @@ def test_recording_shows_what_the_run_was(e2e_run):
         assert f"/world/estimates/{meth}/path" in static and cols[f"/world/estimates/{meth}/path"]["LineStrips3D:strips"]
         assert {lab for v in cols[f"/world/estimates/{meth}/points"]["Points3D:labels"] for lab in v} == {"red"}
         tr = e2e_run.estimate.tracks[meth]["red"]
-        seen = cols[f"/world/left/estimates/{meth}"]
-        held = [(k, v[0]) for k, v in zip(seen["frame"], seen["Points2D:positions"], strict=True) if v]
+        seen = cols[f"/world/left/estimates/{meth}"]  # a cross (two strips) at each reprojected estimate
+        held = [(k, v) for k, v in zip(seen["frame"], seen["LineStrips2D:strips"], strict=True) if v]
         want = e2e_run.estimate.rig.left.project(tr.position[[k for k, _ in held]])
-        np.testing.assert_allclose(np.array([v for _, v in held]), want, atol=1e-3)
+        for (_, (across, upright)), uv in zip(held, want, strict=True):
+            np.testing.assert_allclose([np.mean(across, axis=0), np.mean(upright, axis=0)], [uv, uv], atol=1e-3)
         for kind in ("error", "reprojection"):  # one plot per marker, one line per method
             series = cols[f"/metrics/{kind}/red/{meth}"]
             assert series["SeriesLines:names"][0] == [meth]
@@ -398,6 +401,8 @@ def test_recording_shows_what_the_run_was(e2e_run):
     assert tucked == set(order[3:]), (tucked, order)
     plotted_off = {m for m in METHODS if any(f"/overrides/metrics/error/red/{m}" in p for p in hidden)}
     assert plotted_off == set(order[3:]), plotted_off  # the error plots show the same three
+    in_camera = {m for m in METHODS if not any(f"/overrides/world/left/estimates/{m}" in p for p in hidden)}
+    assert in_camera == {order[0]}, (in_camera, order)  # the camera panes: the best method's crosses only
     # the 3-D eye looks at the middle of the truth's path, from where the whole path fits the view
     eye = next(c for c in bp.values() if "EyeControls3D:look_target" in c)
     target, position = np.ravel(eye["EyeControls3D:look_target"][0]), np.ravel(eye["EyeControls3D:position"][0])
