@@ -22,14 +22,15 @@ def _hidden(paths: list[str]):
     return {p: rrb.EntityBehavior(visible=False) for p in paths}
 
 
-def _series_tabs(kind: str, title: str, markers: list[str], hidden: list[str]):
-    """One time-series view per marker (one line per method), as tabs; ``hidden`` methods (runaways,
-    and those after the best few) hidden until shown, so the legend in its corner stays short."""
+def _series_tabs(kind: str, title: str, markers: list[str], hidden: list[str], *more):
+    """One time-series view per marker (one line per method), as tabs, then ``more`` views; ``hidden``
+    methods (runaways, and those after the best few) hidden until shown, so the legend in its corner
+    stays short."""
     import rerun.blueprint as rrb
 
     views = [rrb.TimeSeriesView(name=f"{title} · {mk}", origin=f"/metrics/{kind}/{mk}", plot_legend=_legend(),
                                 overrides=_hidden([f"/metrics/{kind}/{mk}/{m}" for m in hidden]) or None)
-             for mk in markers]
+             for mk in markers] + list(more)
     return rrb.Tabs(*views) if views else None
 
 
@@ -50,8 +51,10 @@ def blueprint(fps: float = 30.0, target: bool = False, info: bool = False, marke
 
     hidden, markers, tucked = list(hidden or []), list(markers or []), list(tucked or [])
     off_cameras = hidden + tucked if camera_off is None else list(camera_off)
+    lanes = rrb.StateTimelineView(name="track state", origin="/state",
+                                  overrides=_hidden([f"/state/{m}" for m in hidden + tucked]) or None)
     plots = [t for t in (_series_tabs("error", "3-D error (mm)", markers if truth else [], hidden + tucked),
-                         _series_tabs("reprojection", "reprojection error (px)", markers, hidden + tucked))
+                         _series_tabs("reprojection", "reprojection error (px)", markers, hidden + tucked, lanes))
              if t is not None]
     if target:
         plots += [rrb.TimeSeriesView(name="target α (mrad)", origin="/metrics/target/alpha", plot_legend=_legend()),

@@ -32,6 +32,7 @@ from pipeline.evaluation.identity import switches_of
 from pipeline.evaluation.metrics import ranking, runaways
 from pipeline.evaluation.scores import FrameScores
 from pipeline.present.layout import SHOWN_METHODS, blueprint, framing
+from pipeline.present.states import STATES, frame_states, transitions
 from pipeline.present.style import TRUTH_RGB_VIEWER, marker_rgb, method_rgb
 
 if TYPE_CHECKING:
@@ -263,6 +264,7 @@ class Recorder:
         n = _frames(est)
         self._method(est.rig, meth, per_marker, scores, n)
         self._track_events(meth, per_marker, scores)
+        self._states(meth, per_marker)
         if self._ellipsoids(meth, per_marker, n):
             self.uncertain.append(meth)
         P = np.vstack([t.position for t in per_marker.values()] or [np.empty((0, 3))])
@@ -289,6 +291,18 @@ class Recorder:
             events.sort()
             cols = rr.TextLog.columns(text=[e[2] for e in events], level=[e[1] for e in events])
             self._columns(f"events/{meth}", np.array([e[0] for e in events], dtype=np.int64), cols)
+
+    def _states(self, meth: str, per_marker: dict[str, Track]) -> None:
+        """Each track's state lane under ``/state/<method>/<marker>`` (:mod:`~pipeline.present.states`): a
+        ``StateChange`` at every transition, coloured and labelled by a static ``StateConfiguration``."""
+        import rerun as rr
+
+        config = rr.StateConfiguration(values=list(STATES), labels=list(STATES), colors=[list(c) for c in STATES.values()])
+        for marker, t in per_marker.items():
+            frames, values = transitions(frame_states(t.position, t.predicted, t.extra))
+            if len(frames):
+                self.rec.log(f"state/{meth}/{marker}", config, static=True)
+                self._columns(f"state/{meth}/{marker}", frames, rr.StateChange.columns(state=values))
 
     def finish(self, est: EstimateResult, marker_colours: dict[str, list[int]] | None = None,
                progress: Callable[[int, int], None] | None = None, info: str | None = None) -> Path:

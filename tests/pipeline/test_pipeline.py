@@ -383,6 +383,14 @@ def test_recording_shows_what_the_run_was(e2e_run):
             assert series["SeriesLines:names"][0] == [meth]
             assert series["SeriesLines:colors"][0] == [packed(method_rgb(meth))]
     assert "/world/uncertainty/ekf" in cols and "/world/uncertainty/alphabeta" not in cols  # filters' ellipsoids
+    for meth in METHODS:  # each track's state lane: a gap without an estimate, "predicting" where it used no measurement
+        tr, lane = e2e_run.estimate.tracks[meth]["red"], cols[f"/state/{meth}/red"]
+        at = np.searchsorted(lane["frame"], np.arange(len(tr.position)), side="right") - 1
+        state = [lane["StateChange:state"][i][0] if i >= 0 else "" for i in at]
+        have = np.all(np.isfinite(tr.position), axis=1)
+        assert [s == "" for s in state] == (~have).tolist(), meth
+        kept = have & (np.array(state) != "restarted")
+        assert [s == "predicting" for s in np.array(state)[kept]] == tr.predicted[kept].tolist(), meth
     ell, tr = cols["/world/uncertainty/ekf"], e2e_run.estimate.tracks["ekf"]["red"]
     k = np.array(ell["frame"])
     np.testing.assert_allclose(np.vstack(ell["Ellipsoids3D:centers"]), tr.position[k], atol=1e-6)
