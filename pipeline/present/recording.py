@@ -42,9 +42,10 @@ if TYPE_CHECKING:
 #: 3-D sizes in UI points (negative: rerun's screen-space radii, the same size at any zoom): truth
 #: small and light grey inside each method's larger sphere in its colour, paths thin
 TRUTH_RADIUS, POINT_RADIUS, PATH_RADIUS = -3.0, -5.0, -1.0
-#: camera panes, in image pixels: a detection's ring, the truth's smaller ring, a method's cross (half
-#: its arm); line widths in UI points (negative: the same on screen at any zoom)
-DETECTION_RING, TRUTH_RING, CROSS_ARM, LINE_WIDTH = 7.0, 3.0, 5.0, -1.0
+#: camera panes, as fractions of the image's width (the pane scales the image to fit, so these are
+#: what decides the size on screen): a detection's ring, the truth's smaller ring, a method's cross
+#: (half its arm, reaching past the ring); line widths in UI points (negative: the same at any zoom)
+DETECTION_RING, TRUTH_RING, CROSS_ARM, LINE_WIDTH = 0.02, 0.008, 0.03, -1.5
 _RING = np.stack([np.cos(np.linspace(0, 2 * np.pi, 17)), np.sin(np.linspace(0, 2 * np.pi, 17))], axis=1)  # closed
 #: video codecs (FFmpeg's tags) the viewer decodes in every build: H.264; MPEG-4 Part 2 it cannot
 VIEWER_CODECS = frozenset({"avc1", "h264"})
@@ -99,6 +100,12 @@ def ellipsoid_columns(cov: np.ndarray, level: float = 0.95) -> tuple[np.ndarray,
 def _frames(est: EstimateResult) -> int:
     """The frames a run's series span: the clip's, or its longest observations'."""
     return max([len(v) for v in est.observations.values()] + [est.n_frames])
+
+
+def pane_width(rig: StereoRig | Rig, c: int) -> float:
+    """Camera ``c``'s image width in pixels (640 where the calibration does not say)."""
+    w = rig.sizes[c][0] if c < len(rig.sizes) else 0
+    return float(w or 640)
 
 
 def rings(centres: np.ndarray, radius: float) -> np.ndarray:
@@ -363,13 +370,13 @@ class Recorder:
         there = [m for m in markers if truth is not None and m in truth]
         tp = _batches([truth[m] for m in there], n, finite=False) if truth is not None else None
         for c, name in enumerate(est.rig.names):
-            det = _batches([obs[m][:, 2 * c : 2 * c + 2] for m in markers], n)
+            det, w = _batches([obs[m][:, 2 * c : 2 * c + 2] for m in markers], n), pane_width(est.rig, c)
             self._strips2d(f"world/{name}/detections", det, mcol[det.which], [markers[j] for j in det.which], "ring",
-                           DETECTION_RING)  # labels on hover: drawn, they cover the blobs at the pane's size
+                           DETECTION_RING * w)  # labels on hover: drawn, they cover the blobs at the pane's size
             if tp is not None:
                 proj = _Batches(tp.frames, tp.lengths, est.rig.cameras[c].project(tp.points), tp.which)
                 self._strips2d(f"world/{name}/truth", proj, np.tile(TRUTH_RGB_VIEWER, (len(proj.points), 1)), None, "ring",
-                               TRUTH_RING)
+                               TRUTH_RING * w)
         if truth is not None and tp is not None:
             self._points("world/truth/points", tp, np.tile(TRUTH_RGB_VIEWER, (len(tp.points), 1)),
                          [there[j] for j in tp.which], "3d", TRUTH_RADIUS)
@@ -385,7 +392,7 @@ class Recorder:
         self._points(f"world/estimates/{meth}/points", cur, colours, labels, "3d", POINT_RADIUS, show_labels=False)
         for c, cam in enumerate(rig.names):  # the estimates seen through each camera
             seen = _Batches(cur.frames, cur.lengths, rig.cameras[c].project(cur.points), cur.which)
-            self._strips2d(f"world/{cam}/estimates/{meth}", seen, colours, labels, "cross", CROSS_ARM)
+            self._strips2d(f"world/{cam}/estimates/{meth}", seen, colours, labels, "cross", CROSS_ARM * pane_width(rig, c))
         self._paths(f"world/estimates/{meth}/path", [t.position for t in per_marker.values()], rgb)
         for marker, t in per_marker.items():
             if (error := scores[marker].error) is not None:

@@ -166,7 +166,8 @@ def test_recording_read_back(e2e_run):
     d = cols["/world/left/detections"]
     for k, ring, lab in zip(d["frame"], d["LineStrips2D:strips"], d["LineStrips2D:labels"], strict=True):
         np.testing.assert_allclose(np.mean(ring[0][:-1], axis=0), det[k, :2], atol=1e-3)  # closed: last = first
-        np.testing.assert_allclose(np.linalg.norm(np.array(ring[0]) - det[k, :2], axis=1), DETECTION_RING, atol=1e-3)
+        radius = DETECTION_RING * rig.sizes[0][0]  # a fraction of the image's width: the same size in any pane
+        np.testing.assert_allclose(np.linalg.norm(np.array(ring[0]) - det[k, :2], axis=1), radius, atol=1e-3)
         assert lab == ["red"]
     truth = e2e_run.estimate.truth.positions["red"]
     np.testing.assert_allclose(np.array(cols["/world/truth/points"]["Points3D:positions"])[:, 0], truth, atol=1e-5)
