@@ -37,7 +37,8 @@ def _series_tabs(kind: str, title: str, markers: list[str], hidden: list[str], *
 def blueprint(fps: float = 30.0, target: bool = False, info: bool = False, markers: list[str] | None = None,
               hidden: list[str] | None = None, uncertain: list[str] | None = None,
               cameras: tuple[str, ...] = ("left", "right"), tucked: list[str] | None = None,
-              eye: tuple[np.ndarray, np.ndarray] | None = None, truth: bool = True, camera_off: list[str] | None = None):
+              eye: tuple[np.ndarray, np.ndarray] | None = None, truth: bool = True, camera_off: list[str] | None = None,
+              banded: list[str] | None = None):
     """3-D view (each point at the cursor over its static path) beside the camera views; below,
     per marker, the 3-D and reprojection errors with one line per method, and the four-point
     target's α and z when the run has the target; the run's description when given. ``hidden``
@@ -45,7 +46,8 @@ def blueprint(fps: float = 30.0, target: bool = False, info: bool = False, marke
     3-D, camera and error views, and the covariance ellipsoids of ``uncertain`` too: one click in the
     blueprint tree shows each; ``camera_off`` (when given) are the methods the camera views hide: all
     but the best, one cross per marker, not a pile of colours on one pixel. ``eye``: (position, look
-    target) of the 3-D view; without ``truth`` no 3-D error plots (they would stay empty). The time
+    target) of the 3-D view; without ``truth`` no 3-D error plots (they would stay empty); the markers
+    ``banded`` get a tab each of the filters' depth errors with their ±σ bands. The time
     panel opens on the ``frame`` timeline at the clip's frame rate."""
     import rerun.blueprint as rrb
 
@@ -53,7 +55,10 @@ def blueprint(fps: float = 30.0, target: bool = False, info: bool = False, marke
     off_cameras = hidden + tucked if camera_off is None else list(camera_off)
     lanes = rrb.StateTimelineView(name="track state", origin="/state",
                                   overrides=_hidden([f"/state/{m}" for m in hidden + tucked]) or None)
-    plots = [t for t in (_series_tabs("error", "3-D error (mm)", markers if truth else [], hidden + tucked),
+    depth = [rrb.TimeSeriesView(name=f"depth error ±σ (mm) · {mk}", origin=f"/metrics/depth/{mk}", plot_legend=_legend(),
+                                overrides=_hidden([f"/metrics/depth/{mk}/{m}" for m in hidden + tucked]) or None)
+             for mk in banded or []]
+    plots = [t for t in (_series_tabs("error", "3-D error (mm)", markers if truth else [], hidden + tucked, *depth),
                          _series_tabs("reprojection", "reprojection error (px)", markers, hidden + tucked, lanes))
              if t is not None]
     if target:

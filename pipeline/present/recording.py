@@ -145,6 +145,7 @@ class Recorder:
             self.uncertain: list[str] = []  # those of them with covariance ellipsoids
             self.extent: dict[str, np.ndarray] = {}  # each method's 2–98 % box of positions (framing without truth)
             self.markers: set[str] = set()
+            self.banded: set[str] = set()  # markers with a filter's depth error and ±σ band
             self.videos: set[str] = set()  # cameras whose video file is referenced (no JPEG copies)
         except BaseException:
             self.abort()
@@ -272,6 +273,7 @@ class Recorder:
         self._method(est.rig, meth, per_marker, scores, n)
         self._track_events(meth, per_marker, scores)
         self._states(meth, per_marker)
+        self._depth_bands(meth, per_marker, est.truth_positions or {})
         if self._ellipsoids(meth, per_marker, n):
             self.uncertain.append(meth)
         P = np.vstack([t.position for t in per_marker.values()] or [np.empty((0, 3))])
@@ -298,6 +300,26 @@ class Recorder:
             events.sort()
             cols = rr.TextLog.columns(text=[e[2] for e in events], level=[e[1] for e in events])
             self._columns(f"events/{meth}", np.array([e[0] for e in events], dtype=np.int64), cols)
+
+    def _depth_bands(self, meth: str, per_marker: dict[str, Track], truth: dict[str, np.ndarray]) -> None:
+        """A filter's signed depth error against the truth (mm) with its own ±σ as a band
+        (``Measurements``: σ² = the covariance's depth entry) under ``/metrics/depth/<marker>/<method>``:
+        a consistent filter's error stays inside its band about two frames in three."""
+        import rerun as rr
+
+        for marker, t in per_marker.items():
+            if t.covariance is None or marker not in truth:
+                continue
+            m = min(len(t.position), len(truth[marker]))
+            err, var = 1000.0 * (t.position[:m, 2] - np.asarray(truth[marker], dtype=float)[:m, 2]), 1e6 * t.covariance[:m, 2, 2]
+            ok = np.flatnonzero(np.isfinite(err) & np.isfinite(var))
+            if len(ok) == 0:
+                continue
+            entity = f"metrics/depth/{marker}/{meth}"
+            style = rr.Measurements.from_fields(names=[meth], colors=[list(method_rgb(meth))], units=["mm"])
+            self.rec.log(entity, style, static=True)
+            self._columns(entity, ok.astype(np.int64), rr.Measurements.columns(values=err[ok], variances=var[ok]))
+            self.banded.add(marker)
 
     def _states(self, meth: str, per_marker: dict[str, Track]) -> None:
         """Each track's state lane under ``/state/<method>/<marker>`` (:mod:`~pipeline.present.states`): a
@@ -338,7 +360,8 @@ class Recorder:
         self.rec.send_blueprint(blueprint(1.0 / self.dt, bool(est.target_tracks), bool(info), sorted(self.markers),
                                           lost, self.uncertain, est.rig.names, tucked=best[SHOWN_METHODS:],
                                           eye=self._eye(est, best), truth=bool(est.truth_positions),
-                                          camera_off=[m for m in self.logged if m not in best[:1]]),
+                                          camera_off=[m for m in self.logged if m not in best[:1]],
+                                          banded=sorted(self.banded)),
                                 make_active=True, make_default=True)
         self.rec.flush()
         self.rec.disconnect()

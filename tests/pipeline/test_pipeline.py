@@ -368,6 +368,7 @@ def test_recording_shows_what_the_run_was(e2e_run):
     assert bp["/time_panel"]["TimePanelBlueprint:fps"][0] == [30.0]
     origins = [o for c in bp.values() for v in c.get("ViewBlueprint:space_origin", []) for o in v]
     assert "/world" in origins and "/run" in origins and not any(o.startswith("/metrics/target") for o in origins)
+    assert "/metrics/depth/red" in origins and "/state" in origins  # the ±σ depth tab and the track-state lanes
     assert any("clip" in n for v in cols["/__properties"].get("RecordingInfo:name", []) for n in v)
     assert "# clip" in "".join(t for v in cols["/run"]["TextDocument:text"] for t in v)
     for meth in METHODS:
@@ -384,6 +385,14 @@ def test_recording_shows_what_the_run_was(e2e_run):
             assert series["SeriesLines:names"][0] == [meth]
             assert series["SeriesLines:colors"][0] == [packed(method_rgb(meth))]
     assert "/world/uncertainty/ekf" in cols and "/world/uncertainty/alphabeta" not in cols  # filters' ellipsoids
+    truth_z = e2e_run.estimate.truth.positions["red"][:, 2]
+    for meth in ("ekf", "kf3d"):  # a filter's signed depth error (mm) with its own σ² for the ±σ band
+        tr, band = e2e_run.estimate.tracks[meth]["red"], cols[f"/metrics/depth/red/{meth}"]
+        k = np.array(band["frame"])
+        np.testing.assert_allclose(np.ravel(band["Measurements:values"]), 1000 * (tr.position[k, 2] - truth_z[k]), rtol=1e-9)
+        np.testing.assert_allclose(np.ravel(band["Measurements:variances"]), 1e6 * tr.covariance[k, 2, 2], rtol=1e-9)
+        assert band["Measurements:names"][0] == [meth] and len(k) > 30
+    assert not any(p.startswith("/metrics/depth/red/") for p in cols if p.split("/")[-1] in ("triangulation", "spsa"))
     for meth in METHODS:  # each track's state lane: a gap without an estimate, "predicting" where it used no measurement
         tr, lane = e2e_run.estimate.tracks[meth]["red"], cols[f"/state/{meth}/red"]
         at = np.searchsorted(lane["frame"], np.arange(len(tr.position)), side="right") - 1
