@@ -95,7 +95,7 @@ def framing(points: np.ndarray, fov_deg: float = 60.0) -> tuple[np.ndarray, np.n
     back = -centre / (np.linalg.norm(centre) or 1.0)  # towards the cameras (the world origin)
     view = 0.7 * back + np.array([0.7, -0.45, 0.0])  # right of and above the paths (y is down)
     view /= np.linalg.norm(view)
-    distance = 0.6 * size / np.tan(np.radians(fov_deg) / 2)
+    distance = 0.52 * size / np.tan(np.radians(fov_deg) / 2)
     return centre + distance * view, centre
 
 
