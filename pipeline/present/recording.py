@@ -32,6 +32,8 @@ from pipeline.evaluation.identity import switches_of
 from pipeline.evaluation.metrics import ranking, runaways
 from pipeline.evaluation.scores import FrameScores
 from pipeline.present.layout import SHOWN_METHODS, blueprint, framing
+from pipeline.present.sink import check_reads_back as _check_reads_back
+from pipeline.present.sink import flushed
 from pipeline.present.states import STATES, frame_states, transitions
 from pipeline.present.style import TRUTH_RGB_VIEWER, marker_rgb, method_rgb
 
@@ -135,6 +137,7 @@ class Recorder:
         self.path, self.dt, self.name, self.cameras = Path(path), float(dt), name, tuple(cameras)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.rec: Any = None
+        self.stalled = False  # the sink stopped writing (pipeline.present.sink.flushed)
         self.tmp = partial_beside(self.path)  # readable like every other output once renamed
         try:  # interrupted anywhere from here to the end of construction: leave nothing behind
             self.quality, self.image_every = int(jpeg_quality), max(1, int(image_every))
@@ -363,7 +366,10 @@ class Recorder:
                                           camera_off=[m for m in self.logged if m not in best[:1]],
                                           banded=sorted(self.banded)),
                                 make_active=True, make_default=True)
-        self.rec.flush()
+        self.stalled = not flushed(self.rec, self.tmp)
+        if self.stalled:
+            raise StereotrackError("the recording could not be written completely (its file stopped growing; is the disk full?)",
+                                   self.path)
         self.rec.disconnect()
         _check_reads_back(self.tmp, self.path)
         os.replace(self.tmp, self.path)
@@ -475,26 +481,7 @@ class Recorder:
         """Stop recording and remove the partial file (after the file sink has closed it, so that
         no late write recreates it)."""
         try:
-            if self.rec is not None:
+            if self.rec is not None and not self.stalled:  # a stalled sink's disconnect never returns
                 self.rec.disconnect()
         finally:
             self.tmp.unlink(missing_ok=True)
-
-
-def _check_reads_back(tmp: Path, path: Path) -> None:
-    """The recording written to ``tmp`` opens with rerun's own reader (it ends in its footer); a
-    file the sink could not finish (a full disk) is an error naming ``path``, never an output."""
-    import warnings
-
-    from rerun.chunk import RrdReader
-
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        try:
-            ok = bool(RrdReader(tmp).recordings())
-        except (RuntimeError, OSError, ValueError):
-            ok = False
-    if not ok or any("no footer" in str(w.message) for w in caught):
-        tmp.unlink(missing_ok=True)
-        raise StereotrackError("the recording could not be written completely (rerun's reader does not open it; "
-                               "is the disk full?)", path)
