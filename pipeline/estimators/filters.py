@@ -36,21 +36,21 @@ class KalmanFilter:
 
     def predict(self) -> None:
         """Propagate the state and covariance one step."""
-        self.x = self.F @ self.x
-        self.P = (self.F @ self.P) @ self.F.T + self.Q
+        self.x = np.dot(self.F, self.x)  # np.dot throughout, in filterpy's order: equal to its last bit
+        self.P = np.dot(np.dot(self.F, self.P), self.F.T) + self.Q
         self.x_prior, self.P_prior = self.x.copy(), self.P.copy()
 
     def update(self, z: np.ndarray, R: np.ndarray | None = None) -> None:
         """Fold in measurement ``z`` (dim_z × 1) with covariance ``R`` (the filter's own if None)."""
         R = self.R if R is None else R
         H = self.H
-        self.y = np.reshape(z, (-1, 1)) - H @ self.x
-        PHT = self.P @ H.T
-        self.S = H @ PHT + R
-        self.K = PHT @ np.linalg.inv(self.S)
-        self.x = self.x + self.K @ self.y
-        I_KH = self._I - self.K @ H
-        self.P = (I_KH @ self.P) @ I_KH.T + (self.K @ R) @ self.K.T
+        self.y = np.reshape(z, (-1, 1)) - np.dot(H, self.x)
+        PHT = np.dot(self.P, H.T)
+        self.S = np.dot(H, PHT) + R
+        self.K = np.dot(PHT, np.linalg.inv(self.S))
+        self.x = self.x + np.dot(self.K, self.y)
+        I_KH = self._I - np.dot(self.K, H)
+        self.P = np.dot(np.dot(I_KH, self.P), I_KH.T) + np.dot(np.dot(self.K, R), self.K.T)
 
     def rts_smoother(self, Xs: np.ndarray, Ps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Rauch–Tung–Striebel backward pass over filtered means ``Xs`` (n × d) and covariances
@@ -62,10 +62,10 @@ class KalmanFilter:
         F, Q = self.F, self.Q
         x, P = Xs.copy(), Ps.copy()
         for k in range(len(x) - 2, -1, -1):
-            Pp = (F @ P[k]) @ F.T + Q
-            C = (P[k] @ F.T) @ np.linalg.inv(Pp)
-            x[k] += C @ (x[k + 1] - F @ x[k])
-            P[k] += (C @ (P[k + 1] - Pp)) @ C.T
+            Pp = np.dot(np.dot(F, P[k]), F.T) + Q
+            C = np.dot(np.dot(P[k], F.T), np.linalg.inv(Pp))
+            x[k] += np.dot(C, x[k + 1] - np.dot(F, x[k]))
+            P[k] += np.dot(np.dot(C, P[k + 1] - Pp), C.T)
         return x, P
 
 
