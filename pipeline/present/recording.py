@@ -3,15 +3,17 @@
 Entity paths mirror the transform tree: ``/world`` is the left camera's frame; ``/world/left`` and
 ``/world/right`` carry each camera's ``Transform3D`` (from the calibration) and ``Pinhole``, logged
 once as static data, with the frame images (JPEG as decoded; an H.264 camera's video once, referenced
-frame by frame), detections and truth projections beneath them. Trajectories live under ``/world/truth`` and
+frame by frame), detections (rings), truth projections (small rings) and each method's reprojection (crosses)
+beneath them. Trajectories live under ``/world/truth`` and
 ``/world/estimates/<method>`` as one point per marker per frame (an empty batch where a track
 ends), shown at the cursor over each one's static path, framed on the tracks and not the cameras,
 the best three methods shown and the rest one click away; filters' 95 % position ellipsoids under
 ``/world/uncertainty/<method>`` (hidden until shown). Per-frame errors live under
-``/metrics/<error|reprojection>/<marker>/<method>``, the target's α and z under ``/metrics/target``.
+``/metrics/<error|reprojection>/<marker>/<method>``, the filters' depth error with its ±σ band under
+``/metrics/depth``, each track's state lane under ``/state``, the target's α and z under ``/metrics/target``.
 Everything but the images is sent with ``send_columns``: one call per entity, not one per frame,
-so memory does not grow with the clip. The blueprint (3-D view, both camera views, error plots) is
-built in code and saved as the file's default.
+so memory does not grow with the clip. The blueprint (3-D view, both camera views, error plots;
+:mod:`pipeline.present.layout`) is built in code and saved as the file's default.
 """
 
 from __future__ import annotations
