@@ -2,7 +2,7 @@
 written out in numpy with filterpy's equations and public names (``x, P, F, Q, H, R, y, S, K``,
 ``x_prior, P_prior``): filterpy's own classes import ``scipy.stats`` (about a second, more than a
 whole default estimate stage's steps), so the built-in methods build these instead. Tests drive
-both on the same observations and hold them equal to 1e-9.
+both on the same observations and hold them equal to the last bit (filterpy's operations in its order).
 
 References: R. E. Kalman, "A new approach to linear filtering and prediction problems", J. Basic
 Eng. 82 (1960); H. E. Rauch, F. Tung & C. T. Striebel, "Maximum likelihood estimates of linear
@@ -81,12 +81,13 @@ class MerweSigmaPoints:
         self.Wm, self.Wc = np.full(2 * n + 1, c), np.full(2 * n + 1, c)
         self.Wm[0] = lam / (n + lam)
         self.Wc[0] = lam / (n + lam) + (1 - alpha**2 + beta)
+        from scipy.linalg import cholesky  # the upper factor filterpy takes (numpy's, transposed, differs in the last bit)
+
+        self._cholesky = cholesky  # imported once per filter, not once per step
 
     def sigma_points(self, x: np.ndarray, P: np.ndarray) -> np.ndarray:
         """The 2n + 1 points (rows) for mean ``x`` and covariance ``P``."""
-        from scipy.linalg import cholesky  # the upper factor filterpy takes (numpy's transposed differs in the last bit)
-
-        U = cholesky(self.scale * P)
+        U = self._cholesky(self.scale * P)
         return np.vstack([x, x + U, x - U])
 
 

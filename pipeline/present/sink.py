@@ -18,20 +18,25 @@ def flushed(rec: Any, tmp: Path, stalled_s: float = 15.0) -> bool:
     """Wait for ``rec``'s file sink to write everything to ``tmp``; False when it stopped writing
     (``stalled_s`` seconds without the file growing). A stalled stream is then defused: rerun's exit
     hook and the stream's finaliser, which would wait on it for ever, do nothing; do not disconnect it."""
-    size, still = -1, 0.0
+    import time
+
+    size, since = -1, time.monotonic()
     while True:
+        began = time.monotonic()
         try:
             rec.flush(timeout_sec=1.0)
             return True
-        except Exception:  # the flush timed out: is the file still growing?
+        except Exception:  # the flush timed out (or failed at once): is the file still growing?
             now = tmp.stat().st_size if tmp.exists() else 0
-            still, size = (still + 1.0, size) if now == size else (0.0, now)
-            if still >= stalled_s:
+            if now != size:
+                size, since = now, time.monotonic()
+            elif time.monotonic() - since >= stalled_s:
                 import rerun as rr
 
                 rr.unregister_shutdown()
                 rec._flush = rec._disconnect_orphaned_recordings = _ignore
                 return False
+            time.sleep(max(0.0, 0.5 - (time.monotonic() - began)))  # a flush that failed at once does not spin
 
 
 def check_reads_back(tmp: Path, path: Path) -> None:

@@ -898,3 +898,31 @@ def test_an_implausible_calibration_is_a_failed_check(detected_clip, tmp_path, m
     rc, _, err = cli(monkeypatch, capsys, "report", clip)
     assert rc == 0, err
     assert "All input checks passed" not in (clip / "out" / "report.md").read_text()
+
+
+def test_a_sink_that_stops_writing_is_reported_not_waited_on(tmp_path):
+    """pipeline.present.sink.flushed: a stream whose flush keeps timing out while its file does not grow
+    is given up after ``stalled_s`` (rerun's own flush would wait for ever on a full disk) and defused;
+    one that flushes is not; one whose file still grows is waited on."""
+    from pipeline.present.sink import flushed
+
+    class Stuck:
+        def __init__(self, grow: Path | None = None, after: int = 10**9) -> None:
+            self.calls, self.grow, self.after = 0, grow, after
+
+        def flush(self, timeout_sec: float) -> None:
+            self.calls += 1
+            if self.grow is not None:
+                with open(self.grow, "ab") as fh:
+                    fh.write(b"x")
+            if self.calls < self.after:
+                raise RuntimeError("flush timed out")
+
+    f = tmp_path / "run.rrd"
+    f.write_bytes(b"abc")
+    stuck = Stuck()
+    assert not flushed(stuck, f, stalled_s=1.0) and stuck.calls >= 2
+    assert stuck._flush(timeout_sec=0) is None and stuck._disconnect_orphaned_recordings() is None  # defused
+    assert flushed(Stuck(after=1), f, stalled_s=1.0)
+    growing = Stuck(grow=f, after=6)  # writing slowly for ~3 s: longer than stalled_s, never stalled
+    assert flushed(growing, f, stalled_s=1.0) and growing.calls == 6
