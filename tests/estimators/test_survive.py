@@ -232,6 +232,55 @@ def test_rendered_offset_found_from_detections_and_from_timestamps(tmp_path):
     assert json.loads((tmp_path / "b" / "metrics.json").read_text())["sync"]["applied"] is True
 
 
+def _rendered_without_stamps(tmp_path, offset_s: float, frames: int, still: bool = False):
+    """The sync_offset scenario with the right camera ``offset_s`` late (markers standing still when
+    ``still``), rendered, detected, its timestamps.csv removed: the offset must come from the images."""
+    from detectors.stage import detect_clip
+    from renderers.render import render_clip
+
+    spec = load_scenario("sync_offset").model_dump()
+    spec["frames"], spec["rig"]["sync_offset_s"] = frames, offset_s
+    if still:
+        spec["objects"] = [{**o, "motion": {"type": "constant_velocity", "start": start, "velocity": [0.0, 0.0, 0.0]}}
+                           for o, start in zip(spec["objects"], ([-0.3, 0.1, 1.6], [0.1, -0.3, 2.2]), strict=True)]
+    clip = tmp_path / "clip"
+    render_clip(parse_scenario(spec), clip, fmt="png", workers=1)
+    detect_clip(clip)
+    (clip / "timestamps.csv").unlink()
+    return clip
+
+
+@pytest.mark.slow
+def test_a_rendered_offset_of_seconds_is_found_from_the_images(tmp_path):
+    """#39 (sync): a 1.5 s (45-frame) offset lay outside the ±10-frame search. Rendered (right camera
+    1.5 s late, 200 frames, no timestamps.csv): found from the detections within 0.05 frame and applied.
+    Unit tests of the coarse search use synthetic tracks; this one goes through render, detect, estimate."""
+    from pipeline.estimate import estimate_clip
+
+    clip = _rendered_without_stamps(tmp_path, 1.5, 200)
+    sync = estimate_clip(clip, RunSettings(methods=["triangulation"]), out_dir=tmp_path / "est",
+                         in_dir=clip / "out").metrics["sync"]
+    assert sync["source"] == "detections" and sync["applied"], sync
+    assert abs(sync["offset_s"] * 30 - 45.0) <= 0.05, sync
+
+
+@pytest.mark.slow
+def test_rendered_still_pairs_get_no_offset(tmp_path):
+    """#39 (sync): still image pairs had a spurious offset applied, which worsened them. Rendered
+    markers that stand still (the right camera 0.5 frame "late", which nothing in the images shows):
+    no offset applied, saying why, and triangulation equals the run with the offset turned off."""
+    from pipeline.estimate import estimate_clip
+
+    clip = _rendered_without_stamps(tmp_path, 1 / 60, 40, still=True)
+    auto = estimate_clip(clip, RunSettings(methods=["triangulation"]), out_dir=tmp_path / "a", in_dir=clip / "out")
+    estimate_clip(clip, RunSettings(methods=["triangulation"], time_offset="off"), out_dir=tmp_path / "b",
+                  in_dir=clip / "out")
+    sync = auto.metrics["sync"]
+    assert not sync["applied"] and "barely move" in sync["note"], sync
+    assert (tmp_path / "a" / "estimates" / "triangulation.csv").read_bytes() == \
+        (tmp_path / "b" / "estimates" / "triangulation.csv").read_bytes()
+
+
 # -- every rig layout ---------------------------------------------------------------------------
 
 LAYOUTS = {"right": {"position": [0.3, 0, 0]}, "left": {"position": [-0.3, 0, 0]}, "above": {"position": [0, -0.3, 0]},
