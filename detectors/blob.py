@@ -1,8 +1,8 @@
 """Colour blob detection with sub-pixel centroids.
 
 Per marker: an HSV range → ``cv2.inRange`` mask → ``cv2.connectedComponentsWithStats`` → size and
-roundness filters → the centroid of the component weighted by colour strength (chroma above the
-background's), which resolves the anti-aliased rim and gives sub-pixel accuracy. An optional
+roundness filters → the centroid of the component weighted by how much of each pixel the marker
+covers (:mod:`detectors.centroid`), which resolves the anti-aliased rim and gives sub-pixel accuracy. An optional
 ``cv2.SimpleBlobDetector`` backend runs on the same mask.
 """
 
@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
+from detectors.centroid import chroma_centre, unmixed_centre
 from pipeline.core.errors import StereotrackError
 from pipeline.core.lazy import lazy_module
 
@@ -23,19 +24,18 @@ if TYPE_CHECKING:
 else:
     cv2 = lazy_module("cv2")  # imported on first use: --help and `methods` need no OpenCV
 
-#: the 5×5 structuring element that grows a blob by 2 px (its anti-aliased rim)
-DILATE_2PX = np.ones((5, 5), np.uint8)
-
-
 @dataclass(frozen=True)
 class MarkerColor:
-    """A marker's HSV range in OpenCV units (H 0–179, S and V 0–255); ``h_lo > h_hi`` wraps (red)."""
+    """A marker's HSV range in OpenCV units (H 0–179, S and V 0–255); ``h_lo > h_hi`` wraps (red).
+    ``shaded``: the marker is a lit object (a lit render), whose centre is found by
+    unmixing its rim from the background rather than from its chroma (:mod:`detectors.centroid`)."""
 
     name: str
     h_lo: int
     h_hi: int
     s_min: int = 80
     v_min: int = 60
+    shaded: bool = False
 
     @classmethod
     def from_rgb(cls, name: str, rgb: tuple[int, int, int], hue_tol: int = 10) -> MarkerColor:
@@ -202,18 +202,6 @@ def _components(mask: np.ndarray, labels: bool = True) -> tuple[int, np.ndarray 
     full = np.zeros(mask.shape, inside.dtype)
     full[y : y + h, x : x + w] = inside
     return n, full, stats
-
-
-def _quantile(a: np.ndarray, q: float) -> float:
-    """``np.quantile(a, q)`` (its default linear method, the same float), from a partial sort of
-    the two values around ``q·(n − 1)``: a tenth of the time on a blob's few hundred pixels."""
-    n = a.size
-    vi = q * (n - 1)
-    lo = int(vi)
-    hi = min(lo + 1, n - 1)
-    part = np.partition(a, [lo, hi] if hi != lo else lo)
-    x0, x1, t = part[lo], part[hi], vi - lo
-    return float(x0 + (x1 - x0) * t if t < 0.5 else x1 - (x1 - x0) * (1 - t))  # numpy's lerp, both halves
 
 
 #: a blob elongated up to this ratio (a ball smeared along its motion within one exposure) is
@@ -464,31 +452,7 @@ class BlobDetector:
 
     @staticmethod
     def _refine(labels, i, bgr, hsv, x, y, w, h, mk: MarkerColor) -> tuple[float, float]:
-        """Colour-coverage-weighted centroid over the component dilated by 2 px.
-
-        Weight = how much of a pixel the marker covers, from its chroma (max − min of B, G, R)
-        between the range's minimum chroma (``s_min·v_min/255``) and the blob's typical chroma:
-        1 inside, fractional on the anti-aliased rim (sub-pixel accuracy on rendered markers),
-        capped so texture inside a real object does not pull the centroid; pixels whose hue is
-        outside the range (±5) get none (a hand around a ball).
-        """
-        H, W = labels.shape
-        x0, y0, x1, y1 = max(x - 3, 0), max(y - 3, 0), min(x + w + 3, W), min(y + h + 3, H)
-        comp = (labels[y0:y1, x0:x1] == i).astype(np.uint8)
-        region = cv2.dilate(comp, DILATE_2PX).astype(bool)
-        patch = bgr[y0:y1, x0:x1]
-        b, g, r = patch[..., 0], patch[..., 1], patch[..., 2]  # per channel: a reduction over 3 is slow
-        c = np.maximum(np.maximum(b, g), r).astype(np.float32) - np.minimum(np.minimum(b, g), r)
-        hue = hsv[y0:y1, x0:x1, 0].astype(np.int16)
-        lo, hi = (mk.h_lo - 5) % 180, (mk.h_hi + 5) % 180
-        hue_ok = (hue >= lo) & (hue <= hi) if lo <= hi else (hue >= lo) | (hue <= hi)
-        floor = mk.s_min * mk.v_min / 255.0 * 0.5
-        inside = c[comp.astype(bool)]
-        full = max(_quantile(inside, 0.2) - floor, 1.0) if inside.size else 1.0
-        wts = np.where(region & hue_ok, np.clip((c - floor) / full, 0.0, 1.0), 0.0)
-        s = wts.sum()
-        if s <= 0:
-            ys, xs = np.nonzero(comp)
-            return float(xs.mean() + x0), float(ys.mean() + y0)
-        xs, ys = np.arange(x0, x1)[None, :], np.arange(y0, y1)[:, None]  # broadcast: the same products as a grid
-        return float((wts * xs).sum() / s), float((wts * ys).sum() / s)
+        """The blob's sub-pixel centre: :func:`~detectors.centroid.unmixed_centre` for a shaded
+        marker, else :func:`~detectors.centroid.chroma_centre`."""
+        centre = unmixed_centre if mk.shaded else chroma_centre
+        return centre(labels, i, bgr, hsv, (x, y, w, h), mk)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from array import array
 from collections.abc import Callable, Iterator
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -149,6 +149,8 @@ def detect_clip(clip: str | Path | Clip, settings: RunSettings | None = None, ou
     learned: dict[str, str] = {}
     specs = resolve_marker_specs(clip_.path, list(settings.markers) if settings.markers else None)
     markers, groups = markers_for_clip(clip_, specs, lambda k: _left_frame(source, k), learned, settings.force_window)
+    if clip_.shaded:  # lit objects: their centres are unmixed from the background (detectors.centroid)
+        markers = [replace(m, shaded=True) for m in markers]
     identical = set(clip_.identical_groups()) & set(groups)
     targets = {g: names for g, names in groups.items() if g not in identical}
     finders = [create_detector(settings.detector, markers, targets, settings.roi, identical)
@@ -161,7 +163,8 @@ def detect_clip(clip: str | Path | Clip, settings: RunSettings | None = None, ou
     checks += rarely_found_checks(cols, scan.frames, scan.rows.cameras, [m.name for m in markers if m.name not in groups])
     warn_failed(checks)
     record = {"detector": settings.detector, "markers": [m.spec() for m in markers], "learned": learned,
-              "marker_colours": {m.name: list(m.display_rgb()) for m in markers}}
+              "marker_colours": {m.name: list(m.display_rgb()) for m in markers},
+              "centres": "unmixed" if clip_.shaded else "chroma"}
     return _write_detections(out_dir, clip_, source, scan, cols, checks, record)
 
 

@@ -360,4 +360,6 @@ def clip_description(scenario: Scenario) -> dict:
         out["cameras"] = list(scenario.rig.camera_names())
     if scenario.imperfections:
         out["imperfections"] = scenario.imperfections
+    if scenario.render.shading != "flat":
+        out["shading"] = scenario.render.shading
     return out

@@ -267,7 +267,7 @@ def test_bad_inputs(tmp_path, png_clip):
 def test_blob_quantile_is_numpys():
     """The centroid's chroma quantile from a partial sort is numpy's linear quantile, the same float:
     on chroma values (whole numbers in float32, as the detector has them) and on arbitrary ones."""
-    from detectors.blob import _quantile
+    from detectors.centroid import _quantile
 
     rng = np.random.default_rng(3)
     for trial in range(3000):

@@ -509,8 +509,8 @@ def skin_wall(tmp_path_factory) -> Path:
     from renderers.render import render_clip
     from renderers.scenario import load_scenario, parse_scenario
 
-    clip = tmp_path_factory.mktemp("skin") / "clip"  # 0.8 s of the motion in 12 frames (each six renders)
-    render_clip(parse_scenario({**load_scenario("skin_wall").model_dump(), "frames": 12, "fps": 15}), clip, fmt="png",
+    clip = tmp_path_factory.mktemp("skin") / "clip"  # the whole 2 s period of the motion in 16 frames (six renders each)
+    render_clip(parse_scenario({**load_scenario("skin_wall").model_dump(), "frames": 16, "fps": 8}), clip, fmt="png",
                 workers=1)
     return clip
 
@@ -542,8 +542,9 @@ def test_a_window_four_times_the_ball_with_the_ball_in_its_corner(skin_wall, tmp
     """#39 (colour windows): a window 4× the ball with the ball in its corner and the rest the wall
     of a nearby hue stopped ("its centre has no colour its surroundings lack"), or on real footage
     learned the wall. The colour is now learned from the compact blob the window holds: the ball
-    found in every frame it shows, each within 3 px and as often within 1 px as with a window
-    drawn tight around it."""
+    found in every frame it shows, each within 3 px, and ≥ 90 % of them within 1 px with this
+    window and with one drawn tight around it (the lit ball's centre unmixed from the wall: its
+    chroma-weighted centroid leaned ~0.4 px toward the light, 82–87 % within 1 px on 120 frames)."""
     from pipeline.core.detections import load_detections
     from pipeline.core.io import read_csv
 
@@ -560,7 +561,8 @@ def test_a_window_four_times_the_ball_with_the_ball_in_its_corner(skin_wall, tmp
         det = load_detections(tmp_path / how / "detections.csv", len(truth["u_left"]))["ball"]
         err[how] = np.hypot(det[vis, 0] - truth["u_left_pinhole"][vis], det[vis, 1] - truth["v_left_pinhole"][vis])
     assert np.all(err["loose"] < 3.0), err["loose"]
-    assert np.mean(err["loose"] < 1.0) >= np.mean(err["tight"] < 1.0) - 0.05, err
+    assert np.mean(err["loose"] < 1.0) >= 0.9 and np.mean(err["tight"] < 1.0) >= 0.9, err
+    assert json.loads((tmp_path / "loose" / "detect.json").read_text())["centres"] == "unmixed"  # a lit render
 
 
 @pytest.mark.slow
