@@ -82,20 +82,127 @@ def blueprint(fps: float = 30.0, target: bool = False, info: bool = False, marke
     )
 
 
-def framing(points: np.ndarray, fov_deg: float = 60.0) -> tuple[np.ndarray, np.ndarray] | None:
-    """An eye (position, look target) that frames ``points`` (n × 3, left camera frame, y down):
-    the 2–98 % box of the points in a three-quarter view (from the cameras' side, the right and
-    above: a path along the cameras' axis is seen at length, not end on), at the distance where the
-    box's diagonal fills the view's height."""
-    P = points[np.all(np.isfinite(points), axis=1)]
+#: the 3-D view as the viewer shows it in the default layout: vertical field of view (degrees) and
+#: width / height of the pane (3 of 5 columns, 3 of 5 rows of a 16:10 to 16:9 window)
+VIEW_FOV_Y, VIEW_ASPECT = 55.0, 2.4
+#: the share of the view's half-width or half-height the framed points reach (the larger of the two)
+FILL = 0.85
+#: how far above the paths the eye may look down from (degrees)
+ELEVATIONS = (20.0, 35.0, 50.0)
+#: a marker's label in the view's normalised units (−1…1 across: width, height; ~60 × 18 px in a
+#: 1,150 × 440 px pane), and what a view whose labels overlap scores against one whose do not
+LABEL, CROWDED = (0.11, 0.085), 0.25
+#: the nearest point stays at least this many times the points' spread in depth from the eye (a
+#: compact path would otherwise be framed from so close that its near side swells)
+NEAR = 0.5
+
+
+def framing(paths: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray] | None:
+    """An eye (position, look target) that frames the markers' ``paths`` (each frames × 3, left
+    camera frame, y down; NaN where unknown): of the directions on the cameras' side of them
+    (azimuths within 80° of the way back to the cameras, :data:`ELEVATIONS` above them), the one
+    from which, centred and brought as close as :func:`_fit` allows, their image's box fills most of
+    the view (:data:`VIEW_FOV_Y`, :data:`VIEW_ASPECT`) with the markers' labels apart at the first,
+    middle and last frames (:func:`_labels_apart`): a path seen end on, or a streak along the view's
+    short side, fills little, and a target seen edge on piles its labels up."""
+    P = np.vstack(paths) if paths else np.empty((0, 3))
+    P = P[np.all(np.isfinite(P), axis=1)]
     if len(P) < 2:
         return None
-    lo, hi = np.percentile(P, [2, 98], axis=0)
+    lo, hi = P.min(axis=0), P.max(axis=0)
     centre, size = (lo + hi) / 2, max(float(np.linalg.norm(hi - lo)), 0.05)
-    back = -centre / (np.linalg.norm(centre) or 1.0)  # towards the cameras (the world origin)
-    view = 0.7 * back + np.array([0.7, -0.45, 0.0])  # right of and above the paths (y is down)
-    view /= np.linalg.norm(view)
-    distance = 0.52 * size / np.tan(np.radians(fov_deg) / 2)
-    return centre + distance * view, centre
+    sample = P[:: max(1, len(P) // 200)]  # the search on a sample; the chosen view fitted on all
+    back = -centre / (np.linalg.norm(centre) or 1.0)
+    base = np.arctan2(back[0], back[2])
+    views = [np.array([np.cos(el) * np.sin(az), -np.sin(el), np.cos(el) * np.cos(az)])  # y is down: up is −y
+             for el in np.radians(ELEVATIONS) for az in base + np.radians(np.arange(-80, 81, 20))]
+    moments = _moments(paths)
+
+    def score(view: np.ndarray) -> float:
+        eye, target, filled = _fit(sample, centre, view, size, rounds=3, steps=8)
+        return filled * (1.0 if _labels_apart(moments, eye, target) else CROWDED)
+
+    eye, target, _ = _fit(P, centre, max(views, key=score), size)
+    return eye, target
 
 
+def _moments(paths: list[np.ndarray]) -> list[np.ndarray]:
+    """The markers' positions (markers × 3, NaN where unknown) at the first, middle and last frames."""
+    n = min((len(p) for p in paths), default=0)
+    return [np.stack([p[k] for p in paths]) for k in sorted({0, n // 2, n - 1})] if n else []
+
+
+def _labels_apart(moments: list[np.ndarray], eye: np.ndarray, target: np.ndarray) -> bool:
+    """Whether no two markers' labels (a box :data:`LABEL` wide and tall, in the view's normalised
+    units, below each point) overlap at any of the ``moments``."""
+    for X in moments:
+        ok = np.all(np.isfinite(X), axis=1)
+        if ok.sum() < 2:
+            continue
+        ndc = _project(X[ok], eye, target)[0]
+        dx, dy = (np.abs(ndc[:, None, i] - ndc[None, :, i]) for i in (0, 1))
+        close = (dx < LABEL[0]) & (dy < LABEL[1])
+        if np.any(close[np.triu_indices(len(ndc), 1)]):
+            return False
+    return True
+
+
+def _fit(P: np.ndarray, centre: np.ndarray, view: np.ndarray, size: float, rounds: int = 30, steps: int = 24
+         ) -> tuple[np.ndarray, np.ndarray, float]:
+    """The eye along ``view`` that centres the points' image (half steps: perspective) at the
+    distance where they reach :data:`FILL` of the view, or their nearest point :data:`NEAR` times
+    their spread in depth; with the share of the view their image's box fills."""
+    target, distance = centre, size
+    for _ in range(rounds):
+        step = 0.5 * _image_offset(P, target + distance * view, target)
+        target = target + step
+        distance = _fitting_distance(P, target, view, distance, steps)
+        if np.linalg.norm(step) < 1e-3 * size:
+            break
+    ndc = _project(P, target + distance * view, target)[0]
+    return target + distance * view, target, float(np.prod(np.ptp(ndc, axis=0)) / 4)
+
+
+def _basis(eye: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The view's forward, right and up unit vectors (up: the world's −y, as ``eye_up``), written
+    out: ``np.cross`` on 3-vectors is what made the framing's search slow."""
+    fx, fy, fz = (target - eye) / np.linalg.norm(target - eye)
+    n = np.hypot(fz, fx) or 1.0
+    rx, rz = fz / n, -fx / n  # f × (0, −1, 0), normalised
+    return np.array([fx, fy, fz]), np.array([rx, 0.0, rz]), np.array([-rz * fy, rz * fx - rx * fz, rx * fy])
+
+
+def _project(P: np.ndarray, eye: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``P`` in the view's normalised coordinates (−1…1 across the view: x right, y up) and depth."""
+    f, r, u = _basis(eye, target)
+    rel = P - eye
+    depth = rel @ f
+    ty = np.tan(np.radians(VIEW_FOV_Y) / 2)
+    ndc = np.column_stack([rel @ r / (depth * ty * VIEW_ASPECT), rel @ u / (depth * ty)])
+    return ndc, depth
+
+
+def _image_offset(P: np.ndarray, eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """The move of the look target (and eye with it) that centres the points' image in the view."""
+    ndc = _project(P, eye, target)[0]
+    mid = (ndc.min(axis=0) + ndc.max(axis=0)) / 2
+    _, r, u = _basis(eye, target)
+    ty, d = np.tan(np.radians(VIEW_FOV_Y) / 2), float(np.linalg.norm(target - eye))
+    return mid[0] * d * ty * VIEW_ASPECT * r + mid[1] * d * ty * u
+
+
+def _fits(P: np.ndarray, eye: np.ndarray, target: np.ndarray) -> bool:
+    ndc, depth = _project(P, eye, target)
+    return bool(depth.min() > NEAR * np.ptp(depth) and np.abs(ndc).max() <= FILL)
+
+
+def _fitting_distance(P: np.ndarray, target: np.ndarray, view: np.ndarray, start: float, steps: int = 40) -> float:
+    """The eye's distance along ``view`` at which the points reach :data:`FILL` of the view (or
+    their nearest reaches :data:`NEAR`)."""
+    lo, hi = 1e-3, max(start, 1e-3)
+    while not _fits(P, target + hi * view, target):
+        hi *= 2
+    for _ in range(steps):  # bisection: the bracket shrinks 2^steps times
+        mid = (lo + hi) / 2
+        lo, hi = (lo, mid) if _fits(P, target + mid * view, target) else (mid, hi)
+    return hi

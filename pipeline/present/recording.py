@@ -34,6 +34,7 @@ from pipeline.evaluation.identity import switches_of
 from pipeline.evaluation.metrics import ranking, runaways
 from pipeline.evaluation.scores import FrameScores
 from pipeline.present.layout import SHOWN_METHODS, blueprint, framing
+from pipeline.present.shapes import crosses, ellipsoid_columns, pane_width, rings
 from pipeline.present.sink import check_reads_back as _check_reads_back
 from pipeline.present.sink import flushed
 from pipeline.present.states import STATES, frame_states, transitions
@@ -50,7 +51,9 @@ TRUTH_RADIUS, POINT_RADIUS, PATH_RADIUS = -3.0, -5.0, -1.0
 #: what decides the size on screen): a detection's ring, the truth's smaller ring, a method's cross
 #: (half its arm, reaching past the ring); line widths in UI points (negative: the same at any zoom)
 DETECTION_RING, TRUTH_RING, CROSS_ARM, LINE_WIDTH = 0.02, 0.008, 0.03, -1.5
-_RING = np.stack([np.cos(np.linspace(0, 2 * np.pi, 17)), np.sin(np.linspace(0, 2 * np.pi, 17))], axis=1)  # closed
+#: the plotted methods' line widths (UI points) in drawing order: a method whose series lies on
+#: another's still shows, as a thin line inside a wider one
+SERIES_WIDTHS = (3.5, 2.0, 1.0)
 #: video codecs (FFmpeg's tags) the viewer decodes in every build: H.264; MPEG-4 Part 2 it cannot
 VIEWER_CODECS = frozenset({"avc1", "h264"})
 
@@ -89,40 +92,9 @@ def _logged_frames(counts: np.ndarray) -> np.ndarray:
     return np.flatnonzero((counts > 0) | (np.r_[False, counts[:-1] > 0] & (counts == 0))).astype(np.int64)
 
 
-def ellipsoid_columns(cov: np.ndarray, level: float = 0.95) -> tuple[np.ndarray, np.ndarray]:
-    """Half-axes and rotations (quaternions, xyzw) of the ``level`` ellipsoids of 3×3 position
-    covariances (``n × 3 × 3``): the axes are the eigenvectors, the half-lengths √(χ²₃(level) λ)."""
-    from scipy.spatial.transform import Rotation
-    from scipy.special import gammaincinv  # χ²'s quantile without scipy.stats' ~1 s import
-
-    vals, vecs = np.linalg.eigh(cov)
-    vecs[np.linalg.det(vecs) < 0, :, 0] *= -1  # a proper rotation
-    half = np.sqrt(2 * gammaincinv(1.5, level) * np.clip(vals, 0, None))
-    return half, Rotation.from_matrix(vecs).as_quat()
-
-
 def _frames(est: EstimateResult) -> int:
     """The frames a run's series span: the clip's, or its longest observations'."""
     return max([len(v) for v in est.observations.values()] + [est.n_frames])
-
-
-def pane_width(rig: StereoRig | Rig, c: int) -> float:
-    """Camera ``c``'s image width in pixels (640 where the calibration does not say)."""
-    w = rig.sizes[c][0] if c < len(rig.sizes) else 0
-    return float(w or 640)
-
-
-def rings(centres: np.ndarray, radius: float) -> np.ndarray:
-    """A closed 16-gon of ``radius`` around each centre (n × 2 → n × 17 × 2): a detection drawn as an
-    outline leaves the blob it found visible inside it."""
-    return centres[:, None, :] + radius * _RING[None]
-
-
-def crosses(centres: np.ndarray, arm: float) -> np.ndarray:
-    """An upright cross at each centre as two 2-point strips (n × 2 → 2n × 2 × 2, the pair of each point
-    together): a method's reprojection, told from the rings at a glance."""
-    d = np.array([[[-arm, 0.0], [arm, 0.0]], [[0.0, -arm], [0.0, arm]]])
-    return (centres[:, None, None, :] + d[None]).reshape(-1, 2, 2)
 
 
 class Recorder:
@@ -148,9 +120,10 @@ class Recorder:
             self.images = 0
             self.logged: list[str] = []  # point methods logged so far (by :meth:`method`)
             self.uncertain: list[str] = []  # those of them with covariance ellipsoids
-            self.extent: dict[str, np.ndarray] = {}  # each method's 2–98 % box of positions (framing without truth)
+            self.extent: dict[str, list[np.ndarray]] = {}  # each method's paths in its 2–98 % box (framing without truth)
             self.markers: set[str] = set()
             self.banded: set[str] = set()  # markers with a filter's depth error and ±σ band
+            self.series: dict[str, tuple[str, list]] = {}  # a plotted method series → its name and colour
             self.videos: set[str] = set()  # cameras whose video file is referenced (no JPEG copies)
         except BaseException:
             self.abort()
@@ -255,7 +228,19 @@ class Recorder:
         ok = np.flatnonzero(np.isfinite(series))
         if name is not None:
             self.rec.log(entity, rr.SeriesLines(names=[name], colors=[list(rgb)], widths=[1.5]), static=True)
+            self.series[entity] = (name, list(rgb))
         self._columns(entity, ok.astype(np.int64), rr.Scalars.columns(scalars=series[ok]))
+
+    def _widths(self, shown: list[str]) -> None:
+        """The shown methods' series in :data:`SERIES_WIDTHS`, widest first in the viewer's drawing
+        order (by entity path: by name), so that each is drawn over a wider one."""
+        import rerun as rr
+
+        order = sorted(shown)
+        for entity, (name, rgb) in self.series.items():
+            if name in order:
+                width = SERIES_WIDTHS[min(order.index(name), len(SERIES_WIDTHS) - 1)]
+                self.rec.log(entity, rr.SeriesLines(names=[name], colors=[rgb], widths=[width]), static=True)
 
     def _paths(self, entity: str, tracks: list[np.ndarray], rgb) -> None:
         """Each track as a static 3-D line strip (split where it has no estimate): the whole path
@@ -282,8 +267,10 @@ class Recorder:
         if self._ellipsoids(meth, per_marker, n):
             self.uncertain.append(meth)
         P = np.vstack([t.position for t in per_marker.values()] or [np.empty((0, 3))])
-        if np.isfinite(P).all(axis=1).sum() >= 2:
-            self.extent[meth] = np.nanpercentile(P[np.isfinite(P).all(axis=1)], [2, 98], axis=0)
+        if np.isfinite(P).all(axis=1).sum() >= 2:  # its paths inside its 2–98 % box grown by a tenth each
+            lo, hi = np.nanpercentile(P[np.isfinite(P).all(axis=1)], [2, 98], axis=0)  # way: to frame without truth
+            lo, hi = lo - 0.1 * (hi - lo), hi + 0.1 * (hi - lo)
+            self.extent[meth] = [np.clip(t.position[:, :3], lo, hi) for t in per_marker.values()]
         self.logged.append(meth)
         self.markers.update(per_marker)
 
@@ -362,6 +349,9 @@ class Recorder:
             progress(max(len(todo), 1), max(len(todo), 1))
         lost = runaways(est.metrics)
         best = [m for m in ranking(est.metrics) if m not in lost and m in self.logged]
+        self._widths(best[:SHOWN_METHODS])
+        if not est.truth_positions and best:  # no truth to name the markers in 3-D: the best method's points do
+            self.rec.log(f"world/estimates/{best[0]}/points", rr.Points3D.from_fields(show_labels=True), static=True)
         self.rec.send_blueprint(blueprint(1.0 / self.dt, bool(est.target_tracks), bool(info), sorted(self.markers),
                                           lost, self.uncertain, est.rig.names, tucked=best[SHOWN_METHODS:],
                                           eye=self._eye(est, best), truth=bool(est.truth_positions),
@@ -378,10 +368,10 @@ class Recorder:
         return self.path
 
     def _eye(self, est: EstimateResult, best: list[str]) -> tuple[np.ndarray, np.ndarray] | None:
-        """The 3-D view's eye, framed on the truth's paths, else on the best method's."""
-        truth = est.truth_positions
-        if truth:
-            return framing(np.vstack([np.asarray(p, dtype=float)[:, :3] for p in truth.values()]))
+        """The 3-D view's eye, framed on the truth's paths, else on the best method's (inside its
+        2–98 % box grown by a tenth: a diverging stretch does not set the view)."""
+        if est.truth_positions:
+            return framing([np.asarray(p, dtype=float)[:, :3] for p in est.truth_positions.values()])
         return framing(self.extent[best[0]]) if best and best[0] in self.extent else None
 
     def _rig(self, rig: StereoRig | Rig) -> None:

@@ -189,6 +189,21 @@ def test_recording_read_back(e2e_run):
     assert len(colours) == len(METHODS)  # one colour per method
 
 
+def test_a_run_without_truth_names_its_markers_in_3d(tmp_path):
+    """Without truth (a real rig's clip) the truth's labelled points are missing: the best method's
+    points carry the markers' names instead (the other methods' on hover)."""
+    from tests.helpers import real_copy
+
+    clip = real_copy(tmp_path / "rig")
+    result = CliRunner().invoke(app, ["run", str(clip), "--markers", "red=#e61e1e,blue=#283ce6",
+                                      "--methods", "triangulation,kf3d,ukf"])
+    assert result.exit_code == 0, result.output
+    cols, _, _ = read_recording(clip / "out" / "run.rrd")
+    labelled = {m for m in ("triangulation", "kf3d", "ukf")
+                if cols[f"/world/estimates/{m}/points"].get("Points3D:show_labels", [[False]])[-1] == [True]}
+    assert len(labelled) == 1, labelled
+
+
 def test_run_cli_on_sample_clip(tmp_path):
     clip = tmp_path / "sample"
     shutil.copytree(REPO / "data" / "clips" / "four_point_small", clip)
@@ -421,13 +436,20 @@ def test_recording_shows_what_the_run_was(e2e_run):
     assert plotted_off == set(order[3:]), plotted_off  # the error plots show the same three
     in_camera = {m for m in METHODS if not any(f"/overrides/world/left/estimates/{m}" in p for p in hidden)}
     assert in_camera == {order[0]}, (in_camera, order)  # the camera panes: the best method's crosses only
-    # the 3-D eye looks at the middle of the truth's path, from where the whole path fits the view
+    # the 3-D eye frames the truth's paths: all of them in view, reaching across most of it
+    from pipeline.present.layout import FILL, _project
+
     eye = next(c for c in bp.values() if "EyeControls3D:look_target" in c)
     target, position = np.ravel(eye["EyeControls3D:look_target"][0]), np.ravel(eye["EyeControls3D:position"][0])
-    truth = e2e_run.estimate.truth.positions["red"]
-    lo, hi = np.percentile(truth, [2, 98], axis=0)
-    np.testing.assert_allclose(target, (lo + hi) / 2, atol=1e-6)
-    assert 0.85 * np.linalg.norm(hi - lo) < np.linalg.norm(position - target) < 3 * max(np.linalg.norm(hi - lo), 0.05)
+    ndc, depth = _project(np.vstack(list(e2e_run.estimate.truth.positions.values())), position, target)
+    assert depth.min() > 0 and np.abs(ndc).max() <= FILL + 1e-6, (ndc.min(axis=0), ndc.max(axis=0))
+    assert np.ptp(ndc, axis=0).max() >= 2 * FILL - 0.05, np.ptp(ndc, axis=0)
+    # the plotted methods drawn widest first (by name: the viewer's order), so that none hides another
+    from pipeline.present.recording import SERIES_WIDTHS
+
+    shown = sorted(order[:3])
+    for k, meth in enumerate(shown):
+        assert cols[f"/metrics/error/red/{meth}"]["SeriesLines:widths"][-1] == [SERIES_WIDTHS[k]], meth  # the last static
 
 
 @pytest.mark.slow
