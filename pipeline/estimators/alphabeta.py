@@ -28,11 +28,19 @@ from pipeline.estimators.gating import RobustNISScale, camera_gate, camera_nis, 
 from pipeline.estimators.kalman_common import update_gated_run
 from pipeline.estimators.registration import register
 
+#: frames in a row with one camera gated while both cameras' detections triangulate to one point
+#: after which the track restarts: the filter's depth drifted along the kept camera's ray (which
+#: cannot see it) and the other camera's right detections fall outside the gate; outliers in one
+#: camera are off the epipolar line, and do not line up on it three frames running
+DRIFT_RESTART = 3
+
 
 class AlphaBetaConfig(EstimatorConfig):
     gate: float = Field(0.9995, ge=0.0, lt=1.0)
     """the per-camera χ² gate (0 turns it off), scaled by the robust NIS scale so that the lag of fixed gains through a
-    manoeuvre widens it; a track gated ``restart_after`` frames in a row restarts. Ungated, 5 % random-pixel outliers
+    manoeuvre widens it; a track gated ``restart_after`` frames in a row restarts, and in 3-D one whose gate leaves one
+    camera three frames running although both triangulate to one point (its depth drifted along the kept camera's
+    ray: :data:`DRIFT_RESTART`). Ungated, 5 % random-pixel outliers
     make alphabeta's RMSE 8× its clean one (benchmarks/trackers.py)"""
     alpha: float = Field(0.5, gt=0, le=1)
     """position gain α: the share of each residual taken into the position"""
@@ -68,6 +76,7 @@ class AlphaBetaEstimator(Estimator):
         self.F1 = np.array([[1.0, self.dt, 0.5 * self.dt**2], [0.0, 1.0, self.dt], [0.0, 0.0, 1.0]])[:order, :order]
         self.K1 = np.array([cfg.alpha, cfg.beta / self.dt, 2.0 * (gamma or 0.0) / self.dt**2])[:order]
         self.scale = RobustNISScale(cfg.pixel_sigma)  # the innovations' variance over the model's (≥ 1; lag raises it)
+        self.drift_run = 0  # frames in a row with one camera gated although the pair is one point
 
     def _begin(self, s) -> None:
         """Start the filter and its error covariance (per channel: position, rate(, acceleration))
@@ -146,10 +155,14 @@ class AlphaBetaEstimator(Estimator):
             self.P = self.F1 @ self.P @ self.F1.T
             kept, n_gated = self._gate(y)
             self.gated_run = int(update_gated_run(self.gated_run, y, kept))
-            s = self.initiator.restart(self.frame, self.recent_observations()) if self.gated_run >= cfg.restart_after else None
+            drifted = (not image and n_gated == 1 and np.isfinite(y).all()
+                       and stereo_consistent(self.model, y, cfg.pixel_sigma, cfg.gate))
+            self.drift_run = self.drift_run + 1 if drifted else 0
+            lost = self.gated_run >= cfg.restart_after or self.drift_run >= DRIFT_RESTART
+            s = self.initiator.restart(self.frame, self.recent_observations()) if lost else None
             if s is not None:
                 self._begin(s)
-                self.gated_run, restarted = 0, True
+                self.gated_run, self.drift_run, restarted = 0, 0, True
                 have = True
             else:
                 z = kept if image else self.model.inverse_function(kept[None])[0]
