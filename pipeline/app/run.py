@@ -97,7 +97,7 @@ def _process_clip(clip_: Clip, out_dir: Path, settings: RunSettings, hooks: RunH
     try:  # the recorder is made inside: an interrupt as it opens its file leaves no partial recording
         if settings.recording:
             recorder = Recorder(Outputs(out_dir).recording, dt, name=f"{clip.name} · stereotrack run",
-                                cameras=clip_.cameras)
+                                cameras=clip_.cameras, app=f"stereotrack: {clip.name}")
         if recorder is not None and settings.images:
             _reference_videos(recorder, clip_)
         hooks.say("detect (frame pairs)")

@@ -101,10 +101,11 @@ class Recorder:
     """Writes ``run.rrd`` atomically while a run goes: :meth:`log_frame` for each decoded frame
     pair (compressed at once, never kept), then :meth:`finish` with the calibration and every
     series as columns. Nothing is written at ``path`` until :meth:`finish` succeeds; :meth:`abort`
-    (or an exception inside ``with``) leaves no file behind."""
+    (or an exception inside ``with``) leaves no file behind. ``app``: the rerun application id, one
+    per clip (the viewer keeps one blueprint per application)."""
 
     def __init__(self, path: str | Path, dt: float, jpeg_quality: int = 80, image_every: int = 1,
-                 name: str | None = None, cameras: tuple[str, ...] = ("left", "right")) -> None:
+                 name: str | None = None, cameras: tuple[str, ...] = ("left", "right"), app: str | None = None) -> None:
         os.environ.setdefault("RUST_LOG", "off")  # the file sink's own log lines (a full disk): ours name the file
         import rerun as rr
 
@@ -115,7 +116,9 @@ class Recorder:
         self.tmp = partial_beside(self.path)  # readable like every other output once renamed
         try:  # interrupted anywhere from here to the end of construction: leave nothing behind
             self.quality, self.image_every = int(jpeg_quality), max(1, int(image_every))
-            self.rec = rr.RecordingStream("stereotrack")
+            # an application per clip: the viewer keeps one blueprint per application, and a batch's
+            # clips opened together (`stereotrack view OUT`) would otherwise all show the last one's layout
+            self.rec = rr.RecordingStream(app or "stereotrack")
             self.rec.save(str(self.tmp))  # the blueprint, chosen for this run, is sent by finish
             self.images = 0
             self.logged: list[str] = []  # point methods logged so far (by :meth:`method`)

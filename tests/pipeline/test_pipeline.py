@@ -385,6 +385,10 @@ def test_recording_shows_what_the_run_was(e2e_run):
     assert "/world" in origins and "/run" in origins and not any(o.startswith("/metrics/target") for o in origins)
     assert "/metrics/depth/red" in origins and "/state" in origins  # the ±σ depth tab and the track-state lanes
     assert any("clip" in n for v in cols["/__properties"].get("RecordingInfo:name", []) for n in v)
+    # an application per clip: the viewer keeps a blueprint per application, so a batch opened at once
+    # (`stereotrack view OUT`) showed every clip in the last one's layout
+    (rec,), (blue,) = reader.recordings(), reader.blueprints()
+    assert rec.application_id == blue.application_id == "stereotrack: clip"
     assert "# clip" in "".join(t for v in cols["/run"]["TextDocument:text"] for t in v)
     for meth in METHODS:
         assert f"/world/estimates/{meth}/path" in static and cols[f"/world/estimates/{meth}/path"]["LineStrips3D:strips"]
