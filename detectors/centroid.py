@@ -70,8 +70,8 @@ def _hue_ok(hsv: np.ndarray, mk: HueRange) -> np.ndarray:
     return (hue >= lo) & (hue <= hi) if lo <= hi else (hue >= lo) | (hue <= hi)
 
 
-def _weighted(wts: np.ndarray, x0: int, y0: int) -> tuple[float, float]:
-    s = wts.sum()
+def _weighted(wts: np.ndarray, x0: int, y0: int, s: float) -> tuple[float, float]:
+    """The centroid of weights ``wts`` (summing to ``s``) placed at ``x0, y0`` in the frame."""
     h, w = wts.shape
     xs, ys = np.arange(x0, x0 + w)[None, :], np.arange(y0, y0 + h)[:, None]  # broadcast: the same products as a grid
     return float((wts * xs).sum() / s), float((wts * ys).sum() / s)
@@ -99,10 +99,11 @@ def chroma_centre(labels: np.ndarray, i: int, bgr: np.ndarray, hsv: np.ndarray, 
     inside = c[comp.astype(bool)]
     full = max(_quantile(inside, 0.2) - floor, 1.0) if inside.size else 1.0
     wts = np.where(region & hue_ok, np.clip((c - floor) / full, 0.0, 1.0), 0.0)
-    if wts.sum() <= 0:
+    s = wts.sum()
+    if s <= 0:
         ys, xs = np.nonzero(comp)
         return float(xs.mean() + x0), float(ys.mean() + y0)
-    return _weighted(wts, x0, y0)
+    return _weighted(wts, x0, y0, s)
 
 
 def unmixed_centre(labels: np.ndarray, i: int, bgr: np.ndarray, hsv: np.ndarray, box: tuple[int, int, int, int],
@@ -141,7 +142,10 @@ def unmixed_centre(labels: np.ndarray, i: int, bgr: np.ndarray, hsv: np.ndarray,
     cover = np.zeros(comp.shape)
     cover[rim] = np.where(ok & _hue_ok(hsv[y0:y1, x0:x1], mk)[rim], np.clip(1.0 - beta, 0.0, 1.0), 0.0)
     reach = 0
-    while reach < RIM_MAX and cover[out == reach + 1].mean() >= LAYER_MIN:
+    while reach < RIM_MAX:
+        layer = cover[out == reach + 1]  # empty where the frame's edge cuts the patch
+        if not layer.size or layer.mean() < LAYER_MIN:
+            break
         reach += 1
     wts = np.where(interior, 1.0, np.where(out <= reach, cover, 0.0))
-    return _weighted(wts, x0, y0)
+    return _weighted(wts, x0, y0, wts.sum())

@@ -105,8 +105,10 @@ def shoot(shots: list[Shot], out_dir: Path) -> None:
 
 
 def _st(*args: str) -> None:
+    from pipeline.core.lifeline import terminate_with_parent
+
     subprocess.run([str(Path(sys.executable).with_name("stereotrack")), *args], check=True, cwd=REPO,
-                   stdout=subprocess.DEVNULL)
+                   stdout=subprocess.DEVNULL, preexec_fn=terminate_with_parent)  # ends with this script, SIGKILL too
 
 
 def docs_cases(work: Path) -> list[Shot]:
