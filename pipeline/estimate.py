@@ -6,6 +6,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +27,7 @@ from pipeline.core.clip import (
 )
 from pipeline.core.detections import Detections, GroupDetections, GroupFlags, split_groups
 from pipeline.core.errors import StereotrackError, first_line
+from pipeline.core.forked import forked_map
 from pipeline.core.io import read_csv, write_csv, write_json
 from pipeline.core.outputs import Outputs
 from pipeline.core.rig import Rig
@@ -104,7 +106,7 @@ class Observed:
 def estimate_clip(clip: str | Path | Clip, settings: RunSettings | None = None, out_dir: str | Path | None = None,
                   hooks: RunHooks | None = None, in_dir: str | Path | None = None,
                   detections: Detections | None = None,
-                  keep_tracks: bool = True) -> EstimateResult:
+                  keep_tracks: bool = True, workers: int = 1) -> EstimateResult:
     """Run every requested method on every marker of a clip and write estimates and metrics.
 
     Detections are read from ``in_dir`` (default ``out_dir``, itself default ``CLIP/out``), or
@@ -118,7 +120,8 @@ def estimate_clip(clip: str | Path | Clip, settings: RunSettings | None = None, 
     units, the time offset, the frame rate. ``hooks.stage`` is told once what ``hooks.progress``
     counts; ``hooks.method`` gets each point method's tracks and scores as the method finishes;
     with ``keep_tracks`` False they are dropped after it, so a long clip's run holds one method's
-    tracks at a time, not all of them.
+    tracks at a time, not all of them. ``workers``: processes the methods run in, forked from this
+    one (:func:`~pipeline.core.forked.forked_map`; the same numbers as one, which runs them here).
     """
     settings, hooks = settings or RunSettings(), hooks or RunHooks()
     methods = list(settings.methods) if settings.methods else None
@@ -129,24 +132,26 @@ def estimate_clip(clip: str | Path | Clip, settings: RunSettings | None = None, 
         if m not in reg:
             raise StereotrackError(f"unknown method {m!r} (known: {', '.join(reg)})")
     seen = observe(clip_, Path(in_dir) if in_dir else out_dir, detections, settings)
-    methods = methods or default_methods(seen.target is not None)
-    if isinstance(seen.rig, Rig):  # N cameras: the methods that take them (asked-for others: an error naming them)
-        methods = [m for m in methods if reg[m].any_cameras] if not settings.methods else methods
-    point = [m for m in methods if reg[m].kind == "point"]
-    target = [m for m in methods if reg[m].kind == "target"]
-    if target and seen.target is None:
-        raise StereotrackError(f"method(s) {', '.join(target)} require a four-point target; this clip has none", clip_.path)
+    methods, point, target = _split_methods(methods, seen, clip_)
     count = _Count(len(point) * (len(seen.obs) + len(seen.groups)) + len(target), hooks)
     hooks.say(f"estimate ({count.total} tracks: {len(point)} methods × {len(seen.obs) + len(seen.groups)} markers"
                  + (f" + {len(target)} target methods" if target else "") + ")")
     configs = _with_pixel_noise(settings.configs, methods, seen.sigma)
+    if point:
+        _before_point_methods(seen)
     resolved: dict[str, dict[str, Any]] = {}
-    target_tracks = {m: _run_target(m, seen, configs.get(m, {}), out_dir, resolved, count) for m in target}
+    runs = forked_map(partial(_run_one, seen, configs, out_dir), [*target, *point], workers)
+    target_tracks = {}
+    for m in target:
+        target_tracks[m], resolved[m] = next(runs)
+        count.tick()
     result = EstimateResult(out_dir, seen.rig, seen.dt, seen.n, seen.obs, {}, seen.truth, seen.target, target_tracks,
                             aligned=seen.aligned)
     entries = {}
     for m in point:
-        tracks, scores, identity = _run_point(m, seen, configs.get(m), out_dir, resolved, count)
+        (tracks, scores, identity), resolved[m] = next(runs)
+        for _ in range(len(seen.aligned) + len(seen.groups)):
+            count.tick()
         entries[m] = method_metrics(result, m, tracks, scores)
         if identity:
             entries[m]["identity"] = identity
@@ -157,6 +162,28 @@ def estimate_clip(clip: str | Path | Clip, settings: RunSettings | None = None, 
     result.metrics = _metrics(result, seen, clip_, settings.calib_units, resolved, entries)
     write_json(Outputs(out_dir).metrics, result.metrics)
     return result
+
+
+def _split_methods(asked: list[str] | None, seen: Observed, clip: Clip) -> tuple[list[str], list[str], list[str]]:
+    """(the methods to run, the point ones, the target ones): those asked for, else the defaults
+    (with N cameras, those that take them); target methods only on a clip with a target."""
+    reg = registry()
+    methods = asked or default_methods(seen.target is not None)
+    if isinstance(seen.rig, Rig) and not asked:  # N cameras: the methods that take them (asked-for others: an error)
+        methods = [m for m in methods if reg[m].any_cameras]
+    point = [m for m in methods if reg[m].kind == "point"]
+    target = [m for m in methods if reg[m].kind == "target"]
+    if target and seen.target is None:
+        raise StereotrackError(f"method(s) {', '.join(target)} require a four-point target; this clip has none", clip.path)
+    return methods, point, target
+
+
+def _before_point_methods(seen: Observed) -> None:
+    """What every point method uses, made once before they run (and fork): each group's
+    association, and the rig's triangulation of every frame's observations."""
+    _associate_groups(seen)
+    if isinstance(seen.rig, StereoRig) and seen.aligned:
+        seen.rig.remember(np.concatenate(list(seen.aligned.values())))
 
 
 class _Count:
@@ -248,7 +275,23 @@ def _with_pixel_noise(configs: dict[str, dict] | None, methods: list[str], sigma
     return out
 
 
-def _run_target(m: str, seen: Observed, config: dict, out_dir: Path, resolved: dict, count: _Count) -> Track:
+def _run_one(seen: Observed, configs: dict[str, dict[str, Any]], out_dir: Path, m: str) -> tuple[Any, dict[str, Any]]:
+    """One method on the clip (a target method on the target, a point method on every marker and
+    group), its estimates written: (what it found, its settings as resolved)."""
+    resolved: dict[str, dict[str, Any]] = {}
+    if registry()[m].kind == "target":
+        return _run_target(m, seen, configs.get(m, {}), out_dir, resolved), resolved[m]
+    return _run_point(m, seen, configs.get(m), out_dir, resolved), resolved[m]
+
+
+def _associate_groups(seen: Observed) -> None:
+    """Each group of identical markers associated once, before the methods that filter it run."""
+    for group, dets in seen.groups.items():
+        if group not in seen.associations:
+            seen.associations[group] = associate(list(seen.rig.cameras), seen.dt, dets, merged=seen.merged.get(group))
+
+
+def _run_target(m: str, seen: Observed, config: dict, out_dir: Path, resolved: dict) -> Track:
     """One target method on the target's four labelled points; writes its estimates."""
     target = seen.target
     assert target is not None
@@ -258,7 +301,6 @@ def _run_target(m: str, seen: Observed, config: dict, out_dir: Path, resolved: d
     resolved[m] = est.config.model_dump(mode="json")
     track = _run_method(est, Yt, target.name)
     _write_target_estimates(Outputs(out_dir).estimates(m), target.name, track, seen.dt)
-    count.tick()
     return track
 
 
@@ -267,9 +309,6 @@ def _run_group(m: str, seen: Observed, group: str, config: dict | None
     """One point method behind the association of a group of identical markers: its tracks
     (``<group>#<n>``), their scores against the truth marker each follows frame by frame, and the
     identity metrics (None without truth)."""
-    if group not in seen.associations:
-        seen.associations[group] = associate(list(seen.rig.cameras), seen.dt, seen.groups[group],
-                                             merged=seen.merged.get(group))
     tracks = filter_tracks(seen.rig, seen.dt, seen.associations[group], m, group, config)
     truth = seen.group_truth.get(group, {})
     if not truth:
@@ -282,7 +321,7 @@ def _run_group(m: str, seen: Observed, group: str, config: dict | None
     return tracks, scores, identity_metrics(truth, positions, MATCH_M)
 
 
-def _run_point(m: str, seen: Observed, config: dict | None, out_dir: Path, resolved: dict, count: _Count
+def _run_point(m: str, seen: Observed, config: dict | None, out_dir: Path, resolved: dict
                ) -> tuple[dict[str, Track], dict[str, FrameScores], dict[str, dict[str, Any] | None]]:
     """One point method on every marker, and behind the association on each group of identical
     markers; writes its estimates. Every method sees the right camera interpolated to the left
@@ -295,13 +334,11 @@ def _run_point(m: str, seen: Observed, config: dict | None, out_dir: Path, resol
     tracks, identity = {}, {}
     for marker, Y in seen.aligned.items():
         tracks[marker] = _run_method(est, Y, marker)
-        count.tick()
     scores = score_tracks(tracks, seen.truth.positions if seen.truth is not None else None)
     for g in seen.groups:
         mine, mine_scores, identity[g] = _run_group(m, seen, g, config)
         tracks.update(mine)
         scores.update(mine_scores)
-        count.tick()
     _write_estimates(Outputs(out_dir).estimates(m), tracks, seen.dt, scores)
     for tr in tracks.values():  # what the later stages use of it: memory that does not grow 4× per frame
         if tr.covariance is not None and tr.covariance.shape[1] > 3:

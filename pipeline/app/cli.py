@@ -41,8 +41,9 @@ def main() -> None:
     import os
 
     from pipeline.core import allocator
-    from pipeline.core.lifeline import install_signal_handlers, received_signal
+    from pipeline.core.lifeline import install_signal_handlers, one_blas_thread, received_signal
 
+    one_blas_thread()  # before numpy loads: the estimators' matrices are tiny (see CHILD_THREADS)
     allocator.tune()  # frames churn through the allocator: keep their pages (see the module)
     warnings.showwarning = _show_warning
     # multiprocessing's resource tracker (a process started with this interpreter's -W options) still

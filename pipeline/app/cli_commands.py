@@ -21,6 +21,7 @@ from pipeline.app.cli_common import (
     FpsOption,
     MarkersOption,
     TimeOffsetOption,
+    WorkersOption,
     app,
     clip_format,
     console,
@@ -213,6 +214,7 @@ def estimate_cmd(
     config: ConfigOption = None,
     time_offset: TimeOffsetOption = "auto",
     fps: FpsOption = None,
+    workers: WorkersOption = 2,
 ) -> None:
     """Estimate 3-D tracks with each method; write estimates/<method>.csv and metrics.json."""
     from pipeline.core.clip import Clip
@@ -226,7 +228,8 @@ def estimate_cmd(
         task = bar.add_task("estimate", total=None, eta=False)
         hooks = RunHooks(stage=lambda name: bar.update(task, description=name),
                          progress=lambda d, t: bar.update(task, completed=d, total=t))
-        res = estimate_clip(Clip(clip, settings.fps), settings, output, hooks, in_dir=Outputs.of(clip).folder)
+        res = estimate_clip(Clip(clip, settings.fps), settings, output, hooks, in_dir=Outputs.of(clip).folder,
+                           workers=workers)
     mark_output(output)
     print_time(res.metrics["time"]["fps"], res.metrics["time"]["source"])
     print_sync(res.metrics)
@@ -309,6 +312,8 @@ def report_cmd(
     clip: Annotated[Path, typer.Argument(help="Clip folder whose out/ holds estimates and metrics.")],
     output: Annotated[Path | None, typer.Option("-o", "--output", help="Where the outputs go (default CLIP/out); "
                                                 "inputs are always read from CLIP/out.")] = None,
+    workers: Annotated[int, typer.Option("--workers", min=1, help="Processes the figures are drawn in (1: this "
+                                         "process; the figures are the same).")] = 2,
 ) -> None:
     """Write out/report.md with the metrics table and figures."""
     from pipeline.present.report import write_report
@@ -317,7 +322,7 @@ def report_cmd(
     with stage_lock(clip, output, "report"), progress_bar() as bar:
         task = bar.add_task("report", total=None)
         path = write_report(clip, output, progress=lambda d, t: bar.update(task, completed=d, total=t),
-                            in_dir=Outputs.of(clip).folder)
+                            in_dir=Outputs.of(clip).folder, workers=workers)
     mark_output(output)
     out.print(f"wrote {path}")
 
@@ -340,6 +345,7 @@ def run_cmd(
     fps: FpsOption = None,
     force: ForceWindowOption = False,
     allow_unequal: AllowUnequalOption = False,
+    workers: WorkersOption = 2,
 ) -> None:
     """Run every stage on one clip: (render), detect, estimate, metrics, report, recording.
 
@@ -362,7 +368,7 @@ def run_cmd(
             task = bar.add_task(name, total=None, eta=stage_eta(name))
 
         hooks = RunHooks(stage=stage, progress=lambda d, t: bar.update(task, completed=d, total=t))
-        res = process_clip(clip, settings=settings, hooks=hooks, keep_tracks=False)
+        res = process_clip(clip, settings=settings, hooks=hooks, keep_tracks=False, workers=workers)
     print_learned(res.detect.learned)
     print_time(res.estimate.metrics["time"]["fps"], res.estimate.metrics["time"]["source"])
     print_sync(res.estimate.metrics)

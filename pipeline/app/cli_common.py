@@ -99,6 +99,10 @@ ConfigOption = Annotated[Path | None, typer.Option(
     "--config", help="YAML file mapping a method name to its settings, e.g. 'ekf: {process_noise: 2.0}' "
     "(see `stereotrack methods`); the resolved settings are recorded in metrics.json.")]
 
+WorkersOption = Annotated[int, typer.Option(
+    "--workers", min=1, help="Processes the estimate stage runs its methods in (1: this process; the numbers "
+    "are the same).")]
+
 
 def method_configs(path: Path | None) -> dict | None:
     from pipeline.estimators.configs import load_method_configs

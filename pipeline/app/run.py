@@ -34,7 +34,8 @@ class RunResult:
 
 
 def process_clip(clip: str | Path, out_dir: str | Path | None = None, settings: RunSettings | None = None,
-                 hooks: RunHooks | None = None, lock: bool = True, keep_tracks: bool = True) -> RunResult:
+                 hooks: RunHooks | None = None, lock: bool = True, keep_tracks: bool = True,
+                 workers: int = 1) -> RunResult:
     """Detect, estimate, report and record one clip folder into ``out_dir`` (default CLIP/out).
 
     ``settings`` (:class:`~pipeline.core.settings.RunSettings`) say what is computed: the detector
@@ -44,18 +45,19 @@ def process_clip(clip: str | Path, out_dir: str | Path | None = None, settings: 
     draws figures and whether the recording is written; ``hooks`` hear about stages and progress.
     ``keep_tracks``: whether the result keeps every method's tracks (``estimate.tracks``); either
     way each method's tracks go to the report and the recording as the method finishes, so
-    without them a long clip's run holds one method's tracks at a time.
+    without them a long clip's run holds one method's tracks at a time. ``workers``: processes the
+    estimate stage runs its methods in (see :func:`~pipeline.estimate.estimate_clip`).
 
     With ``lock`` the output folder is locked for the run (a second run on it fails at once,
     naming the holder) and temporary files left there by a killed run are removed first."""
     settings, hooks = settings or RunSettings(), hooks or RunHooks()
     out_dir = Outputs.of(Clip.open(clip).folder, out_dir).folder
     if not lock:
-        return _process_clip(Clip.open(clip, settings.fps), out_dir, settings, hooks, keep_tracks)
+        return _process_clip(Clip.open(clip, settings.fps), out_dir, settings, hooks, keep_tracks, workers)
     with OutputLock(out_dir, f"stereotrack run {clip}"):
         for stale in list(out_dir.rglob(".*.partial-*")):
             stale.unlink(missing_ok=True) if stale.is_file() else shutil.rmtree(stale, ignore_errors=True)
-        return _process_clip(Clip.open(clip, settings.fps), out_dir, settings, hooks, keep_tracks)
+        return _process_clip(Clip.open(clip, settings.fps), out_dir, settings, hooks, keep_tracks, workers)
 
 
 def run_description(clip: Path, detector: str, metrics: dict) -> str:
@@ -90,7 +92,8 @@ def _reference_videos(recorder: Recorder, clip: Clip) -> None:
             recorder.reference_video(cam, src)
 
 
-def _process_clip(clip_: Clip, out_dir: Path, settings: RunSettings, hooks: RunHooks, keep_tracks: bool) -> RunResult:
+def _process_clip(clip_: Clip, out_dir: Path, settings: RunSettings, hooks: RunHooks, keep_tracks: bool,
+                  workers: int) -> RunResult:
     t0 = time.perf_counter()
     clip = clip_.path  # the clip is read once, handed to every stage
     dt, recorder = 1.0 / clip_.fps, None
@@ -112,9 +115,9 @@ def _process_clip(clip_: Clip, out_dir: Path, settings: RunSettings, hooks: RunH
                 recorder.method(est, m, tracks, scores)
 
         est = estimate_clip(clip_, settings, out_dir, replace(hooks, method=finished), detections=det.detections(),
-                            keep_tracks=keep_tracks)
+                            keep_tracks=keep_tracks, workers=workers)
         hooks.say("report (figures)" if settings.figures else "report")
-        report = write_report(clip_, out_dir, progress=hooks.progress, figures=settings.figures,
+        report = write_report(clip_, out_dir, progress=hooks.progress, figures=settings.figures, workers=workers,
                               data=report_data(clip_, est, det.marker_colours, out_dir, data))
         rrd = None
         if recorder is not None:

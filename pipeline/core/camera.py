@@ -19,12 +19,15 @@ import numpy as np
 
 from pipeline.core.errors import CalibrationError
 from pipeline.core.lazy import lazy_module
+from pipeline.core.memo import RowMemo
 
 if TYPE_CHECKING:
     import cv2
 else:
     cv2 = lazy_module("cv2")  # imported on first use: --help and `methods` need no OpenCV
 
+#: single observations a rig remembers the triangulation of (a long clip's frames × a marker or two)
+MEMO_SIZE = 20_000
 #: ``cv2.undistortPoints``' COUNT | EPS criteria: OpenCV's 5 iterations leave corners off by tenths of a pixel
 UNDISTORT_CRITERIA = (1 | 2, 100, 1e-12)
 
@@ -278,9 +281,22 @@ class StereoRig:
 
     def triangulate(self, Y: np.ndarray) -> np.ndarray:
         """The inverse of :meth:`project`: DLT triangulation of stereo observations (…×4 pixels →
-        …×3; NaN where a camera is missing). See :func:`triangulate`."""
+        …×3; NaN where a camera is missing). See :func:`triangulate`. A single observation (an
+        estimator's step) is remembered: every method of a run triangulates the same detections."""
         Y = np.asarray(Y, dtype=float)
+        if Y.size == 4:
+            return self._points.get(Y.reshape(1, 4), lambda y: triangulate(self, y)[0]).reshape(*Y.shape[:-1], 3)
         return triangulate(self, Y.reshape(-1, 4)).reshape(*Y.shape[:-1], 3)
+
+    def remember(self, Y: np.ndarray) -> None:
+        """Triangulate observations (N×4) at once for :meth:`triangulate` to find one by one, the
+        same bits (LAPACK solves each row alone either way); workers forked after this inherit them."""
+        Y = np.unique(np.asarray(Y, dtype=float).reshape(-1, 4)[:MEMO_SIZE], axis=0)
+        self._points.fill(Y, triangulate(self, Y))
+
+    @cached_property
+    def _points(self) -> RowMemo:
+        return RowMemo(MEMO_SIZE)
 
     def depths(self, X: np.ndarray) -> np.ndarray:
         """Depth of world points in the left and the right camera (N×2); ≤ 0 means behind it."""
@@ -361,34 +377,6 @@ def triangulate_views(cameras: list[Camera], uv: np.ndarray) -> np.ndarray:
         return np.full(3, np.nan)
     X = np.linalg.svd(np.array(rows))[2][-1]
     return X[:3] / X[3]
-
-
-def rectifying_frame(rig: StereoRig) -> tuple[np.ndarray, np.ndarray]:
-    """``(R, t)``: world → a frame at the left camera whose x axis points along the baseline, to the
-    second camera wherever it sits (right, left, above, below, diagonal), and whose z axis stays
-    close to the left optical axis — Bouguet's rectifying rotation (e₁ along the baseline,
-    e₂ = (−e₁ᵧ, e₁ₓ, 0)/‖·‖, e₃ = e₁ × e₂; Bradski & Kaehler, *Learning OpenCV*, ch. 12). In it
-    the second camera sits at (b, 0, 0), so ``q₂`` is its image x for any layout."""
-    left = rig.left
-    e1 = left.R @ rig.right.center + np.ravel(left.t)  # the second camera, in the left camera's frame
-    e1 = e1 / np.linalg.norm(e1)
-    e2 = np.array([-e1[1], e1[0], 0.0])
-    e2 = e2 / np.linalg.norm(e2) if np.linalg.norm(e2) > 1e-9 else np.array([0.0, 1.0, 0.0])
-    Rr = np.stack([e1, e2, np.cross(e1, e2)])
-    return Rr @ left.R, Rr @ np.ravel(left.t)
-
-
-def disparity_maps(rig: StereoRig) -> tuple[list[float], list[float]]:
-    """Each camera's normalized projection as a 3×4 map of ``(s₀, s₁, 1, s₂)`` (row-major floats):
-    ``[M_c | m_c / b]`` with ``M_c = R_c R₀ᵀ``, ``m_c = t_c − M_c t₀`` for the rectifying frame
-    ``(R₀, t₀)`` of :func:`rectifying_frame`."""
-    R0, t0 = rectifying_frame(rig)
-    out = []
-    for cam in rig.cameras:
-        M = cam.R @ R0.T
-        m = np.ravel(cam.t) - M @ t0
-        out.append(np.hstack([M, (m / rig.baseline)[:, None]]).ravel().tolist())
-    return out[0], out[1]
 
 
 def linearize_point(Pm, delta, x, h, H):

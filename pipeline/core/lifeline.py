@@ -25,10 +25,20 @@ from pathlib import Path
 
 from pipeline.core.errors import StereotrackError
 
-#: What every child process stereotrack starts reads at start-up: one BLAS / OpenMP thread each.
-#: The estimators' matrices are tiny (3×3 to 12×12): on a loaded 2-core machine a threaded BLAS
-#: makes small ``expm`` and ``solve`` calls 2–15× slower, and the workers already fill the cores.
+#: What every child process stereotrack starts reads at start-up, and the command line's own
+#: process before it loads numpy (:func:`one_blas_thread`): one BLAS / OpenMP thread each. The
+#: estimators' matrices are tiny (3×3 to 12×12): on a loaded 2-core machine a threaded BLAS makes
+#: small ``expm`` and ``solve`` calls 2–15× slower, and the workers already fill the cores. With
+#: two BLAS threads the default methods took 3.1 s of one process on the default clip, with one
+#: 1.8–2.4 s, the same numbers.
 CHILD_THREADS = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+def one_blas_thread() -> None:
+    """:data:`CHILD_THREADS` in this process's environment (a value the user set wins): BLAS
+    libraries loaded after this read it; call it before numpy is imported."""
+    for k, v in CHILD_THREADS.items():
+        os.environ.setdefault(k, v)
 
 
 @contextlib.contextmanager

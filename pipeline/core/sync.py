@@ -20,6 +20,7 @@ jitter and dropped frames at once.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -47,6 +48,15 @@ BLOCK = 10  # frames per bootstrap block
 #: simulated clips (tests/estimators/test_survive.py::test_clean_clips_keep_zero_in_the_interval measures the widened one)
 CI_WIDEN = float(np.sqrt(2.0))
 MIN_PAIRS = 12
+#: the distance table is made this many bytes of it at a time (a block of the shifts, every frame):
+#: whole, it grows with clip × shifts (48 MB at 3,000 frames, more than the rest of a run grows)
+TABLE_BYTES = 4 << 20
+#: a table up to this size is made once and kept for both passes over it (which frames have a pair at
+#: every shift, then the costs); a larger one is made again for the second
+KEPT_TABLE_BYTES = 16 << 20
+#: at least this many shifts a block: numpy sums a block's columns over its rows in one order (row
+#: after row) however many there are, but one column alone pairwise, which differs in the last bits
+MIN_BLOCK_SHIFTS = 32
 
 
 @dataclass
@@ -117,6 +127,15 @@ def interpolation_variance(shift_frames: float) -> float:
     return (1.0 + (1.0 - w) ** 2 + w**2) / 2.0
 
 
+def _table_blocks(rig: StereoRig, obs: dict[str, np.ndarray], shifts: np.ndarray) -> Iterator[tuple[slice, np.ndarray]]:
+    """:func:`_distance_table` a block of shifts at a time, about :data:`TABLE_BYTES` each: (the block's
+    columns, its table). Each column is the whole table's: a column depends on its shift alone."""
+    rows = sum(len(Y) for Y in obs.values())
+    step = max(MIN_BLOCK_SHIFTS, TABLE_BYTES // (8 * max(rows, 1)))
+    for j in range(0, len(shifts), step):
+        yield slice(j, j + step), _distance_table(rig, obs, shifts[j : j + step])
+
+
 def _distance_table(rig: StereoRig, obs: dict[str, np.ndarray], shifts: np.ndarray) -> np.ndarray:
     """Clipped squared epipolar distances, each over its noise variance at its shift
     (:func:`interpolation_variance`): (markers·frames) × shifts, NaN where no pair exists."""
@@ -155,10 +174,11 @@ def _coarse_offset(rig: StereoRig, obs: dict[str, np.ndarray], wide: float) -> f
     """The best shift on a :data:`COARSE_STEP` grid over ±``wide`` frames: the mean clipped distance
     at each shift over the pairs that exist there (at least :data:`MIN_PAIRS`)."""
     shifts = np.arange(-wide, wide + COARSE_STEP / 2, COARSE_STEP)
-    D = _distance_table(rig, obs, shifts)
-    have = np.isfinite(D).sum(axis=0)
-    with np.errstate(invalid="ignore"):
-        cost = np.where(have >= MIN_PAIRS, np.nansum(D, axis=0) / np.maximum(have, 1), np.nan)
+    cost = np.full(len(shifts), np.nan)
+    for cols, D in _table_blocks(rig, obs, shifts):
+        have = np.isfinite(D).sum(axis=0)
+        with np.errstate(invalid="ignore"):
+            cost[cols] = np.where(have >= MIN_PAIRS, np.nansum(D, axis=0) / np.maximum(have, 1), np.nan)
     return float(shifts[int(np.nanargmin(cost))]) if np.isfinite(cost).any() else 0.0
 
 
@@ -181,27 +201,33 @@ def estimate_offset(rig: StereoRig, obs: dict[str, np.ndarray], fps: float, seed
     else:
         span = 2.0
     shifts = centre + np.arange(-span, span + GRID_STEP / 2, GRID_STEP)
-    D = _distance_table(rig, obs, shifts)
-    valid = np.all(np.isfinite(D), axis=1)  # pairs that exist at every shift searched
-    if valid.sum() < MIN_PAIRS:
+    rows = sum(len(Y) for Y in obs.values())
+    once = list(_table_blocks(rig, obs, shifts)) if 8 * rows * len(shifts) <= KEPT_TABLE_BYTES else None
+    valid = np.ones(rows, dtype=bool)
+    for _, D in once or _table_blocks(rig, obs, shifts):
+        valid &= np.all(np.isfinite(D), axis=1)  # pairs that exist at every shift searched
+    n = int(valid.sum())
+    if n < MIN_PAIRS:
         return SyncEstimate(0.0, None, False, "detections", note="too few frames with both cameras and their neighbours")
-    D = D[valid]
-    best = _argmin(D.mean(axis=0), shifts)
+    rng = np.random.default_rng(seed)
+    blocks = np.arange(0, n, BLOCK)
+    draws = [rng.choice(blocks, size=len(blocks)) for _ in range(BOOTSTRAP)]  # block starts of each resample
+    cost, resampled = np.empty(len(shifts)), np.empty((BOOTSTRAP, len(shifts)))
+    for cols, D in once or _table_blocks(rig, obs, shifts):
+        D = D[valid]
+        cost[cols] = D.mean(axis=0)
+        for b, starts in enumerate(draws):
+            idx = (starts[:, None] + np.arange(BLOCK)).ravel()  # the blocks' rows, block after block
+            resampled[b, cols] = D[idx[idx < n]].mean(axis=0)
+    best = _argmin(cost, shifts)
     if abs(best - centre) >= span - 2 * GRID_STEP:  # the cost still falls at the edge: no minimum inside the range
         searched = max(wide, span)
         return SyncEstimate(0.0, None, False, "detections",
                             note=f"no minimum within ±{searched:g} frames ({searched / fps:.2g} s): an offset larger "
                                  "than that, swapped cameras or mismatched detections?")
-    rng = np.random.default_rng(seed)
-    blocks = np.arange(0, len(D), BLOCK)
-    boot = []
-    for _ in range(BOOTSTRAP):
-        starts = rng.choice(blocks, size=len(blocks))
-        idx = np.concatenate([np.arange(s, min(s + BLOCK, len(D))) for s in starts])
-        boot.append(_argmin(D[idx].mean(axis=0), shifts))
-    half = CI_WIDEN * 1.96 * float(np.std(boot))
+    half = CI_WIDEN * 1.96 * float(np.std([_argmin(m, shifts) for m in resampled]))
     # the epipolar residual in pixels at δ (the cost is weighted: undo the weight of δ's shift)
-    residual = float(np.sqrt(np.interp(best, shifts, D.mean(axis=0)) * interpolation_variance(best)))
+    residual = float(np.sqrt(np.interp(best, shifts, cost) * interpolation_variance(best)))
     return SyncEstimate(best / fps, ((best - half) / fps, (best + half) / fps), False, "detections", residual)
 
 

@@ -11,6 +11,7 @@ from collections import deque
 import numpy as np
 
 from pipeline.core.camera import StereoMeasurementModel, StereoRig
+from pipeline.core.chi2 import chi2_upper
 from pipeline.core.rig import Rig
 
 
@@ -19,9 +20,7 @@ def plausible_residual(sigma: float, gate: float) -> float:
     freedom (the distance from the epipolar line) at probability ``gate``; inf when gating is off."""
     if gate <= 0:
         return float("inf")
-    from scipy.special import chdtri
-
-    return float(sigma**2 * chdtri(1, 1.0 - gate))
+    return float(sigma**2 * chi2_upper(1, gate))
 
 
 def stereo_consistent(model: StereoMeasurementModel, y: np.ndarray, sigma: float, gate: float) -> bool:
@@ -56,9 +55,7 @@ def camera_gate(gate: float) -> float:
     covariance already, so the pixel noise does not enter."""
     if gate <= 0:
         return float("inf")
-    from scipy.special import chdtri
-
-    return float(chdtri(2, 1.0 - gate))
+    return chi2_upper(2, gate)
 
 
 LN4 = math.log(4.0)  # the median of χ²₂

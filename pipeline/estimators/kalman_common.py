@@ -11,6 +11,7 @@ import numpy as np
 from pydantic import Field
 
 from pipeline.core.camera import StereoMeasurementModel
+from pipeline.core.chi2 import chi2_upper
 from pipeline.estimators.base import Estimator, EstimatorConfig, Start, Step, Track, transition, use_compiled
 from pipeline.estimators.gating import camera_gate, gated_cameras, reprojection_errors
 
@@ -78,7 +79,7 @@ class GatedFilter(Estimator):
 
     def gate_threshold(self) -> float:
         cfg = self.config
-        if getattr(self, "_gate_key", None) != cfg.gate:  # chdtri costs more than a filter step
+        if getattr(self, "_gate_key", None) != cfg.gate:  # a χ² quantile costs more than a filter step
             self._gate_key, self._gate_value = cfg.gate, camera_gate(cfg.gate)
         return self._gate_value
 
@@ -121,10 +122,8 @@ def drifted(model: StereoMeasurementModel, x: np.ndarray, y: np.ndarray, gate: f
     X = model.inverse_function(np.asarray(y, dtype=float)[None])[0]
     if gate <= 0 or not np.all(np.isfinite(X)):
         return False
-    from scipy.special import chdtri
-
     d = np.asarray(x, dtype=float)[:3] - X
-    return float(d @ np.linalg.solve(model.inverse_covariance(X[None])[0], d)) > float(chdtri(3, 1.0 - gate))
+    return float(d @ np.linalg.solve(model.inverse_covariance(X[None])[0], d)) > chi2_upper(3, gate)
 
 
 def update_gated_run(run, y: np.ndarray, kept: np.ndarray):

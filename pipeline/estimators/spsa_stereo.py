@@ -69,15 +69,14 @@ and a slower one lags more. The disparity's floor ``alpha_depth_per_disparity ·
 fast depth may change against the disparity noise; ``run`` (Kesten) how many same-signed
 innovations in a row count as a manoeuvre. Change the frame rate and these are what to revisit.
 
-Outliers: each camera's squared reprojection residual at the prediction, over σ² and the robust
-scale of :class:`~pipeline.estimators.gating.RobustNISScale` (a floor-gain tracker lags manoeuvres,
-and the median of its recent residuals widens the gate with the lag), is gated at the χ²₂ quantile
-``gate``; ``restart_after`` frames in a row with a camera gated restart the track from its recent
-detections. A prediction behind the left camera restarts the track from the frame's own minimum. A frame whose
-minimised cost stays above ``cost_gate`` (normalized units² per camera) is treated as a gap: that catches
-a detection off the epipolar line (a wrong blob at another height), not one shifted along it, which
-the frame's own cost reads as a change of depth. The floors are the tuning knobs, as α is Algorithm 1's: small for
-smooth motion, larger to follow manoeuvres.
+Outliers: each camera's squared reprojection residual at the prediction, over σ² and the robust scale of
+:class:`~pipeline.estimators.gating.RobustNISScale` (a floor-gain tracker lags manoeuvres, and the median of its
+recent residuals widens the gate with the lag), is gated at the χ²₂ quantile ``gate``; ``restart_after`` frames in a
+row with a camera gated restart the track from its recent detections. A prediction behind the left camera restarts the
+track from the frame's own minimum. A frame whose minimised cost stays above ``cost_gate`` (normalized units² per
+camera) is treated as a gap: that catches a detection off the epipolar line (a wrong blob at another height), not one
+shifted along it, which the frame's own cost reads as a change of depth. The floors are the tuning knobs, as α is
+Algorithm 1's: small for smooth motion, larger to follow manoeuvres.
 """
 
 from __future__ import annotations
@@ -89,7 +88,8 @@ from typing import Any
 import numpy as np
 from pydantic import Field
 
-from pipeline.core.camera import StereoRig, disparity_maps, rectifying_frame
+from pipeline.core.camera import StereoRig
+from pipeline.core.rectify import disparity_maps, rectifying_frame
 from pipeline.estimators.base import Estimator, EstimatorConfig, InitConfig, Step, Track, not_started, use_compiled
 from pipeline.estimators.gating import RobustNISScale, camera_gate, stereo_consistent
 from pipeline.estimators.registration import register
@@ -200,7 +200,7 @@ class SPSAStereoEstimator(Estimator):
 
     def cost(self, q0: float, q1: float, q2: float, yn: tuple, use_l: bool, use_r: bool) -> float:
         """``J(q) = ‖h(g⁻¹(q)) − y‖²`` in normalized image coordinates over the cameras in use,
-        through :func:`~pipeline.core.camera.disparity_maps`; ``BIG_COST`` beyond infinity or behind a camera."""
+        through :func:`~pipeline.core.rectify.disparity_maps`; ``BIG_COST`` beyond infinity or behind a camera."""
         s0, s1, s2 = q0, q1, q0 - q2
         if s2 <= 1e-12:
             return BIG_COST

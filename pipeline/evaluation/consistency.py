@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.core.chi2 import gammaincinv
 from pipeline.estimators.base import Track
 
 
@@ -33,10 +34,8 @@ def nees(track: Track, truth_position: np.ndarray, truth_velocity: np.ndarray | 
 
 def band(dof: np.ndarray | int, p: float = 0.95) -> tuple[np.ndarray, np.ndarray]:
     """The two-sided ``p`` band of χ²(dof): ``χ²_q(k) = 2·P⁻¹(k/2, q)``, the inverse regularised
-    lower incomplete gamma function (scipy.special: an estimate stage need not pay scipy.stats' ~0.5 s import)."""
+    lower incomplete gamma function (:mod:`pipeline.core.chi2`: no scipy import for the usual degrees of freedom)."""
     k = np.asarray(dof, dtype=float) / 2
-    from scipy.special import gammaincinv  # imported here: 0.15 s at start-up
-
     return 2 * gammaincinv(k, (1 - p) / 2), 2 * gammaincinv(k, (1 + p) / 2)
 
 

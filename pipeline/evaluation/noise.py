@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.core.camera import StereoRig
+from pipeline.core.chi2 import gammaincinv
 from pipeline.core.rig import Rig
 
 
@@ -15,9 +16,7 @@ def estimate_view_sigma(rig: Rig, observations: dict[str, np.ndarray]) -> float 
     Over the frames with the commonest k, σ̂² is the residuals' median over χ²(2k − 3)'s median: a
     median, so that one camera's outliers (a fifth of the frames, say) do not inflate it. χ²(d)'s median
     is ``2 P⁻¹(d/2, ½)`` (the inverse regularised lower incomplete gamma function), as scipy.stats
-    computes it, without scipy.stats' import (~1 s)."""
-    from scipy.special import gammaincinv
-
+    computes it, without its import (:mod:`pipeline.core.chi2`)."""
     per_k: dict[int, list[np.ndarray]] = {}
     for Y in observations.values():
         seen = np.isfinite(Y).reshape(len(Y), rig.n, 2).all(axis=2)

@@ -7,10 +7,12 @@ from __future__ import annotations
 import io
 import warnings
 from collections.abc import Callable
+from functools import partial
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from pipeline.core.forked import forked_map
 from pipeline.present.report_data import ReportData
 from pipeline.present.style import TRUTH_STYLE, marker_rgb, method_colour, method_linestyle
 
@@ -261,27 +263,37 @@ def _release_lines(fig) -> None:
             line.recache_always()
 
 
-def render_figures(data: ReportData, progress: Callable[[int, int], None] | None = None
+def render_figures(data: ReportData, progress: Callable[[int, int], None] | None = None, workers: int = 1
                    ) -> list[tuple[str, str, bytes]]:
-    """(name, caption, PNG bytes) of every figure the run has; ``progress`` gets (done, of)."""
+    """(name, caption, PNG bytes) of every figure the run has; ``progress`` gets (done, of).
+    ``workers``: processes the figures are drawn in, forked from this one (the same bytes as one)."""
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot  # (imported once, here, not in each worker)
 
     out = []
-    for k, (name, make) in enumerate(FIGURES):
-        if progress is not None:
-            progress(k, len(FIGURES))
-        made = make(data, plt)
-        if made is None:
-            continue
-        fig, caption = made
-        buf = io.BytesIO()
-        fig.savefig(buf, format="png", dpi=DPI)
-        plt.close(fig)
-        _release_lines(fig)
-        out.append((name, caption, buf.getvalue()))
     if progress is not None:
-        progress(len(FIGURES), len(FIGURES))
+        progress(0, len(FIGURES))
+    for k, drawn in enumerate(forked_map(partial(_draw, data), FIGURES, workers)):
+        if drawn is not None:
+            out.append(drawn)
+        if progress is not None:
+            progress(k + 1, len(FIGURES))
     return out
+
+
+def _draw(data: ReportData, figure: tuple[str, Callable]) -> tuple[str, str, bytes] | None:
+    """One figure of :data:`FIGURES` as (name, caption, PNG bytes), or None when the run has nothing for it."""
+    import matplotlib.pyplot as plt
+
+    name, make = figure
+    made = make(data, plt)
+    if made is None:
+        return None
+    fig, caption = made
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI)
+    plt.close(fig)
+    _release_lines(fig)
+    return name, caption, buf.getvalue()

@@ -197,17 +197,18 @@ def html_report(data: ReportData, figures: list[tuple[str, str, bytes]], replay:
 
 def write_report(clip: str | Path | Clip, out_dir: str | Path | None = None,
                  progress: Callable[[int, int], None] | None = None, in_dir: str | Path | None = None,
-                 figures: bool = True, data: ReportData | None = None) -> Path:
+                 figures: bool = True, data: ReportData | None = None, workers: int = 1) -> Path:
     """Write ``report.md``, ``report.html`` and (with ``figures``) ``figures/*.png`` into
     ``out_dir`` (default ``CLIP/out``) from ``data`` (a run's results in memory, see
     :func:`report_data`), else from the stage files in ``in_dir`` (default ``out_dir``);
-    ``progress`` gets (figures done, figures in all). Returns report.md's path."""
+    ``progress`` gets (figures done, figures in all); ``workers``: processes the figures are drawn
+    in (see :func:`~pipeline.present.figures.render_figures`). Returns report.md's path."""
     clip_ = Clip.open(clip)
     out = Outputs.of(clip_.folder, out_dir)
     out_dir = out.folder
     if data is None:
         data = load_report_data(clip_, Path(in_dir) if in_dir else out_dir, out_dir)
-    figs = render_figures(data, progress) if figures else []
+    figs = render_figures(data, progress, workers) if figures else []
     for name, _, png in figs:
         write_bytes(out.figure(name), png)
     replay = f"stereotrack view {final_folder(out_dir)}"  # a batch's clip: where it will be, not its attempt

@@ -168,3 +168,25 @@ def test_project_functions_are_the_camera_methods(rig):
     X = np.array([[0.1, 0.2, 2.0]])
     np.testing.assert_allclose(project(rig.right.P, X), rig.right.project(X))
     np.testing.assert_allclose(project_jacobian(rig.left.P, X), rig.left.jacobian(X))
+
+
+def test_a_remembered_triangulation_is_the_batch_s_bit_for_bit(rig):
+    """#42: a rig remembers single observations' triangulations (every method of a run triangulates
+    the same detections): each equals the batch DLT's to the bit, and a caller changing what it got
+    changes nothing remembered; a pickled rig carries none of them."""
+    import pickle
+
+    rig = StereoRig(rig.left, rig.right, rig.image_size)  # a rig of its own: nothing remembered yet
+    rng = np.random.default_rng(0)
+    X = rng.uniform([-0.5, -0.3, 1.5], [0.5, 0.3, 4.0], (50, 3))
+    Y = rig.project(X) + rng.normal(0, 1, (50, 4))
+    Y[7, 2:] = np.nan
+    batch = rig.triangulate(Y)
+    for _ in range(2):  # the second pass reads what the first remembered
+        for k in range(len(Y)):
+            one = rig.triangulate(Y[k])
+            np.testing.assert_array_equal(one, batch[k])
+            np.testing.assert_array_equal(rig.triangulate(Y[k][None])[0], batch[k])
+            one[:] = 0.0
+    assert len(rig._points) == 50
+    assert len(pickle.loads(pickle.dumps(rig))._points) == 0

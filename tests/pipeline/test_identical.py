@@ -157,3 +157,17 @@ def test_report_figures_score_and_draw_the_group(identical_run):
     truth_lines = [ln for ln in fig.axes[0].get_lines() if ln.get_label() == "truth"]
     assert len(truth_lines) == len(data.groups[next(iter(data.groups))]) == 4
     plt.close("all")
+
+
+@pytest.mark.slow
+def test_methods_in_worker_processes_write_what_one_process_writes(identical_run, tmp_path):
+    """#42: `estimate` runs its methods in forked workers; the group's association is made once,
+    before they fork, and every estimate and score is what one process writes."""
+    from tests.pipeline.test_workers import assert_same_estimates
+
+    clip, res = identical_run
+    settings = RunSettings(methods=("triangulation", "ekf", "kf3d", "alphabeta"))
+    one = estimate_clip(clip, settings, out_dir=tmp_path / "one", in_dir=res.out_dir, workers=1)
+    two = estimate_clip(clip, settings, out_dir=tmp_path / "two", in_dir=res.out_dir, workers=2)
+    assert_same_estimates(one, two)
+    assert all("identity" in two.metrics["methods"][m] for m in settings.methods or ())

@@ -1,0 +1,58 @@
+"""χ² quantiles without importing scipy.special where a default run needs them.
+
+``scipy.special`` costs the estimate stage 0.15–0.2 s to import (``scipy._lib``'s array API layer
+and ``numpy.f2py``), more than most methods take to run. The quantiles a run asks for by default —
+χ²(dof)'s median and 95 % band for dof 1–12, and the gates' upper quantiles at the default gate
+probabilities — are scipy's own values, written out below (``tests/core/test_chi2.py`` recomputes
+each with scipy and compares them bit for bit); any other argument is computed by scipy as before.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+_GAMMAINCINV: dict[float, tuple[float, ...]] = {  # q → P⁻¹(dof/2, q) for dof = 1 … 12
+    0.5: (
+        0.227468211559786, 0.6931471805599455, 1.1829869421876689, 1.6783469900166612, 2.175730095547763,
+        2.674060313723559, 3.1729055977607574, 3.672060748850897, 4.1714163461264775, 4.670908882795985,
+        5.170499037195913, 5.67016118871207,
+    ),
+    (1 - 0.95) / 2: (
+        0.0004910345585876292, 0.025317807984289897, 0.10789764131194898, 0.24220927854396507,
+        0.4156058067433315, 0.6186721228956015, 0.8449345903386777, 1.089865373626325, 1.3501947499901792,
+        1.623486390118421, 1.90787412611805, 2.201894253490851,
+    ),
+    (1 + 0.95) / 2: (
+        2.511943093657444, 3.6888794541139354, 4.674201802248074, 5.571643390938898, 6.4162509970150134,
+        7.22468766772396, 8.006382137314663, 8.767273069742323, 9.511383899320816, 10.241588675403694,
+        10.9600246305106, 11.66833207932267,
+    ),
+}
+_CHDTRI: dict[float, tuple[float, ...]] = {  # gate → the upper 1 − gate quantile of χ² for dof = 1, 2, 3
+    0.9995: (12.11566514639738, 15.201804919084385, 17.72999622894616),
+    0.9999: (15.136705226623606, 18.420680743952584, 21.107513466160444),
+}
+
+
+def gammaincinv(a, q: float):
+    """``scipy.special.gammaincinv(a, q)``: the inverse regularised lower incomplete gamma function
+    (χ²(2a)'s ``q`` quantile is twice it), for a scalar or an array ``a``."""
+    table = _GAMMAINCINV.get(q)
+    a_arr = np.asarray(a, dtype=float)
+    dof = 2 * a_arr
+    if table is not None and np.all((dof == np.round(dof)) & (dof >= 1) & (dof <= len(table))):
+        out = np.asarray([table[int(d) - 1] for d in dof.ravel()]).reshape(a_arr.shape)
+        return float(out) if out.ndim == 0 else out
+    from scipy.special import gammaincinv as scipy_gammaincinv
+
+    return scipy_gammaincinv(a, q)
+
+
+def chi2_upper(dof: int, gate: float) -> float:
+    """``scipy.special.chdtri(dof, 1 − gate)``: the χ²(dof) value exceeded with probability ``1 − gate``."""
+    table = _CHDTRI.get(gate)
+    if table is not None and 1 <= dof <= len(table) and dof == int(dof):
+        return table[int(dof) - 1]
+    from scipy.special import chdtri
+
+    return float(chdtri(dof, 1.0 - gate))

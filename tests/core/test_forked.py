@@ -1,0 +1,72 @@
+"""The forked map the estimate and report stages run their methods and figures in: the same results,
+in order, as a plain map; a job's error raised in the caller; workers that end with it."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import psutil
+import pytest
+
+from pipeline.core.errors import StereotrackError
+from pipeline.core.forked import can_fork, forked_map
+from tests.conftest import REPO
+
+pytestmark = pytest.mark.skipif(not can_fork(), reason="the platform does not fork (workers run in the caller)")
+
+SEEN = {"offset": 10}  # set before the fork: the workers read it, nothing is pickled to them
+
+
+def _job(i: int) -> tuple[int, int, int]:
+    return i, i * i + SEEN["offset"], os.getpid()
+
+
+def test_results_in_order_from_other_processes():
+    got = list(forked_map(_job, list(range(7)), 2))
+    assert [(i, v) for i, v, _ in got] == [(i, i * i + 10) for i in range(7)]
+    pids = {p for *_, p in got}
+    assert os.getpid() not in pids and 1 <= len(pids) <= 2
+
+
+def test_one_worker_runs_here():
+    assert {p for *_, p in forked_map(_job, [1, 2, 3], 1)} == {os.getpid()}
+
+
+def _fails(i: int) -> int:
+    if i == 2:
+        raise StereotrackError(f"method {i} broke", "clip/out")
+    return i
+
+
+def test_a_job_s_error_is_raised_in_the_caller_as_it_was():
+    with pytest.raises(StereotrackError, match=r"^clip/out: method 2 broke$"):
+        list(forked_map(_fails, [0, 1, 2, 3], 2))
+
+
+@pytest.mark.slow
+def test_workers_die_with_a_killed_caller(tmp_path):
+    """SIGKILL to the process that forked them: its workers end within a second."""
+    script = textwrap.dedent(f"""
+        import os, sys, time
+        sys.path.insert(0, {str(REPO)!r})
+        from pipeline.core.forked import forked_map
+        def job(i):
+            open({str(tmp_path)!r} + f"/{{os.getpid()}}", "w").close()
+            time.sleep(60)
+        list(forked_map(job, [0, 1], 2))
+    """)
+    proc = subprocess.Popen([sys.executable, "-c", script])
+    deadline = time.time() + 30
+    while len(list(tmp_path.iterdir())) < 2 and time.time() < deadline:
+        time.sleep(0.05)
+    workers = [psutil.Process(int(p.name)) for p in tmp_path.iterdir()]
+    assert len(workers) == 2
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    _gone, alive = psutil.wait_procs(workers, timeout=3)
+    assert not [p for p in alive if p.is_running() and p.status() != psutil.STATUS_ZOMBIE]

@@ -1,0 +1,69 @@
+"""#42: the estimate stage's methods and the report's figures in forked worker processes write
+byte for byte what one process writes (timings aside), through the library and the command line."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from detectors.stage import detect_clip
+from pipeline.core.forked import can_fork
+from pipeline.core.settings import RunSettings
+from pipeline.estimate import EstimateResult, estimate_clip
+from pipeline.present.report import write_report
+
+pytestmark = pytest.mark.skipif(not can_fork(), reason="the platform does not fork (workers run in the caller)")
+
+#: metrics.json fields that time the run (wall clock), not what it computed
+TIMING = {"seconds_per_step", "steps_per_second"}
+
+
+def _untimed(value):
+    if isinstance(value, dict):
+        return {k: _untimed(v) for k, v in value.items() if k not in TIMING}
+    if isinstance(value, list):
+        return [_untimed(v) for v in value]
+    return value
+
+
+def assert_same_estimates(one: EstimateResult, two: EstimateResult) -> None:
+    """Every estimates/*.csv byte-equal, metrics.json equal outside its timings, the same method order."""
+    files = sorted(p.name for p in (one.out_dir / "estimates").iterdir())
+    assert files and files == sorted(p.name for p in (two.out_dir / "estimates").iterdir())
+    for name in files:
+        assert (one.out_dir / "estimates" / name).read_bytes() == (two.out_dir / "estimates" / name).read_bytes(), name
+    a, b = (json.loads((r.out_dir / "metrics.json").read_text()) for r in (one, two))
+    assert list(a["methods"]) == list(b["methods"])
+    assert _untimed(a) == _untimed(b)
+
+
+@pytest.fixture(scope="module")
+def target_detected(target_clip, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("workers") / "detected"
+    detect_clip(target_clip, RunSettings(), out)
+    return out
+
+
+@pytest.mark.slow
+def test_every_default_method_in_workers_writes_what_one_process_writes(target_clip, target_detected, tmp_path):
+    """Point and four-point-target methods, the defaults of a target clip, one process against two
+    and three workers."""
+    one = estimate_clip(target_clip, RunSettings(), tmp_path / "one", in_dir=target_detected, workers=1)
+    assert one.target_tracks and len(one.metrics["methods"]) > 10
+    for workers in (2, 3):
+        assert_same_estimates(one, estimate_clip(target_clip, RunSettings(), tmp_path / f"w{workers}",
+                                                 in_dir=target_detected, workers=workers))
+
+
+@pytest.mark.slow
+def test_report_figures_drawn_in_workers_are_the_same_pngs(target_clip, target_detected, tmp_path):
+    est = tmp_path / "est"
+    estimate_clip(target_clip, RunSettings(methods=("triangulation", "ekf", "four_point")), est, in_dir=target_detected)
+    pngs = {}
+    for workers in (1, 2):
+        out = tmp_path / f"report{workers}"
+        write_report(target_clip, out, in_dir=est, workers=workers)
+        pngs[workers] = {p.name: p.read_bytes() for p in (out / "figures").glob("*.png")}
+    assert len(pngs[1]) >= 3 and pngs[1] == pngs[2]
