@@ -42,3 +42,14 @@ def tune() -> bool:
                                                                                         TRIM_THRESHOLD))
     except (OSError, AttributeError, ValueError):
         return False
+
+
+def trim() -> None:
+    """Hand the heap's free memory back to the kernel now (glibc's ``malloc_trim``; elsewhere
+    nothing). The thresholds above keep a frame stream's pages; the results a forked worker sends
+    are unpickled in the pool's reader thread, whose heap they would keep for the rest of the run."""
+    try:
+        if os.confstr("CS_GNU_LIBC_VERSION"):
+            ctypes.CDLL(None).malloc_trim(0)
+    except (OSError, AttributeError, ValueError):
+        pass

@@ -15,13 +15,14 @@ from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any, TypeVar
 
+from pipeline.core.allocator import trim
 from pipeline.core.lifeline import die_with_parent, end_pool, ignore_sigint, one_blas_thread
 
 T = TypeVar("T")
 R = TypeVar("R")
 
 #: jobs per worker submitted ahead of the result the caller is reading
-AHEAD = 2
+AHEAD = 1
 
 #: the function and items of the map in progress, read by the forked workers (set before they fork)
 _JOB: tuple[Callable[[Any], Any], Sequence[Any]] | None = None
@@ -52,6 +53,7 @@ def forked_map(fn: Callable[[T], R], items: Sequence[T], workers: int) -> Iterat
         queued = deque(pool.submit(_call, i) for i in range(min(len(items), AHEAD * workers)))
         for i in range(len(items)):
             result = queued.popleft().result()
+            trim()  # what the pool's reader thread unpickled and the caller has dropped (see trim)
             if i + len(queued) + 1 < len(items):
                 queued.append(pool.submit(_call, i + len(queued) + 1))
             yield result
