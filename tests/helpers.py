@@ -90,3 +90,17 @@ def pose2sim_trc(path: Path) -> tuple[list[str], np.ndarray]:
     df = pd.read_csv(path, sep="\t", skiprows=4, encoding="utf-8")
     values = df.drop(df.columns[[0, 1]], axis=1).to_numpy(dtype=float)
     return names, values.reshape(len(df), len(names), 3)
+
+
+#: metrics.json fields that time a run (wall clock), not what it computed
+TIMING_KEYS = {"seconds_per_step", "steps_per_second"}
+
+
+def untimed(obj):
+    """A metrics.json value without its timing fields (:data:`TIMING_KEYS`): what two runs of the
+    same computation agree on."""
+    if isinstance(obj, dict):
+        return {k: untimed(v) for k, v in obj.items() if k not in TIMING_KEYS}
+    if isinstance(obj, list):
+        return [untimed(v) for v in obj]
+    return obj

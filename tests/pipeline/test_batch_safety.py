@@ -21,10 +21,10 @@ from pipeline.app.manifest import MANIFEST, verify_manifest
 from pipeline.core.io import read_csv
 from pipeline.core.settings import RunSettings
 from tests.conftest import REPO
+from tests.helpers import untimed
 
 SAMPLE = REPO / "data" / "clips" / "sample_small"
 METHODS = "triangulation,ekf"
-TIMING_KEYS = {"seconds_per_step", "steps_per_second"}
 
 
 def make_input(root: Path, n: int = 3, corrupt: bool = False) -> Path:
@@ -43,14 +43,6 @@ def batch_cmd(inp: Path, out: Path, *extra: str) -> list[str]:
             "--methods", METHODS, "--no-images", *extra]
 
 
-def _strip_timing(obj):
-    if isinstance(obj, dict):
-        return {k: _strip_timing(v) for k, v in obj.items() if k not in TIMING_KEYS}
-    if isinstance(obj, list):
-        return [_strip_timing(v) for v in obj]
-    return obj
-
-
 def clip_outputs(folder: Path) -> dict[str, object]:
     """A clip's outputs, comparable across runs: CSVs byte for byte, metrics without timings,
     and the set of files (the recording and the report carry timings and run ids)."""
@@ -60,7 +52,7 @@ def clip_outputs(folder: Path) -> dict[str, object]:
         out[str(p.relative_to(folder))] = p.read_bytes()
     metrics = json.loads((folder / "metrics.json").read_text())
     metrics["checks"] = [{k: v for k, v in c.items() if k != "message"} for c in metrics.get("checks", [])]
-    out["metrics"] = _strip_timing(metrics)
+    out["metrics"] = untimed(metrics)
     return out
 
 

@@ -13,20 +13,9 @@ from pipeline.core.forked import can_fork
 from pipeline.core.settings import RunSettings
 from pipeline.estimate import EstimateResult, estimate_clip
 from pipeline.present.report import write_report
+from tests.helpers import untimed
 
 pytestmark = pytest.mark.skipif(not can_fork(), reason="the platform does not fork (workers run in the caller)")
-
-#: metrics.json fields that time the run (wall clock), not what it computed
-TIMING = {"seconds_per_step", "steps_per_second"}
-
-
-def _untimed(value):
-    if isinstance(value, dict):
-        return {k: _untimed(v) for k, v in value.items() if k not in TIMING}
-    if isinstance(value, list):
-        return [_untimed(v) for v in value]
-    return value
-
 
 def assert_same_estimates(one: EstimateResult, two: EstimateResult) -> None:
     """Every estimates/*.csv byte-equal, metrics.json equal outside its timings, the same method order."""
@@ -36,7 +25,7 @@ def assert_same_estimates(one: EstimateResult, two: EstimateResult) -> None:
         assert (one.out_dir / "estimates" / name).read_bytes() == (two.out_dir / "estimates" / name).read_bytes(), name
     a, b = (json.loads((r.out_dir / "metrics.json").read_text()) for r in (one, two))
     assert list(a["methods"]) == list(b["methods"])
-    assert _untimed(a) == _untimed(b)
+    assert untimed(a) == untimed(b)
 
 
 @pytest.fixture(scope="module")
