@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import sys
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any, TypeVar
@@ -29,8 +30,9 @@ _JOB: tuple[Callable[[Any], Any], Sequence[Any]] | None = None
 
 
 def can_fork() -> bool:
-    """Whether this platform forks processes (Linux does; macOS and Windows spawn them)."""
-    return "fork" in multiprocessing.get_all_start_methods() and os.name == "posix"
+    """Whether workers are forked here: on Linux (macOS can fork, but its system libraries are not
+    safe to use in a forked child, and Python spawns there by default; Windows cannot)."""
+    return sys.platform.startswith("linux") and "fork" in multiprocessing.get_all_start_methods()
 
 
 def forked_map(fn: Callable[[T], R], items: Sequence[T], workers: int) -> Iterator[R]:
@@ -56,6 +58,8 @@ def forked_map(fn: Callable[[T], R], items: Sequence[T], workers: int) -> Iterat
             trim()  # what the pool's reader thread unpickled and the caller has dropped (see trim)
             if i + len(queued) + 1 < len(items):
                 queued.append(pool.submit(_call, i + len(queued) + 1))
+            if i == len(items) - 1:  # the workers end with the last result, not when the caller drops the map
+                pool.shutdown(wait=True)
             yield result
     except BaseException:
         end_pool(pool)

@@ -70,3 +70,13 @@ def test_workers_die_with_a_killed_caller(tmp_path):
     proc.wait()
     _gone, alive = psutil.wait_procs(workers, timeout=3)
     assert not [p for p in alive if p.is_running() and p.status() != psutil.STATUS_ZOMBIE]
+
+
+def test_the_workers_end_with_the_last_result():
+    """A caller that reads every result with ``next`` (as the estimate stage does) and keeps the map
+    finds no worker left once it has the last one: they are not left idle until the map is dropped."""
+    me = psutil.Process()
+    runs = forked_map(_job, [1, 2, 3], 2)
+    got = [next(runs) for _ in range(3)]
+    assert [v for _, v, _ in got] == [11, 14, 19]
+    assert not [p for p in me.children() if p.is_running() and p.status() != psutil.STATUS_ZOMBIE]
