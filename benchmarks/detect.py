@@ -42,7 +42,8 @@ from renderers.scenario import load_scenario
 
 SIZES = [(640, 480), (1280, 720)]
 MANY = "640×480, default scenario (5 markers, four-point target)"
-STAGE_COLUMN = "detect stage, blob (decode + detect + CSV, both cameras)"
+STAGE_COLUMN = "detect stage, blob (decode + detect + CSV, both cameras; a process per camera)"
+THREADS_COLUMN = "the stage in threads (`--workers 1`)"
 
 
 def render(tmp: Path, w: int, h: int, frames: int) -> Path:
@@ -95,20 +96,22 @@ def decode_both_seconds(clip: Path) -> float:
 
 class Rates:
     """Frames/s per camera of each run of the bare decode (one video after the other), of both
-    videos decoded at once and of the detect stage, interleaved (the machine's load moves them
-    alike)."""
+    videos decoded at once, of the detect stage as the CLI runs it (a process per camera) and of
+    the stage in threads, interleaved (the machine's load moves them alike)."""
 
     def __init__(self, clip: Path, out: Path, repeat: int) -> None:
         self.decode: list[float] = []
         self.both: list[float] = []
         self.stage: list[float] = []
+        self.threads: list[float] = []
         for _ in range(repeat):
             (n_l, t_l), (n_r, t_r) = decode_seconds(clip / "left.mp4"), decode_seconds(clip / "right.mp4")
             self.decode.append((n_l + n_r) / (t_l + t_r))
             self.both.append((n_l + n_r) / decode_both_seconds(clip))
-            t0 = time.perf_counter()
-            detect_clip(clip, RunSettings(detector="blob"), out_dir=out)
-            self.stage.append((n_l + n_r) / (time.perf_counter() - t0))
+            for workers, rates in ((2, self.stage), (1, self.threads)):
+                t0 = time.perf_counter()
+                detect_clip(clip, RunSettings(detector="blob"), out_dir=out, workers=workers)
+                rates.append((n_l + n_r) / (time.perf_counter() - t0))
 
     def cells(self) -> str:
         """Table cells: the best of each, and the stage against each decode (best against best;
@@ -118,8 +121,8 @@ class Rates:
             return (f"{max(self.stage) / max(base):.2f} ({statistics.median(pairs):.2f}; "
                     f"{pairs[0]:.2f}–{pairs[-1]:.2f})")
 
-        return (f"{max(self.decode):.0f} | {max(self.both):.0f} | {max(self.stage):.0f} | {ratio(self.decode)} "
-                f"| {ratio(self.both)}")
+        return (f"{max(self.decode):.0f} | {max(self.both):.0f} | {max(self.stage):.0f} | {max(self.threads):.0f} "
+                f"| {ratio(self.decode)} | {ratio(self.both)}")
 
 
 def detectors_alone(clip: Path, marker: MarkerColor) -> list[float]:
@@ -179,8 +182,8 @@ def main() -> None:
     allocator.tune()
     marker = MarkerColor.from_rgb("red", (230, 30, 30))
     print(f"# detection throughput, frames/s per camera ({args.frames} frames, one marker, {os.cpu_count()} cores)\n")
-    print(f"| resolution | bare decode | bare decode, both at once | {STAGE_COLUMN} | stage / bare decode "
-          "| stage / both at once |\n|---|---|---|---|---|---|")
+    print(f"| resolution | bare decode | bare decode, both at once | {STAGE_COLUMN} | {THREADS_COLUMN} "
+          "| stage / bare decode | stage / both at once |\n|---|---|---|---|---|---|---|")
     alone_rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for w, h in SIZES:
@@ -190,8 +193,8 @@ def main() -> None:
             alone_rows.append(f"| {w}×{h} | " + " | ".join(f"{r:.0f}" for r in detectors_alone(clip, marker)) + " |")
         many = render_default(Path(tmp), args.frames)
         rates = Rates(many, Path(tmp) / "out_default", args.repeat)
-        print(f"\n| clip | bare decode | bare decode, both at once | {STAGE_COLUMN} | stage / bare decode "
-              "| stage / both at once |\n|---|---|---|---|---|---|")
+        print(f"\n| clip | bare decode | bare decode, both at once | {STAGE_COLUMN} | {THREADS_COLUMN} "
+              "| stage / bare decode | stage / both at once |\n|---|---|---|---|---|---|---|")
         print(f"| {MANY} | {rates.cells()} |", flush=True)
         print("\n| resolution | blob alone, whole frame | blob alone, search window | meanshift alone "
               "| CamShift alone |\n|---|---|---|---|---|")
@@ -207,14 +210,15 @@ def main() -> None:
     print(f"\nBare decode: both videos read one after the other from one Python thread; FFmpeg decodes each "
           "with threads of its own (its default), so it already keeps both cores busy part of the time. Both at "
           f"once: a thread per video, {decoder_threads(2)} decoder thread(s) each (the cores shared out, as the "
-          "stage's reader does): the fastest plain decode of a stereo clip here. The stage decodes and detects "
-          "each camera in a thread of its own (OpenCV releases the GIL in both), while the calling thread "
-          f"collects the detections. Decodes and stage run {args.repeat} times, interleaved; each rate is the "
+          "stage's reader does): the fastest plain decode of a stereo clip here. The stage, as the CLI runs it, "
+          "decodes and detects each camera in a process of its own while the calling process collects the "
+          "detections; in threads (`--workers 1`, and where `run` records the images) the cameras' Python work "
+          f"takes turns on the GIL. Decodes and stage run {args.repeat} times, interleaved; each rate is the "
           "best run, each ratio best against best, with the median and the range of the ratios within one run "
           "in brackets (the bare decode with FFmpeg's threads varies most from run to run). The detectors "
           "alone: one run each, on one core. This process's allocator is set as the CLI sets its own "
           "(`pipeline.core.allocator`), for the decodes and the stage alike; in the comparison with an earlier "
-          "revision each stage runs as that revision's CLI would.")
+          "revision each stage runs as that revision's CLI would (processes where it has them).")
 
 
 if __name__ == "__main__":

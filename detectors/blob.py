@@ -431,12 +431,11 @@ class BlobDetector:
         area and roundness filters as ``(label, (x, y, w, h, area), roundness)``); ``ox, oy``: the
         mask's offset in the frame (a component cut by a search window's edge is left to the
         whole-frame search)."""
-        n, labels, stats = _components(mask)
+        _, labels, stats = _components(mask)
         assert labels is not None  # asked for
         kept = []
         H, W = mask.shape
-        for i in range(1, n):
-            x, y, w, h, area = stats[i]
+        for i, (x, y, w, h, area) in enumerate(stats.tolist()[1:], start=1):  # Python ints: cheaper than numpy's
             if area < self.min_area or area > self.max_area:
                 continue
             if ox or oy:  # a blob cut by the window's edge: let the whole-frame search see it whole

@@ -14,6 +14,7 @@ marker covers. Two coverage models:
 
 from __future__ import annotations
 
+import functools
 from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
@@ -65,8 +66,16 @@ def _quantile(a: np.ndarray, q: float) -> float:
 
 def _hue_ok(hsv: np.ndarray, mk: HueRange) -> np.ndarray:
     """Pixels whose hue lies in the marker's range widened by 5 (a hand around a ball gets none)."""
-    hue = hsv[..., 0].astype(np.int16)
-    lo, hi = (mk.h_lo - 5) % 180, (mk.h_hi + 5) % 180
+    return _hue_table(mk.h_lo, mk.h_hi)[hsv[..., 0]]
+
+
+@functools.lru_cache(maxsize=64)
+def _hue_table(h_lo: int, h_hi: int) -> np.ndarray:
+    """Per 8-bit hue value, whether it lies in ``h_lo..h_hi`` widened by 5 (wrapping at 180): one
+    look-up per pixel instead of a cast and two comparisons (a blob's patch is a few hundred pixels,
+    where each numpy call costs more than its work)."""
+    hue = np.arange(256)
+    lo, hi = (h_lo - 5) % 180, (h_hi + 5) % 180
     return (hue >= lo) & (hue <= hi) if lo <= hi else (hue >= lo) | (hue <= hi)
 
 
@@ -85,20 +94,25 @@ def chroma_centre(labels: np.ndarray, i: int, bgr: np.ndarray, hsv: np.ndarray, 
     chroma (``s_min·v_min/255``) and the blob's typical chroma: 1 inside, fractional on the
     anti-aliased rim (sub-pixel accuracy on rendered markers), capped so texture inside a real
     object does not pull the centroid; pixels whose hue is outside the range (±5) get none.
+    ``hsv``: ``bgr`` in OpenCV's 8-bit HSV, whose V is max(B, G, R).
     """
     x, y, w, h = box
     H, W = labels.shape
     x0, y0, x1, y1 = max(x - 3, 0), max(y - 3, 0), min(x + w + 3, W), min(y + h + 3, H)
-    comp = (labels[y0:y1, x0:x1] == i).astype(np.uint8)
-    region = cv2.dilate(comp, DILATE_2PX).astype(bool)
+    comp = labels[y0:y1, x0:x1] == i
+    keep = cv2.dilate(comp.view(np.uint8), DILATE_2PX).view(bool)  # 0/1 in, 0/1 out
+    keep &= _hue_ok(hsv[y0:y1, x0:x1], mk)
     patch = bgr[y0:y1, x0:x1]
     b, g, r = patch[..., 0], patch[..., 1], patch[..., 2]  # per channel: a reduction over 3 is slow
-    c = np.maximum(np.maximum(b, g), r).astype(np.float32) - np.minimum(np.minimum(b, g), r)
-    hue_ok = _hue_ok(hsv[y0:y1, x0:x1], mk)
+    c = hsv[y0:y1, x0:x1, 2].astype(np.float32) - np.minimum(np.minimum(b, g), r)  # V is max(B, G, R)
     floor = mk.s_min * mk.v_min / 255.0 * 0.5
-    inside = c[comp.astype(bool)]
+    inside = c[comp]
     full = max(_quantile(inside, 0.2) - floor, 1.0) if inside.size else 1.0
-    wts = np.where(region & hue_ok, np.clip((c - floor) / full, 0.0, 1.0), 0.0)
+    wts = c - floor  # clipped to 0..1 and zeroed outside ``keep`` in place: np.clip and np.where cost more
+    wts /= full
+    np.maximum(wts, 0.0, out=wts)
+    np.minimum(wts, 1.0, out=wts)
+    wts *= keep  # ≥ 0: a kept weight times 1 is itself, any other times 0 is +0, as np.where gives
     s = wts.sum()
     if s <= 0:
         ys, xs = np.nonzero(comp)

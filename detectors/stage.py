@@ -118,14 +118,16 @@ def markers_for_clip(clip: Clip, specs: list[str] | None, left_frame: Callable[[
 
 
 def detect_clip(clip: str | Path | Clip, settings: RunSettings | None = None, out_dir: str | Path | None = None,
-                hooks: RunHooks | None = None) -> DetectResult:
+                hooks: RunHooks | None = None, workers: int = 1) -> DetectResult:
     """Detect every marker in every frame of both cameras and write ``detections.csv`` and
     ``detect.json`` (frames, frame size, the marker ranges used, the colour checks).
 
     ``settings`` name the detector, the markers (default: the clip's own), the first search window,
     the calibration's units and the frame rate; ``hooks.frame(index, left, right)`` receives every
     decoded frame (``run`` records them as they go by, so a clip is decoded once and never held
-    in memory), ``hooks.progress`` the frames done.
+    in memory), ``hooks.progress`` the frames done. ``workers`` ≥ 2: each camera is decoded and
+    detected in a process of its own where no ``hooks.frame`` wants the images (else in threads of
+    this one; the detections are the same).
 
     Coordinates written are undistorted with the clip's calibration when it has one (real rigs
     have lens distortion; estimators need pinhole coordinates); a calibration for another image
@@ -156,7 +158,7 @@ def detect_clip(clip: str | Path | Clip, settings: RunSettings | None = None, ou
     finders = [create_detector(settings.detector, markers, targets, settings.roi, identical)
                for _ in range(len(source.readers))]
     scan = _scan(source, finders, rig, markers, {n for names in groups.values() for n in names} | set(groups),
-                 hooks.frame, hooks.progress)
+                 hooks.frame, hooks.progress, forked=workers > 1 and hooks.frame is None)
     _check_footage_times(clip_, source, scan.counts)
     cols = scan.rows.columns()
     checks += colour_checks(scan.samples)
@@ -270,19 +272,28 @@ class _CameraScan:
             _sample_colours(self.sampler, img, self.cam, self.unsampled, self.samples)
         return self.finder.detect(img)
 
+    def handover(self) -> tuple[int, dict]:
+        """What the scan reads after the last frame (frames seen, colour samples), when this camera
+        ran in a process of its own (:meth:`StereoFrameSource.frames`)."""
+        return self.k, self.samples
+
+    def take(self, state: tuple[int, dict]) -> None:
+        self.k, self.samples = state
+
 
 def _scan(source: StereoFrameSource, finders: list, rig: StereoRig | Rig | None, markers: list[MarkerColor],
-          unsampled: set[str], frame_sink: Callable | None, progress: Callable[[int, int], None] | None) -> _Scanned:
+          unsampled: set[str], frame_sink: Callable | None, progress: Callable[[int, int], None] | None,
+          forked: bool = False) -> _Scanned:
     """Every frame through each camera's detector, with whole-frame colour samples from a few frames
     for the colour checks; coordinates undistorted at the end when there is a calibration. Each
     camera detects in its own decode thread (:meth:`StereoFrameSource.frames`), so the two cameras'
-    detection overlaps."""
+    detection overlaps; ``forked``: in a process of its own, side by side."""
     total = len(source)
     sample_at = set(np.linspace(0, max(total - 1, 0), min(CHECK_SAMPLES, max(total, 1))).astype(int).tolist())
     names = source.cameras if len(finders) > 1 else CAMERAS[:1]
     out = _Scanned(DetectionTable(tuple(names)), {}, 0, len(finders))
     cams = [_CameraScan(f, markers, names[c], sample_at, unsampled) for c, f in enumerate(finders)]
-    for fr in source.frames(cams):
+    for fr in source.frames(cams, forked=forked):
         if frame_sink is not None:
             frame_sink(fr.index, *fr.images)
         for c, found in enumerate(fr.found):

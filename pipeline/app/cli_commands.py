@@ -178,6 +178,8 @@ def detect_cmd(
     calib_units: CalibUnitsOption = None,
     fps: FpsOption = None,
     force: ForceWindowOption = False,
+    workers: Annotated[int, typer.Option("--workers", min=1, help="Processes the cameras are decoded and detected "
+                                         "in (1: threads of this process; the detections are the same).")] = 2,
 ) -> None:
     """Find the markers in every frame; write detections.csv and print a per-camera summary."""
     from detectors.stage import detect_clip
@@ -191,7 +193,7 @@ def detect_cmd(
     with stage_lock(clip, output, "detect"), progress_bar() as bar:
         task = bar.add_task(f"detect ({detector})", total=None)
         hooks = RunHooks(progress=lambda done, total: bar.update(task, completed=done, total=total or None))
-        result = detect_clip(clip_, settings, output, hooks)
+        result = detect_clip(clip_, settings, output, hooks, workers=workers)
     mark_output(output)
     print_learned(result.learned)
     print_time(clip_.fps, clip_.fps_source)

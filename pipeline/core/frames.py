@@ -3,11 +3,13 @@ OpenCV reads, or folders of numbered PNGs), or a single video as a one-camera cl
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import queue
 import re
 import threading
 import warnings
+from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,6 +19,8 @@ import cv2
 import numpy as np
 
 from pipeline.core.errors import ClipError
+from pipeline.core.forked import can_fork
+from pipeline.core.lifeline import die_with_parent, ignore_sigint
 
 VIDEO_EXTS = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm")
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -75,6 +79,7 @@ class CameraReader:
 
     def __init__(self, source: Path, first_index: int | None = None, threads: int | None = None) -> None:
         self.source = Path(source)
+        self.threads = threads
         self.files: dict[int, Path] | None = None
         self.cap: cv2.VideoCapture | None = None
         if self.source.is_dir():
@@ -221,6 +226,87 @@ class StereoFrame:
 Work = Callable[[np.ndarray | None], Any]
 
 
+#: frames' results a camera's process sends at a time
+CHUNK = 8
+
+
+class _InProcess:
+    """What ``work`` makes of each of ``reader``'s frames, decoded and worked on in a process forked
+    for this camera (started at once), beside None for its image. Per-frame work of many short
+    numpy calls holds the GIL, so cameras in threads take turns; in processes they run side by side.
+    The process opens the footage itself (a capture does not survive a fork), dies with this one,
+    SIGKILL included, and is killed by :meth:`close`; an error it meets is raised here. After the
+    last frame, what the process's copy of ``work`` hands over (``work.handover()``, when it has
+    one) is given to ``work.take`` here: state the caller reads once the frames end."""
+
+    def __init__(self, reader: CameraReader, work: Work) -> None:
+        self.reader, self.work = reader, work
+        ctx = multiprocessing.get_context("fork")
+        self.recv, send = ctx.Pipe(duplex=False)
+        self.proc = ctx.Process(target=_camera_process, args=(reader, work, send, os.getpid()), daemon=True,
+                                name=f"stereotrack-{reader.source.stem}")
+        self.proc.start()
+        send.close()
+        self.chunk: deque = deque()
+        self.ended = False
+
+    def __iter__(self) -> _InProcess:
+        return self
+
+    def __next__(self) -> tuple[None, Any]:
+        while not self.chunk:
+            if self.ended:
+                raise StopIteration
+            self._receive()
+        return None, self.chunk.popleft()
+
+    def _receive(self) -> None:
+        try:
+            kind, payload = self.recv.recv()
+        except EOFError:
+            self.close()
+            raise ClipError(f"the process reading this footage ended early (exit code {self.proc.exitcode})",
+                            self.reader.source) from None
+        if kind == "error":
+            self.close()
+            raise payload
+        if kind == "end":
+            self.ended = True
+            if payload is not None:
+                self.work.take(payload)  # type: ignore[attr-defined]
+            self.close()
+        else:
+            self.chunk.extend(payload)
+
+    def close(self) -> None:
+        """End the process (killed unless it is done) and reap it."""
+        if self.proc.is_alive() and not self.ended:
+            self.proc.kill()
+        self.proc.join()
+        self.recv.close()
+
+
+def _camera_process(reader: CameraReader, work: Work, send: Any, parent: int) -> None:
+    """A camera's process (:class:`_InProcess`): its footage read afresh, each frame through ``work``,
+    the results sent in chunks of :data:`CHUNK`, then ``("end", handover)``, or ``("error", exc)``."""
+    die_with_parent(parent)
+    ignore_sigint()
+    try:
+        chunk: list = []
+        for img in CameraReader(reader.source, getattr(reader, "first", None), reader.threads):
+            chunk.append(work(img))
+            if len(chunk) == CHUNK:
+                send.send(("found", chunk))
+                chunk = []
+        send.send(("found", chunk))
+        handover = getattr(work, "handover", None)
+        send.send(("end", handover() if handover is not None else None))
+    except BaseException as exc:  # every error goes to the parent, which raises it
+        send.send(("error", exc))
+    finally:
+        send.close()
+
+
 def _worked(it: Iterator[np.ndarray | None], work: Work | None) -> Iterator[tuple[np.ndarray | None, Any]]:
     """Each frame beside what ``work`` makes of it (None without work)."""
     for img in it:
@@ -283,14 +369,22 @@ class StereoFrameSource:
     def __iter__(self) -> Iterator[StereoFrame]:
         return self.frames()
 
-    def frames(self, work: Sequence[Work | None] | None = None) -> Iterator[StereoFrame]:
+    def frames(self, work: Sequence[Work | None] | None = None, forked: bool = False) -> Iterator[StereoFrame]:
         """The pairs in order, each camera's frames first through its ``work`` (one callable per
         camera, called on every frame of that camera in order) in the camera's decode thread:
         per-camera work such as detection runs beside the other camera's, off the thread that
-        iterates. Results are in :attr:`StereoFrame.found`."""
+        iterates. Results are in :attr:`StereoFrame.found`.
+
+        ``forked``: each camera decodes and works in a process of its own instead (where the
+        platform forks, and every camera has work; see :class:`_InProcess`): the images stay
+        there (every image None here), the work's results come back."""
         work = list(work or [None] * len(self.readers))
-        its = [_worked(iter(r), w) for r, w in zip(self.readers, work, strict=True)]
-        its = [_prefetch(it) for it in its] if self.prefetch else its
+        jobs = [w for w in work if w is not None]
+        if forked and len(self.readers) > 1 and len(jobs) == len(work) and can_fork():
+            its: list[Iterator] = [_InProcess(r, w) for r, w in zip(self.readers, jobs, strict=True)]
+        else:
+            its = [_worked(iter(r), w) for r, w in zip(self.readers, work, strict=True)]
+            its = [_prefetch(it) for it in its] if self.prefetch else its
         k = 0
         end: Any = object()
         try:
