@@ -140,3 +140,57 @@ def test_more_cameras():
     one = create("ekf_imm", rig, DT, {"manoeuvre_q_scale": 1.0}).run(Y)
     np.testing.assert_allclose(one.position, Estimator.run(create("ekf", rig, DT), Y).position, atol=1e-9)
     assert rmse(create("ekf_imm", rig, DT).run(Y), X) <= 1.05 * rmse(create("ekf", rig, DT).run(Y), X)
+
+
+def _with_lookalike(rig: StereoRig, X: np.ndarray, Y: np.ndarray, camera: int, k0: int = 60, n: int = 12) -> np.ndarray:
+    """``Y`` with one camera's detections of frames k0…k0+n−1 taken by a static look-alike 0.3 m
+    behind the marker on that camera's ray at k0: there it covers the marker's image, then stays
+    while the marker moves on (each detection inside the camera's own gate at first)."""
+    cam = rig.cameras[camera]
+    ray = X[k0] - cam.center
+    Z = X[k0] + 0.3 * ray / np.linalg.norm(ray)
+    out = Y.copy()
+    uv = rig.project(Z[None])[0, 2 * camera : 2 * camera + 2]
+    out[k0 : k0 + n, 2 * camera : 2 * camera + 2] = uv + np.random.default_rng(k0).normal(0, 1, (n, 2))
+    return out
+
+
+def test_a_lookalike_in_one_camera_does_not_send_it_far_further_off_than_the_ekf():
+    """Held out: a look-alike in one camera for 12 frames, on each layout, each camera, seeds
+    10–12 (18 runs): the IMM's median RMSE within 1.5× the EKF's (1.12× here; 3.2× without the joint
+    check, :func:`~pipeline.estimators.imm.joint_gate`, where the look-alike's pairs, each camera
+    inside its own gate, hand the manoeuvre model the likelihood and its wider gates keep the
+    look-alike). The check's probability was set on the rendered clips (below) and the turns above,
+    before this scene was written; a slowly separating look-alike still costs the IMM more than
+    the EKF in some runs."""
+    rmses: dict[str, list[float]] = {"ekf": [], "ekf_imm": []}
+    for rig in (RIG, *LAYOUTS.values()):
+        for seed in range(10, 13):
+            X = smooth(150, seed)
+            Y = observe(rig, X, seed)
+            for camera in (0, 1):
+                Yl = _with_lookalike(rig, X, Y, camera)
+                for m in rmses:
+                    rmses[m].append(rmse(create(m, rig, DT).run(Yl), X))
+    med = {m: float(np.median(v)) for m, v in rmses.items()}
+    assert med["ekf_imm"] <= 1.5 * med["ekf"], med
+
+
+@pytest.mark.slow
+def test_the_rendered_lookalike_clip_as_a_user_runs_it(tmp_path):
+    """The ``lookalike`` scenario as the failure was found (90 frames, PNG), rendered, detected and
+    estimated at the defaults (σ estimated): the IMM no further off than the EKF. Without the joint
+    check it ran 3.9 m off after the red cube crossed the marker (RMSE 979 mm against the EKF's
+    49 mm). Not held out: the check was set on it."""
+    from detectors.stage import detect_clip
+    from pipeline.core.settings import RunSettings
+    from pipeline.estimate import estimate_clip
+    from renderers.render import render_clip
+    from renderers.scenario import load_scenario
+
+    clip = tmp_path / "lookalike"
+    render_clip(load_scenario("lookalike").with_overrides(frames=90), clip, fmt="png", workers=1)
+    detect_clip(clip)
+    res = estimate_clip(clip, RunSettings(methods=["ekf", "ekf_imm"]))
+    got = {m: res.metrics["methods"][m]["rmse"] for m in ("ekf", "ekf_imm")}
+    assert got["ekf_imm"] <= got["ekf"], got
