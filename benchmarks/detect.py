@@ -212,7 +212,7 @@ def main() -> None:
           f"once: a thread per video, {decoder_threads(2)} decoder thread(s) each (the cores shared out, as the "
           "stage's reader does): the fastest plain decode of a stereo clip here. The stage, as the CLI runs it, "
           "decodes and detects each camera in a process of its own while the calling process collects the "
-          "detections; in threads (`--workers 1`, and where `run` records the images) the cameras' Python work "
+          "detections; in threads (`--workers 1`) the cameras' Python work "
           f"takes turns on the GIL. Decodes and stage run {args.repeat} times, interleaved; each rate is the "
           "best run, each ratio best against best, with the median and the range of the ratios within one run "
           "in brackets (the bare decode with FFmpeg's threads varies most from run to run). The detectors "

@@ -7,6 +7,7 @@ from array import array
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -125,9 +126,10 @@ def detect_clip(clip: str | Path | Clip, settings: RunSettings | None = None, ou
     ``settings`` name the detector, the markers (default: the clip's own), the first search window,
     the calibration's units and the frame rate; ``hooks.frame(index, left, right)`` receives every
     decoded frame (``run`` records them as they go by, so a clip is decoded once and never held
-    in memory), ``hooks.progress`` the frames done. ``workers`` ≥ 2: each camera is decoded and
-    detected in a process of its own where no ``hooks.frame`` wants the images (else in threads of
-    this one; the detections are the same).
+    in memory), or with ``hooks.image`` what each camera's worker made of it; ``hooks.progress``
+    the frames done. ``workers`` ≥ 2: each camera is decoded and detected in a process of its own
+    unless ``hooks.frame`` wants the images themselves (else in threads of this one; the detections
+    are the same).
 
     Coordinates written are undistorted with the clip's calibration when it has one (real rigs
     have lens distortion; estimators need pinhole coordinates); a calibration for another image
@@ -158,7 +160,7 @@ def detect_clip(clip: str | Path | Clip, settings: RunSettings | None = None, ou
     finders = [create_detector(settings.detector, markers, targets, settings.roi, identical)
                for _ in range(len(source.readers))]
     scan = _scan(source, finders, rig, markers, {n for names in groups.values() for n in names} | set(groups),
-                 hooks.frame, hooks.progress, forked=workers > 1 and hooks.frame is None)
+                 hooks, forked=workers > 1 and (hooks.frame is None or hooks.image is not None))
     _check_footage_times(clip_, source, scan.counts)
     cols = scan.rows.columns()
     checks += colour_checks(scan.samples)
@@ -254,23 +256,27 @@ class _Scanned:
 
 
 class _CameraScan:
-    """One camera's work on each of its frames, run in its decode thread: the colour samples of
-    the sampled frames, then the detector (reset on a missing frame)."""
+    """One camera's work on each of its frames, run in its decode thread or process: the colour
+    samples of the sampled frames, then the detector (reset on a missing frame); beside the
+    detections, what ``image(camera, k, img)`` makes of the frame (None without it)."""
 
-    def __init__(self, finder, markers: list[MarkerColor], cam: str, sample_at: set[int], unsampled: set[str]) -> None:
+    def __init__(self, finder, markers: list[MarkerColor], cam: str, sample_at: set[int], unsampled: set[str],
+                 camera: int = 0, image: Callable[[int, int, Any], Any] | None = None) -> None:
         self.finder, self.cam, self.sample_at, self.unsampled = finder, cam, sample_at, unsampled
+        self.camera, self.image = camera, image
         self.sampler = BlobDetector(markers, max_per_marker=2)
         self.samples: dict[tuple[str, str], list] = {}
         self.k = 0
 
-    def __call__(self, img: np.ndarray | None) -> list:
+    def __call__(self, img: np.ndarray | None) -> tuple[list, Any]:
         k, self.k = self.k, self.k + 1
+        made = self.image(self.camera, k, img) if self.image is not None else None
         if img is None:  # a missing frame file: no detection in this camera
             self.finder.reset()
-            return []
+            return [], made
         if k in self.sample_at:
             _sample_colours(self.sampler, img, self.cam, self.unsampled, self.samples)
-        return self.finder.detect(img)
+        return self.finder.detect(img), made
 
     def handover(self) -> tuple[int, dict]:
         """What the scan reads after the last frame (frames seen, colour samples), when this camera
@@ -282,8 +288,7 @@ class _CameraScan:
 
 
 def _scan(source: StereoFrameSource, finders: list, rig: StereoRig | Rig | None, markers: list[MarkerColor],
-          unsampled: set[str], frame_sink: Callable | None, progress: Callable[[int, int], None] | None,
-          forked: bool = False) -> _Scanned:
+          unsampled: set[str], hooks: RunHooks, forked: bool = False) -> _Scanned:
     """Every frame through each camera's detector, with whole-frame colour samples from a few frames
     for the colour checks; coordinates undistorted at the end when there is a calibration. Each
     camera detects in its own decode thread (:meth:`StereoFrameSource.frames`), so the two cameras'
@@ -292,16 +297,16 @@ def _scan(source: StereoFrameSource, finders: list, rig: StereoRig | Rig | None,
     sample_at = set(np.linspace(0, max(total - 1, 0), min(CHECK_SAMPLES, max(total, 1))).astype(int).tolist())
     names = source.cameras if len(finders) > 1 else CAMERAS[:1]
     out = _Scanned(DetectionTable(tuple(names)), {}, 0, len(finders))
-    cams = [_CameraScan(f, markers, names[c], sample_at, unsampled) for c, f in enumerate(finders)]
+    cams = [_CameraScan(f, markers, names[c], sample_at, unsampled, c, hooks.image) for c, f in enumerate(finders)]
     for fr in source.frames(cams, forked=forked):
-        if frame_sink is not None:
-            frame_sink(fr.index, *fr.images)
-        for c, found in enumerate(fr.found):
-            for d in found or ():
+        results = [r if r is not None else ((), None) for r in fr.found]  # None: that camera's frames ended
+        if hooks.frame is not None:
+            hooks.frame(fr.index, *([made for _, made in results] if hooks.image is not None else fr.images))
+        for c, (found, _) in enumerate(results):
+            for d in found:
                 out.rows.add(fr.index, c, d.marker, d.u, d.v, d.area, d.score)
         out.frames = fr.index + 1
-        if progress is not None:
-            progress(out.frames, total)
+        hooks.tick(out.frames, total)
     out.counts = [cs.k for cs in cams]
     if rig is not None:
         out.rows.undistort(rig)

@@ -47,7 +47,8 @@ def process_clip(clip: str | Path, out_dir: str | Path | None = None, settings: 
     way each method's tracks go to the report and the recording as the method finishes, so
     without them a long clip's run holds one method's tracks at a time. ``workers``: processes the
     estimate stage runs its methods in (see :func:`~pipeline.estimate.estimate_clip`), and the
-    detect stage its cameras when no images are recorded (see :func:`~detectors.stage.detect_clip`).
+    detect stage its cameras, each encoding its own frames for the recording (see
+    :func:`~detectors.stage.detect_clip`).
 
     With ``lock`` the output folder is locked for the run (a second run on it fails at once,
     naming the holder) and temporary files left there by a killed run are removed first."""
@@ -105,8 +106,10 @@ def _process_clip(clip_: Clip, out_dir: Path, settings: RunSettings, hooks: RunH
         if recorder is not None and settings.images:
             _reference_videos(recorder, clip_)
         hooks.say("detect (frame pairs)")
-        sink = recorder.log_frame if recorder is not None and settings.images else None
-        det = detect_clip(clip_, settings, out_dir, replace(hooks, frame=sink), workers=workers)
+        framed = replace(hooks, frame=None, image=None)
+        if recorder is not None and settings.images:  # each camera's worker makes its frames' JPEGs
+            framed = replace(hooks, frame=recorder.log_encoded, image=recorder.encode)
+        det = detect_clip(clip_, settings, out_dir, framed, workers=workers)
         hooks.say("estimate")
         data = ReportData(clip_.folder.name, out_dir, {})
 

@@ -129,12 +129,16 @@ class RunHooks:
 
     ``stage(name)``: a stage starts (or says more precisely what it counts). ``progress(done,
     total)``: work done within the stage. ``frame(k, left, right)``: each decoded frame pair (the
-    recording logs frames as the detect stage decodes them). ``method(result, name, tracks,
-    scores)``: each point method's tracks and their scores as the method finishes."""
+    recording logs frames as the detect stage decodes them). ``image(camera, k, img)``: what the
+    camera's detection worker makes of its image of frame k (the recording's JPEG); with it,
+    ``frame(k, *made)`` receives those instead of the images, which then stay with the worker (a
+    process of its own). ``method(result, name, tracks, scores)``: each point method's tracks and
+    their scores as the method finishes."""
 
     stage: Callable[[str], None] | None = None
     progress: Callable[[int, int], None] | None = None
     frame: Callable[..., None] | None = None
+    image: Callable[[int, int, Any], Any] | None = None
     method: Callable[..., None] | None = None
 
     def say(self, name: str) -> None:

@@ -168,18 +168,30 @@ class Recorder:
     def log_frame(self, k: int, *images: np.ndarray | None) -> None:
         """Every camera's image of frame ``k`` as JPEG, in :attr:`cameras`' order (a missing frame
         is skipped, and so is a camera whose video is referenced: :meth:`reference_video`)."""
+        self.log_encoded(k, *(self.encode(c, k, img) for c, img in enumerate(images)))
+
+    def encode(self, camera: int, k: int, img: np.ndarray | None) -> bytes | None:
+        """Camera ``camera``'s image of frame ``k`` as the JPEG :meth:`log_encoded` logs (None where
+        nothing is logged). Touches no rerun state: a camera's detection process encodes its own
+        frames (:class:`~pipeline.core.settings.RunHooks` ``image``)."""
         import cv2
+
+        if img is None or k % self.image_every or camera >= len(self.cameras) or self.cameras[camera] in self.videos:
+            return None
+        ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, self.quality])
+        return buf.tobytes() if ok else None
+
+    def log_encoded(self, k: int, *jpegs: bytes | None) -> None:
+        """Frame ``k``'s JPEGs from :meth:`encode`, one per camera in :attr:`cameras`' order."""
         import rerun as rr
 
         if k % self.image_every:
             return
         self._time(k)
-        for img, name in zip(images, self.cameras, strict=False):
-            if img is not None and name not in self.videos:
-                ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, self.quality])
-                if ok:
-                    self.rec.log(f"world/{name}/image", rr.EncodedImage(contents=buf.tobytes(), media_type="image/jpeg"))
-                    self.images += 1
+        for buf, name in zip(jpegs, self.cameras, strict=False):
+            if buf is not None:
+                self.rec.log(f"world/{name}/image", rr.EncodedImage(contents=buf, media_type="image/jpeg"))
+                self.images += 1
 
     def _columns(self, entity: str, frames: np.ndarray, columns) -> None:
         import rerun as rr

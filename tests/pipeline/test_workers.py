@@ -1,5 +1,6 @@
 """#42: the estimate stage's methods and the report's figures in forked worker processes write
-byte for byte what one process writes (timings aside), through the library and the command line."""
+byte for byte what one process writes (timings aside), through the library and the command line;
+``run``'s recording holds the frames its cameras' workers encoded."""
 
 from __future__ import annotations
 
@@ -56,3 +57,38 @@ def test_report_figures_drawn_in_workers_are_the_same_pngs(target_clip, target_d
         write_report(target_clip, out, in_dir=est, workers=workers)
         pngs[workers] = {p.name: p.read_bytes() for p in (out / "figures").glob("*.png")}
     assert len(pngs[1]) >= 3 and pngs[1] == pngs[2]
+
+
+def _recorded_images(rrd: Path) -> list[tuple[str, int, bytes]]:
+    """(entity, frame, JPEG) of every image a recording holds, in order."""
+    from rerun.chunk import RrdReader
+
+    rows = []
+    for chunk in RrdReader(rrd).stream():
+        if chunk.entity_path.endswith("/image"):
+            batch = chunk.to_record_batch()
+            for k, blob in zip(batch.column("frame").to_pylist(), batch.column("EncodedImage:blob").to_pylist(),
+                               strict=True):
+                rows.append((chunk.entity_path, k, bytes(blob[0] if isinstance(blob, list) else blob)))
+    return sorted(rows)
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_run_s_recording_holds_each_frame_as_its_camera_encoded_it(mp4_clip, tmp_path, workers):
+    """``run`` records the frames as JPEGs that each camera's detection worker makes (a process of
+    its own with two workers): the recording holds every frame of both cameras, each the JPEG of
+    that decoded frame at the recorder's quality, and the detections are those of a plain
+    ``detect``."""
+    import cv2
+
+    from pipeline.app.run import process_clip
+    from pipeline.core.frames import StereoFrameSource
+
+    res = process_clip(mp4_clip, tmp_path / "run", RunSettings(methods=["triangulation"], figures=False),
+                       workers=workers)
+    assert res.recording is not None
+    want = sorted((f"/world/{cam}/image", fr.index, cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 80])[1].tobytes())
+                  for fr in StereoFrameSource(mp4_clip) for cam, img in zip(("left", "right"), fr.images, strict=True))
+    assert _recorded_images(res.recording) == want
+    detect_clip(mp4_clip, RunSettings(), tmp_path / "plain")
+    assert (tmp_path / "run" / "detections.csv").read_bytes() == (tmp_path / "plain" / "detections.csv").read_bytes()
