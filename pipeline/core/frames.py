@@ -235,9 +235,10 @@ class _InProcess:
     for this camera (started at once), beside None for its image. Per-frame work of many short
     numpy calls holds the GIL, so cameras in threads take turns; in processes they run side by side.
     The process opens the footage itself (a capture does not survive a fork), dies with this one,
-    SIGKILL included, and is killed by :meth:`close`; an error it meets is raised here. After the
-    last frame, what the process's copy of ``work`` hands over (``work.handover()``, when it has
-    one) is given to ``work.take`` here: state the caller reads once the frames end."""
+    SIGKILL included, and is killed by :meth:`close`; an error it meets is raised here. With each
+    chunk of results comes what the process's copy of ``work`` hands over (``work.handover()``,
+    when it has one), given to ``work.take`` here: state the caller reads once the frames end, as
+    of the frames received (a caller that stops early, at the shorter camera's end, has it too)."""
 
     def __init__(self, reader: CameraReader, work: Work) -> None:
         self.reader, self.work = reader, work
@@ -272,11 +273,12 @@ class _InProcess:
             raise payload
         if kind == "end":
             self.ended = True
-            if payload is not None:
-                self.work.take(payload)  # type: ignore[attr-defined]
             self.close()
-        else:
-            self.chunk.extend(payload)
+            return
+        found, state = payload
+        self.chunk.extend(found)
+        if state is not None:
+            self.work.take(state)  # type: ignore[attr-defined]
 
     def close(self) -> None:
         """End the process (killed unless it is done) and reap it."""
@@ -288,21 +290,25 @@ class _InProcess:
 
 def _camera_process(reader: CameraReader, work: Work, send: Any, parent: int) -> None:
     """A camera's process (:class:`_InProcess`): its footage read afresh, each frame through ``work``,
-    the results sent in chunks of :data:`CHUNK`, then ``("end", handover)``, or ``("error", exc)``."""
+    the results sent in chunks of :data:`CHUNK` with ``work``'s handover, then ``("end", None)``; or
+    ``("error", exc)`` (an error that does not pickle as its message, naming the footage)."""
     die_with_parent(parent)
     ignore_sigint()
+    handover = getattr(work, "handover", None)
     try:
         chunk: list = []
         for img in CameraReader(reader.source, getattr(reader, "first", None), reader.threads):
             chunk.append(work(img))
             if len(chunk) == CHUNK:
-                send.send(("found", chunk))
+                send.send(("found", (chunk, handover() if handover is not None else None)))
                 chunk = []
-        send.send(("found", chunk))
-        handover = getattr(work, "handover", None)
-        send.send(("end", handover() if handover is not None else None))
+        send.send(("found", (chunk, handover() if handover is not None else None)))
+        send.send(("end", None))
     except BaseException as exc:  # every error goes to the parent, which raises it
-        send.send(("error", exc))
+        try:
+            send.send(("error", exc))
+        except Exception:  # an exception that does not pickle: its message
+            send.send(("error", ClipError(f"{type(exc).__name__}: {exc}", reader.source)))
     finally:
         send.close()
 
@@ -380,14 +386,16 @@ class StereoFrameSource:
         there (every image None here), the work's results come back."""
         work = list(work or [None] * len(self.readers))
         jobs = [w for w in work if w is not None]
-        if forked and len(self.readers) > 1 and len(jobs) == len(work) and can_fork():
-            its: list[Iterator] = [_InProcess(r, w) for r, w in zip(self.readers, jobs, strict=True)]
-        else:
-            its = [_worked(iter(r), w) for r, w in zip(self.readers, work, strict=True)]
-            its = [_prefetch(it) for it in its] if self.prefetch else its
+        its: list[Iterator] = []
         k = 0
         end: Any = object()
         try:
+            if forked and len(self.readers) > 1 and len(jobs) == len(work) and can_fork():
+                for r, w in zip(self.readers, jobs, strict=True):
+                    its.append(_InProcess(r, w))  # one at a time: those started are closed if the next fails
+            else:
+                its = [_worked(iter(r), w) for r, w in zip(self.readers, work, strict=True)]
+                its = [_prefetch(it) for it in its] if self.prefetch else its
             while True:
                 got = [next(it, end) for it in its]
                 if all(i is end for i in got):
