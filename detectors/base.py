@@ -28,6 +28,9 @@ class Detector(ABC):
     labels_targets: ClassVar[bool] = False
     #: whether it reports every blob of a group of identical markers (not one per colour)
     reports_many: ClassVar[bool] = False
+    #: whether its objects may work in a process forked for their camera (no GPU context, thread or
+    #: open device of their own to lose in the fork); the detect stage runs the others in threads
+    forks: ClassVar[bool] = False
 
     def __init__(self, markers: list[MarkerColor], groups: dict[str, list[str]] | None = None,
                  roi: tuple[int, int, int, int] | None = None, identical: Collection[str] = ()) -> None:

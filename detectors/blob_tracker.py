@@ -64,6 +64,7 @@ class BlobTracker(Detector):
     """Blob detection with per-marker search windows and target labelling (one per camera)."""
 
     name = "blob"
+    forks = True
     labels_targets = True
     reports_many = True
 

@@ -165,6 +165,7 @@ class MeanShiftDetector(Detector):
     """Meanshift tracking of each marker (one :class:`MeanShiftTracker` per marker and camera)."""
 
     name = "meanshift"
+    forks = True
 
     def __init__(self, markers: list[MarkerColor], groups: dict[str, list[str]] | None = None,
                  roi: tuple[int, int, int, int] | None = None) -> None:

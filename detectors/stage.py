@@ -128,8 +128,8 @@ def detect_clip(clip: str | Path | Clip, settings: RunSettings | None = None, ou
     decoded frame (``run`` records them as they go by, so a clip is decoded once and never held
     in memory), or with ``hooks.image`` what each camera's worker made of it; ``hooks.progress``
     the frames done. ``workers`` ≥ 2: each camera is decoded and detected in a process of its own
-    unless ``hooks.frame`` wants the images themselves (else in threads of this one; the detections
-    are the same).
+    when the detector :attr:`~detectors.base.Detector.forks` and ``hooks.frame`` does not want the
+    images themselves (else in threads of this one; the detections are the same).
 
     Coordinates written are undistorted with the clip's calibration when it has one (real rigs
     have lens distortion; estimators need pinhole coordinates); a calibration for another image
@@ -160,7 +160,8 @@ def detect_clip(clip: str | Path | Clip, settings: RunSettings | None = None, ou
     finders = [create_detector(settings.detector, markers, targets, settings.roi, identical)
                for _ in range(len(source.readers))]
     scan = _scan(source, finders, rig, markers, {n for names in groups.values() for n in names} | set(groups),
-                 hooks, forked=workers > 1 and (hooks.frame is None or hooks.image is not None))
+                 hooks, forked=workers > 1 and all(type(f).forks for f in finders)
+                 and (hooks.frame is None or hooks.image is not None))
     _check_footage_times(clip_, source, scan.counts)
     cols = scan.rows.columns()
     checks += colour_checks(scan.samples)

@@ -145,3 +145,23 @@ def test_cv2_is_usable_in_a_camera_process_after_the_caller_used_its_threads(png
     got = [fr.found for fr in StereoFrameSource(png_clip).frames([hue_sum, hue_sum], forked=True)]
     want = [fr.found for fr in StereoFrameSource(png_clip).frames([hue_sum, hue_sum])]
     assert got == want and len(got) == 24
+
+
+def test_a_detector_that_does_not_say_it_forks_runs_in_threads(tmp_path, mp4_clip, monkeypatch):
+    """A registered detector keeps the base's ``forks = False`` (a plugin may hold a GPU context
+    that a fork loses): the stage runs it in threads with two workers, with the same detections."""
+    from detectors.base import _REGISTRY
+    from detectors.blob_tracker import BlobTracker
+
+    class Unforked(BlobTracker):
+        name = "unforked_blob"
+        forks = False
+
+    monkeypatch.setitem(_REGISTRY, Unforked.name, Unforked)
+    started = _spy_processes(monkeypatch)
+    res = detect_clip(mp4_clip, RunSettings(detector="unforked_blob"), out_dir=tmp_path / "t", workers=2)
+    assert not started and len(res.rows) > 40
+    detect_clip(mp4_clip, RunSettings(), out_dir=tmp_path / "b", workers=2)
+    assert started  # the built-in blob does fork
+    ours, theirs = ((tmp_path / d / "detections.csv").read_text() for d in ("t", "b"))
+    assert ours == theirs
