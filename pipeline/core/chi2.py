@@ -9,6 +9,9 @@ each with scipy and compares them bit for bit); any other argument is computed b
 
 from __future__ import annotations
 
+import math
+from statistics import NormalDist
+
 import numpy as np
 
 _GAMMAINCINV: dict[float, tuple[float, ...]] = {  # q → P⁻¹(dof/2, q) for dof = 1 … 12
@@ -56,3 +59,58 @@ def chi2_upper(dof: int, gate: float) -> float:
     from scipy.special import chdtri
 
     return float(chdtri(dof, 1.0 - gate))
+
+
+def chi2_quantile(dof: float, q: float) -> float:
+    """χ²(dof)'s ``q`` quantile in plain Python (within 1e-14 of scipy's, relative, for the 95 % band's
+    quantiles; 3e-12 in the far upper tail, q = 1 − 10⁻⁶): Halley's method on the
+    regularised lower incomplete gamma function ``P(dof/2, x/2)`` (series below ``a + 1``, Lentz's
+    continued fraction above; Press et al., *Numerical Recipes*, 3rd ed., §6.2), started from the
+    Wilson–Hilferty approximation. For drawing a band where importing scipy.special would cost more
+    than the figure; the estimates' and metrics' quantiles stay :func:`gammaincinv`'s."""
+    if not (dof > 0 and 0.0 < q < 1.0):
+        raise ValueError(f"chi2_quantile needs dof > 0 and 0 < q < 1, not {dof}, {q}")
+    a = dof / 2.0
+    h = 1.0 / (9.0 * a)
+    x = a * max(1.0 - h + NormalDist().inv_cdf(q) * math.sqrt(h), 0.05) ** 3
+    lg = math.lgamma(a)
+    for _ in range(100):
+        f = _lower_gamma(a, x, lg) - q
+        d = math.exp((a - 1.0) * math.log(x) - x - lg)  # dP/dx
+        u = f / d
+        step = u / max(1.0 - 0.5 * u * ((a - 1.0) / x - 1.0), 0.1)  # Halley, damped where it would overshoot
+        x_new = x - step if x - step > 0 else x / 2.0
+        if abs(x_new - x) <= 1e-15 * x:
+            return 2.0 * x_new
+        x = x_new
+    return 2.0 * x
+
+
+def _lower_gamma(a: float, x: float, lg: float) -> float:
+    """``P(a, x)``, the regularised lower incomplete gamma function (``lg``: ``ln Γ(a)``)."""
+    front = math.exp(a * math.log(x) - x - lg)
+    if x < a + 1.0:  # the series Σ xⁿ / (a (a+1) … (a+n))
+        term = total = 1.0 / a
+        n = a
+        while abs(term) > abs(total) * 1e-17:
+            n += 1.0
+            term *= x / n
+            total += term
+        return total * front
+    tiny = 1e-300  # Q(a, x) by the continued fraction (modified Lentz)
+    b = x + 1.0 - a
+    c, d = 1.0 / tiny, 1.0 / b
+    frac = d
+    for i in range(1, 10_000):
+        an = -i * (i - a)
+        b += 2.0
+        d = an * d + b
+        d = tiny if abs(d) < tiny else d
+        c = b + an / c
+        c = tiny if abs(c) < tiny else c
+        d = 1.0 / d
+        delta = d * c
+        frac *= delta
+        if abs(delta - 1.0) < 1e-16:
+            break
+    return 1.0 - front * frac

@@ -221,7 +221,7 @@ def fig_target(data: ReportData, plt) -> tuple[object, str] | None:
 def fig_consistency(data: ReportData, plt) -> tuple[object, str] | None:
     """NEES/3 and NIS/dof of each filter (moving mean over :data:`CONSISTENCY_WINDOW` frames, all
     markers) against the 95 % band of that mean: the quantities of the consistency table."""
-    from pipeline.evaluation.consistency import band
+    from pipeline.core.chi2 import chi2_quantile
 
     if not data.filters:
         return None
@@ -240,7 +240,8 @@ def fig_consistency(data: ReportData, plt) -> tuple[object, str] | None:
             per_frame.append(series[2])
         if per_frame:
             k = round(dof * w * float(np.median(per_frame)))  # χ² degrees of freedom in one moving mean
-            ax.axhspan(*(np.array(band(k)) / k), color="0.85", zorder=0, label="95 % band")
+            band = chi2_quantile(k, 0.025) / k, chi2_quantile(k, 0.975) / k  # no scipy.special import (0.3 s)
+            ax.axhspan(*band, color="0.85", zorder=0, label="95 % band")
         _plain_log_labels(ax)
         ax.set(xlabel="frame", ylabel=f"moving mean over {w} frames", title=title)
         ax.grid(alpha=0.3, which="both")
