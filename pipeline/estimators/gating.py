@@ -104,7 +104,7 @@ def camera_nis(model: StereoMeasurementModel, x: np.ndarray, P: np.ndarray, Y: n
     if S is None:
         S = H @ P @ np.swapaxes(H, -1, -2) + R  # both cameras at once; each camera's own is its 2×2 block
     if np.ndim(Y) == 1:
-        return _camera_nis_one(S, Y - h)
+        return camera_nis_of(S, Y - h)
     with np.errstate(invalid="ignore"):
         r = Y - h
     n = np.shape(Y)[-1] // 2
@@ -117,8 +117,9 @@ def camera_nis(model: StereoMeasurementModel, x: np.ndarray, P: np.ndarray, Y: n
     return out
 
 
-def _camera_nis_one(S: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """:func:`camera_nis` of one track in Python floats (the same closed form; NaN stays NaN)."""
+def camera_nis_of(S: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """:func:`camera_nis` of one track from its innovation ``r`` (2N) and its covariance ``S``
+    (2N×2N), in Python floats (the same closed form; NaN stays NaN)."""
     s, rr = S.tolist(), r.tolist()
     out = []
     for i in range(0, len(rr), 2):

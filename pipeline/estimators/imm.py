@@ -29,6 +29,7 @@ from pydantic import Field
 from pipeline.core.chi2 import chi2_upper
 from pipeline.estimators.base import Estimator, Step, Track, not_started, white_noise_acceleration
 from pipeline.estimators.ekf import EKFEstimator
+from pipeline.estimators.gating import camera_nis_of
 from pipeline.estimators.kalman_common import KalmanConfig, available_rows, filtered_step, gated_step
 from pipeline.estimators.registration import register
 
@@ -151,8 +152,8 @@ def joint_gate(y: np.ndarray, h: np.ndarray, S: np.ndarray, gate: float) -> tupl
         r, Sk = y[rows] - h[rows], S[np.ix_(rows, rows)]
         if float(r @ np.linalg.solve(Sk, r)) <= chi2_upper(len(rows), gate):
             return y, dropped
-        own = [float(r[k : k + 2] @ np.linalg.solve(Sk[k : k + 2, k : k + 2], r[k : k + 2])) for k in range(0, len(rows), 2)]
-        worst = rows[2 * int(np.argmax(own))] // 2
+        with np.errstate(invalid="ignore"):
+            worst = int(np.nanargmax(camera_nis_of(S, y - h)))  # the largest own NIS among the cameras kept
         y = y.copy()
         y[2 * worst : 2 * worst + 2] = np.nan
         dropped += 1
