@@ -1,6 +1,7 @@
-"""Rendering many short clips: ``render-batch`` (persistent render workers that keep their EGL
-context across clips) against the bare pyrender loop in the same number of persistent processes
-on the same cores, measured in one run; each row is printed as it is measured.
+"""Rendering many short clips: ``render-batch`` with pyrender (persistent render workers that keep
+their EGL context across clips) against the bare pyrender loop in the same number of persistent
+processes on the same cores, and with the analytic rasteriser (the default for these scenes:
+threads of the command), measured in one run; each row is printed as it is measured.
 
     python benchmarks/render_batch.py [--clips 20] [--frames 30] [--workers 1,2]
 
@@ -64,12 +65,13 @@ def bare(n: int, frames: int, w: int, h: int) -> float:
     return n * frames / (time.perf_counter() - t0)
 
 
-def ours(n: int, clips: int, frames: int, w: int, h: int, per_clip: bool = False) -> float:
+def ours(n: int, clips: int, frames: int, w: int, h: int, per_clip: bool = False, rasteriser: str = "pyrender") -> float:
     """Pairs/s of ``render_clips`` with ``n`` persistent workers, or (``per_clip``) of a fresh pool
     per clip — start-up paid per clip, as ``render-batch`` did before its workers persisted."""
     base = load_scenario("default").with_overrides(frames=frames)
     data = base.model_dump(mode="json")
     data["rig"].update(width=w, height=h, focal=600.0 * w / 640, principal_point=None)
+    data["render"]["rasteriser"] = rasteriser
     base = type(base).model_validate(data)
     with tempfile.TemporaryDirectory() as tmp:
         jobs = [(base.with_overrides(seed=s), Path(tmp) / f"clip{s}") for s in range(clips)]
@@ -92,14 +94,15 @@ def main() -> None:
     w, h = (int(v) for v in args.size.split("x"))
     print(f"# render-batch: {args.clips} clips × {args.frames} frames at {w}×{h}, flat shading, MP4; "
           f"{os.cpu_count()} cores; stereo pairs/s\n")
-    print("| processes | bare pyrender loop (render only) | render-batch, persistent workers | a new pool per clip "
-          "| persistent / bare | persistent / per clip |")
-    print("|---|---|---|---|---|---|", flush=True)
+    print("| processes (threads) | bare pyrender loop (render only) | render-batch, pyrender, persistent workers "
+          "| a new pool per clip | persistent / bare | persistent / per clip | render-batch, analytic | analytic / bare |")
+    print("|---|---|---|---|---|---|---|---|", flush=True)
     for n in (int(v) for v in args.workers.split(",")):
         b = bare(n, args.clips * args.frames // n, w, h)
         o = ours(n, args.clips, args.frames, w, h)
         p = ours(n, args.clips, args.frames, w, h, per_clip=True)
-        print(f"| {n} | {b:.1f} | {o:.1f} | {p:.1f} | {o / b:.2f} | {o / p:.2f} |", flush=True)
+        a = ours(n, args.clips, args.frames, w, h, rasteriser="analytic")
+        print(f"| {n} | {b:.1f} | {o:.1f} | {p:.1f} | {o / b:.2f} | {o / p:.2f} | {a:.1f} | {a / b:.2f} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -165,6 +165,10 @@ class RenderSpec(_Model):
     #: 640×480 renders run 1.9× (flat) and 1.4× (lit) faster on llvmpipe, with hard edges
     #: (benchmarks/render.py)
     multisample: int = Field(4, ge=0, le=16)
+    #: what draws the frames: ``analytic`` (exact spheres, discs and boxes on the CPU, 16 samples
+    #: per edge pixel; flat shading without distractors), ``pyrender`` (OpenGL, the reference), or
+    #: ``auto``: analytic wherever it can draw the scene (renderers/raster.py)
+    rasteriser: Literal["auto", "analytic", "pyrender"] = "auto"
 
 
 class Scenario(_Model):
@@ -180,6 +184,25 @@ class Scenario(_Model):
     objects: list[ObjectSpec] = Field(min_length=1)
     distractors: list[Distractor] = Field(default_factory=list)
     calibration_error: CalibrationErrorSpec | None = None
+
+    def analytic_blocker(self) -> str | None:
+        """Why the analytic rasteriser cannot draw this scenario (None when it can)."""
+        if self.render.shading != "flat":
+            return "lit shading is drawn by pyrender only"
+        if self.distractors:
+            return "distractors (a segmentation render decides when they hide a marker) are drawn by pyrender only"
+        return None
+
+    def analytic(self) -> bool:
+        """Whether the analytic rasteriser draws this scenario's frames."""
+        return self.render.rasteriser != "pyrender" and self.analytic_blocker() is None
+
+    @model_validator(mode="after")
+    def _analytic_possible(self) -> Scenario:
+        why = self.analytic_blocker() if self.render.rasteriser == "analytic" else None
+        if why is not None:
+            raise ValueError(f"render.rasteriser: analytic cannot draw this scenario: {why}; use auto or pyrender")
+        return self
 
     @model_validator(mode="after")
     def _unique_names(self) -> Scenario:

@@ -1,5 +1,6 @@
-"""The pyrender scene of a scenario: sphere markers, the four-point plate, a textured background,
-distractors, and one camera node per rig camera. Poses come from the one camera model."""
+"""The solids of a scenario (sphere markers, the four-point plate, distractors), posed per frame or
+per camera time, over a plain or textured background; and the pyrender scene that draws them (one
+node per solid, one camera node per rig camera). Poses come from the one camera model."""
 
 from __future__ import annotations
 
@@ -184,51 +185,152 @@ def _material(rgb: tuple[int, int, int], roughness: float = 0.9):
     )
 
 
-class StereoScene:
-    """All geometry of a scenario, posed per frame (or at any time, per camera); renders either
-    camera of the rig through its :class:`RenderView`."""
+@dataclass(frozen=True)
+class Shape:
+    """One solid of a scene in its own frame: a ``sphere`` (``size``: radius), a thin ``cylinder``
+    along z (radius, height: a flat marker disc) or a ``box`` (x, y, z extents), of one colour."""
+
+    kind: str
+    size: tuple[float, ...]
+    color: tuple[int, int, int]
+    roughness: float = 0.9
+    smooth: bool = True
+
+
+#: a flat marker's disc: this thick, lifted by half of it off the plate's face
+DISC_HEIGHT = 0.001
+#: the four-point target's plate: this thick, its face 0.5 mm behind the markers' centres
+PLATE_THICKNESS = 0.004
+
+
+class ScenePoses:
+    """All solids of a scenario (markers, the four-point plates, distractors; :attr:`shapes`) and
+    their poses per frame or per camera time (:attr:`poses`, one 4×4 object→world matrix each), with
+    each camera's :class:`RenderView` and the background: what every rasteriser draws from."""
+
+    def __init__(self, scenario: Scenario, rig: StereoRig | Rig, truth: Truth) -> None:
+        self.scenario, self.rig, self.truth = scenario, rig, truth
+        rs = scenario.render
+        self.flat = rs.shading == "flat"
+        names = scenario.marker_colors()
+        rough = {n: o.roughness for o in scenario.objects for n in o.marker_names()}
+        shapes = []
+        for i, name in enumerate(truth.names):
+            r = float(truth.radii[i])
+            disc = bool(np.all(np.isfinite(truth.normals[0, i])))
+            shapes.append(Shape("cylinder" if disc else "sphere", (r, DISC_HEIGHT) if disc else (r,), names[name],
+                                rough[name], smooth=not self.flat))
+        self.n_markers = len(shapes)
+        for obj, tgt in zip([o for o in scenario.objects if o.is_target], truth.targets, strict=True):
+            side = 2.8 * tgt.radius
+            shapes.append(Shape("box", (side, side, PLATE_THICKNESS), obj.plate_color))
+        self._distractors = distractor_positions(scenario)
+        for d in scenario.distractors:
+            sphere = d.shape == "sphere"
+            size = (d.size / 2,) if sphere else tuple(d.extents) if d.extents is not None else (d.size,) * 3
+            shapes.append(Shape("sphere" if sphere else "box", size, d.color, d.roughness,
+                                smooth=sphere and not self.flat))
+        self.shapes: list[Shape] = shapes
+        self.poses = np.tile(np.eye(4), (len(shapes), 1, 1))
+        self.views = [render_view(cam, size) for cam, size in zip(rig.cameras, rig.sizes, strict=True)]
+
+    def background_grid(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The textured background (None when plain): a plane at ``background_distance`` covering
+        every camera's view, a grid of 48 × 64 vertices (x and y in the world, ascending) with
+        seeded low-saturation grey colours (RGB uint8, 48 × 64 × 3), two triangles per cell."""
+        rs = self.scenario.render
+        if rs.background != "textured":
+            return None
+        D = rs.background_distance
+        w, h = self.rig.image_size
+        K = self.rig.cameras[0].K
+        half_w = D * max(K[0, 2], w - K[0, 2]) / K[0, 0] * 1.8 + self.rig.baseline + D * 0.5
+        half_h = D * max(K[1, 2], h - K[1, 2]) / K[1, 1] * 1.8
+        nx, ny = 64, 48
+        xs, ys = np.linspace(-half_w, half_w, nx) + self.rig.baseline / 2, np.linspace(-half_h, half_h, ny)
+        rng = np.random.default_rng([self.scenario.seed, 10_000])
+        base = np.array(rs.background_color, float)
+        shade = 0.55 + 0.9 * rng.random(nx * ny)
+        cols = np.clip(base[None, :] * shade[:, None], 0, 255).astype(np.uint8)
+        return xs, ys, cols.reshape(ny, nx, 3)
+
+    def set_frame(self, k: int) -> None:
+        """Pose every object for frame ``k`` (an ideal rig: every camera at ``k/fps``)."""
+        self._pose(self.truth.positions[k], self.truth.normals[k],
+                   [(tgt.center[k], tgt.normal[k]) for tgt in self.truth.targets], list(self._distractors[k]))
+
+    def set_time(self, camera: int, t0: float) -> None:
+        """Pose every object as ``camera`` sees it in a frame whose row 0 is exposed at ``t0``: with
+        a rolling shutter each moving object at the time of the row that images its centre (the
+        skew across one small object is left out)."""
+        from renderers.truth import seen_at
+
+        cam, ld, h = self.rig.cameras[camera], self.scenario.rig.line_delay_s, self.rig.sizes[camera][1]
+        n = self.n_markers
+        pos, nrm = np.empty((n, 3)), np.empty((n, 3))
+        for i in range(n):
+            t = seen_at(cam, self.truth, i, np.array([t0]), ld, h)
+            p, _, nn = self.truth.at(t, [i])
+            pos[i], nrm[i] = p[0, 0], nn[0, 0]
+        plates = []
+        for tp in self.truth.target_paths:
+            t = self._row_time(cam, lambda t, tp=tp: tp.points_at(t)[3], t0, h)
+            _, _, normal, center, _ = tp.points_at(t)
+            plates.append((center[0], normal[0]))
+        dist = [distractor_positions(self.scenario, self._row_time(
+            cam, lambda t, j=j: distractor_positions(self.scenario, t)[:, j], t0, h))[0, j]
+            for j in range(len(self.scenario.distractors))]
+        self._pose(pos, nrm, plates, dist)
+
+    def _row_time(self, cam: Camera, where, t0: float, h: int) -> np.ndarray:
+        """When the row imaging ``where(t)`` (a centre) is exposed, from ``t0`` (fixed point)."""
+        ld = self.scenario.rig.line_delay_s
+        t = np.array([t0])
+        for _ in range(4 if ld > 0 else 0):
+            v = cam.project_distorted(where(t))[:, 1]
+            t = t0 + np.clip(np.nan_to_num(v, nan=0.0), 0.0, h - 1.0) * ld
+        return t
+
+    def _pose(self, pos: np.ndarray, nrm: np.ndarray, plates: list, distractors: list) -> None:
+        poses = self.poses
+        for i in range(self.n_markers):
+            if np.all(np.isfinite(nrm[i])):
+                poses[i] = _pose(_frame_from_normal(nrm[i]), pos[i] + 0.5 * DISC_HEIGHT * nrm[i])
+            else:
+                poses[i] = _pose(np.eye(3), pos[i])
+        j = self.n_markers
+        for tgt, (center, n) in zip(self.truth.targets, plates, strict=True):
+            b = np.array([np.cos(tgt.axis_angle), np.sin(tgt.axis_angle), 0.0])
+            poses[j] = _pose(_frame_from_normal(n, b), center - 0.5 * (PLATE_THICKNESS + DISC_HEIGHT) * n)
+            j += 1
+        for p in distractors:
+            poses[j] = _pose(np.eye(3), p)
+            j += 1
+        self._placed()
+
+    def _placed(self) -> None:
+        """Called after :attr:`poses` changed (a rasteriser with a scene graph moves its nodes)."""
+
+
+class StereoScene(ScenePoses):
+    """The scene as pyrender draws it (the reference rasteriser, and the one for lit shading and
+    distractors): one mesh node per solid, a vertex-coloured background mesh, one camera node per
+    rig camera; renders either camera through its :class:`RenderView`."""
 
     def __init__(self, scenario: Scenario, rig: StereoRig | Rig, truth: Truth) -> None:
         ensure_gl_platform()
         import pyrender
-        import trimesh
 
-        self.scenario, self.rig, self.truth = scenario, rig, truth
+        super().__init__(scenario, rig, truth)
         rs = scenario.render
-        self.flat = rs.shading == "flat"
         self.scene = pyrender.Scene(bg_color=[*(c / 255 for c in rs.background_color), 1.0], ambient_light=[0.35] * 3)
-        self._marker_nodes = []
-        names = scenario.marker_colors()
-        rough = {n: o.roughness for o in scenario.objects for n in o.marker_names()}
-        for i, name in enumerate(truth.names):
-            color = names[name]
-            r = float(truth.radii[i])
-            if np.all(np.isfinite(truth.normals[0, i])):
-                tm = trimesh.creation.cylinder(radius=r, height=0.001, sections=48)
-            else:
-                tm = trimesh.creation.icosphere(subdivisions=3, radius=r)
-            mesh = pyrender.Mesh.from_trimesh(tm, material=_material(color, rough[name]), smooth=not self.flat)
-            self._marker_nodes.append(self.scene.add(mesh, name=name))
-        self._plates = []
-        for obj, tgt in zip([o for o in scenario.objects if o.is_target], truth.targets, strict=True):
-            side = 2.8 * tgt.radius
-            plate = trimesh.creation.box(extents=[side, side, 0.004])
-            node = self.scene.add(pyrender.Mesh.from_trimesh(plate, material=_material(obj.plate_color)))
-            self._plates.append((node, tgt))
-        self._distractors = []
-        dpos = distractor_positions(scenario)
-        for j, d in enumerate(scenario.distractors):
-            if d.shape == "sphere":
-                tm = trimesh.creation.icosphere(3, d.size / 2)
-            else:
-                tm = trimesh.creation.box(extents=list(d.extents) if d.extents is not None else [d.size] * 3)
-            node = self.scene.add(pyrender.Mesh.from_trimesh(tm, material=_material(d.color, d.roughness),
-                                                             smooth=d.shape == "sphere" and not self.flat))
-            self._distractors.append((node, dpos[:, j]))
-        self._background = None
-        if rs.background == "textured":
-            self._background = self.scene.add(self._background_mesh(), pose=np.eye(4))
-        self.views = [render_view(cam, size) for cam, size in zip(rig.cameras, rig.sizes, strict=True)]
+        self._nodes = [self.scene.add(_mesh(s), name=name)
+                       for s, name in zip(self.shapes, [*truth.names, *[None] * (len(self.shapes) - self.n_markers)],
+                                          strict=True)]
+        self._marker_nodes = self._nodes[: self.n_markers]
+        grid = self.background_grid()
+        if grid is not None:
+            self.scene.add(_background_mesh(*grid, rs.background_distance), pose=np.eye(4))
         self._camera_nodes = []
         for cam, view in zip(rig.cameras, self.views, strict=True):
             fx, fy, cx, cy = Camera(view.K, cam.R, cam.t).gl_intrinsics()
@@ -245,81 +347,9 @@ class StereoScene:
         self._seg_map = {n: [0, 0, 0] for n in self.scene.mesh_nodes}
         self._seg_map.update({n: [i + 1, 0, 0] for i, n in enumerate(self._marker_nodes)})
 
-    def _background_mesh(self):
-        """A large plane at ``background_distance`` with a smooth low-saturation grey texture
-        (vertex colours: cheap and seeded), covering both cameras' views."""
-        import pyrender
-        import trimesh
-
-        rs = self.scenario.render
-        D = rs.background_distance
-        w, h = self.rig.image_size
-        K = self.rig.cameras[0].K
-        half_w = D * max(K[0, 2], w - K[0, 2]) / K[0, 0] * 1.8 + self.rig.baseline + D * 0.5
-        half_h = D * max(K[1, 2], h - K[1, 2]) / K[1, 1] * 1.8
-        nx, ny = 64, 48
-        xs, ys = np.linspace(-half_w, half_w, nx), np.linspace(-half_h, half_h, ny)
-        X, Y = np.meshgrid(xs, ys)
-        verts = np.column_stack([X.ravel() + self.rig.baseline / 2, Y.ravel(), np.full(X.size, D)])
-        idx = np.arange(nx * ny).reshape(ny, nx)
-        a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
-        faces = np.concatenate([np.column_stack([a, c, b]), np.column_stack([b, c, d])])
-        rng = np.random.default_rng([self.scenario.seed, 10_000])
-        base = np.array(rs.background_color, float)
-        shade = 0.55 + 0.9 * rng.random(len(verts))
-        cols = np.clip(base[None, :] * shade[:, None], 0, 255)
-        rgba = np.column_stack([cols, np.full(len(verts), 255)]).astype(np.uint8)
-        tm = trimesh.Trimesh(verts, faces, vertex_colors=rgba, process=False)
-        return pyrender.Mesh.from_trimesh(tm, smooth=True)
-
-    def set_frame(self, k: int) -> None:
-        """Pose every object for frame ``k`` (an ideal rig: every camera at ``k/fps``)."""
-        self._pose(self.truth.positions[k], self.truth.normals[k],
-                   [(tgt.center[k], tgt.normal[k]) for _, tgt in self._plates], [p[k] for _, p in self._distractors])
-
-    def set_time(self, camera: int, t0: float) -> None:
-        """Pose every object as ``camera`` sees it in a frame whose row 0 is exposed at ``t0``: with
-        a rolling shutter each moving object at the time of the row that images its centre (the
-        skew across one small object is left out)."""
-        from renderers.truth import seen_at
-
-        cam, ld, h = self.rig.cameras[camera], self.scenario.rig.line_delay_s, self.rig.sizes[camera][1]
-        n = len(self._marker_nodes)
-        pos, nrm = np.empty((n, 3)), np.empty((n, 3))
-        for i in range(n):
-            t = seen_at(cam, self.truth, i, np.array([t0]), ld, h)
-            p, _, nn = self.truth.at(t, [i])
-            pos[i], nrm[i] = p[0, 0], nn[0, 0]
-        plates = []
-        for tp in self.truth.target_paths:
-            t = self._row_time(cam, lambda t, tp=tp: tp.points_at(t)[3], t0, h)
-            _, _, normal, center, _ = tp.points_at(t)
-            plates.append((center[0], normal[0]))
-        dist = [distractor_positions(self.scenario, self._row_time(
-            cam, lambda t, j=j: distractor_positions(self.scenario, t)[:, j], t0, h))[0, j]
-            for j in range(len(self._distractors))]
-        self._pose(pos, nrm, plates, dist)
-
-    def _row_time(self, cam: Camera, where, t0: float, h: int) -> np.ndarray:
-        """When the row imaging ``where(t)`` (a centre) is exposed, from ``t0`` (fixed point)."""
-        ld = self.scenario.rig.line_delay_s
-        t = np.array([t0])
-        for _ in range(4 if ld > 0 else 0):
-            v = cam.project_distorted(where(t))[:, 1]
-            t = t0 + np.clip(np.nan_to_num(v, nan=0.0), 0.0, h - 1.0) * ld
-        return t
-
-    def _pose(self, pos: np.ndarray, nrm: np.ndarray, plates: list, distractors: list) -> None:
-        for i, node in enumerate(self._marker_nodes):
-            if np.all(np.isfinite(nrm[i])):
-                self.scene.set_pose(node, _pose(_frame_from_normal(nrm[i]), pos[i] + 0.0005 * nrm[i]))
-            else:
-                self.scene.set_pose(node, _pose(np.eye(3), pos[i]))
-        for (node, tgt), (center, n) in zip(self._plates, plates, strict=True):
-            b = np.array([np.cos(tgt.axis_angle), np.sin(tgt.axis_angle), 0.0])
-            self.scene.set_pose(node, _pose(_frame_from_normal(n, b), center - 0.0025 * n))
-        for (node, _), p in zip(self._distractors, distractors, strict=True):
-            self.scene.set_pose(node, _pose(np.eye(3), p))
+    def _placed(self) -> None:
+        for node, pose in zip(self._nodes, self.poses, strict=True):
+            self.scene.set_pose(node, pose)
 
     def render(self, renderer, camera_index: int) -> np.ndarray:
         """RGB uint8 pinhole image of the current pose from camera ``camera_index`` (at its
@@ -346,3 +376,33 @@ class StereoScene:
         seg, _ = renderer.render(self.scene, flags=pyrender.RenderFlags.SEG, seg_node_map=self._seg_map)
         ids = self.views[camera_index].finish(np.ascontiguousarray(seg[..., 0]), nearest=True)
         return np.bincount(ids.ravel(), minlength=len(self._marker_nodes) + 1)[1 : len(self._marker_nodes) + 1]
+
+
+def _mesh(shape: Shape):
+    """The pyrender mesh of a solid (an icosphere of 642 vertices, a 48-sided disc, a box)."""
+    import pyrender
+    import trimesh
+
+    if shape.kind == "sphere":
+        tm = trimesh.creation.icosphere(subdivisions=3, radius=shape.size[0])
+    elif shape.kind == "cylinder":
+        tm = trimesh.creation.cylinder(radius=shape.size[0], height=shape.size[1], sections=48)
+    else:
+        tm = trimesh.creation.box(extents=list(shape.size))
+    return pyrender.Mesh.from_trimesh(tm, material=_material(shape.color, shape.roughness), smooth=shape.smooth)
+
+
+def _background_mesh(xs: np.ndarray, ys: np.ndarray, cols: np.ndarray, distance: float):
+    """The background grid as a vertex-coloured pyrender mesh (colours interpolated smoothly)."""
+    import pyrender
+    import trimesh
+
+    X, Y = np.meshgrid(xs, ys)
+    verts = np.column_stack([X.ravel(), Y.ravel(), np.full(X.size, distance)])
+    ny, nx = X.shape
+    idx = np.arange(nx * ny).reshape(ny, nx)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    faces = np.concatenate([np.column_stack([a, c, b]), np.column_stack([b, c, d])])
+    rgba = np.column_stack([cols.reshape(-1, 3), np.full(nx * ny, 255, np.uint8)])
+    tm = trimesh.Trimesh(verts, faces, vertex_colors=rgba, process=False)
+    return pyrender.Mesh.from_trimesh(tm, smooth=True)

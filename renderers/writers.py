@@ -172,5 +172,5 @@ class BackgroundWriter:
 def writer_threaded(renderer) -> bool:
     """Whether post-processing and encoding get a thread of their own: on a GPU, where the
     rendering thread mostly waits; not under a software rasteriser (llvmpipe), which keeps the
-    cores busy itself (measured in benchmarks/render.py: a thread there cost more than it saved)."""
+    cores busy itself (measured in benchmarks/render.py: a thread there did not pay)."""
     return not getattr(renderer, "software", True)

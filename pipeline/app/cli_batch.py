@@ -209,9 +209,11 @@ def render_batch_cmd(
     seeds: Annotated[str, typer.Option(help="Seeds as A..B (inclusive) or a comma list.")] = "0..3",
     frames: Annotated[int | None, typer.Option(help="Override the scenario's frame count.")] = None,
     fmt: Annotated[str, typer.Option("--format", help="mp4 or png.")] = "mp4",
-    workers: Annotated[int, typer.Option(help="Render processes, each keeping its GL context across clips.")] = 2,
+    workers: Annotated[int, typer.Option(help="Clips (cameras) rendered at once: threads, or pyrender processes that "
+                                              "keep their GL context across clips.")] = 2,
 ) -> None:
-    """Render a folder of clips of one scenario, one per seed, with persistent render workers."""
+    """Render a folder of clips of one scenario, one per seed: on threads where the analytic rasteriser draws
+    it, else with persistent pyrender workers."""
     from renderers.render import render_clips
     from renderers.scenario import load_scenario
 

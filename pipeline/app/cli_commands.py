@@ -143,7 +143,8 @@ def render_cmd(
     frames: Annotated[int | None, typer.Option(help="Override the scenario's frame count.")] = None,
     seed: Annotated[int | None, typer.Option(help="Override the scenario's seed.")] = None,
     fmt: Annotated[str, typer.Option("--format", help="mp4 (videos) or png (lossless frame folders).")] = "mp4",
-    workers: Annotated[int, typer.Option(help="1 renders the cameras in turn; 2 in two processes.")] = 2,
+    workers: Annotated[int, typer.Option(help="1 renders the cameras in turn; 2 both at once (threads for the analytic "
+                                              "rasteriser, processes for pyrender).")] = 2,
 ) -> None:
     """Render a scenario into a stereo clip folder with exact ground truth and calib.yaml."""
     from renderers.render import render_clip

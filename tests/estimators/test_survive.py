@@ -336,7 +336,11 @@ def test_one_camera_step_sideways_moves_no_depth(layout):
         assert jump["spsa_stereo"] <= max(jump["ekf"], 0.02), (layout, cam, jump)
 
 
-def test_target_filters_gate_a_corrupted_frame(target_clip, tmp_path):
+@pytest.mark.parametrize("which", ["target_clip", pytest.param("target_clip_analytic", marks=pytest.mark.xfail(
+    strict=True, reason="kalman_bucy coasts through the three gated frames on its model and its α RMSE grows by "
+    "the same 0.0003 rad on both renders (0.000659 to 0.000985 rad here, 0.00123 to 0.00152 on pyrender's): 1.49x the "
+    "analytic render's smaller clean error, against 1.24x pyrender's; issue #38"))])
+def test_target_filters_gate_a_corrupted_frame(which, request, tmp_path):
     """Three frames of the four-point target with one camera's points 1 and 3 moved 40 px apart
     (a mis-detected plate: its foreshortening, hence α and z, is wrong by ~0.2 rad; kalman_bucy's
     own α uncertainty is ~0.05 rad, so its gate catches only errors this gross): with the gate on,
@@ -345,6 +349,7 @@ def test_target_filters_gate_a_corrupted_frame(target_clip, tmp_path):
     from detectors.stage import detect_clip
     from pipeline.estimate import estimate_clip
 
+    target_clip = request.getfixturevalue(which)
     det = detect_clip(target_clip, RunSettings(detector="blob"), out_dir=tmp_path / "clean")
     obs = {k: v.copy() for k, v in det.observations.items()}
     dirty = {k: v.copy() for k, v in obs.items()}
@@ -462,7 +467,13 @@ def test_a_3d_filter_with_one_camera_says_it_only_predicted(method):
 
 
 @pytest.mark.slow
-def test_a_rendered_clip_a_second_and_a_half_late(tmp_path):
+@pytest.mark.parametrize("rasteriser", ["pyrender", pytest.param("analytic", marks=pytest.mark.xfail(
+    strict=True, reason="the offset is found as well (within 0.0002 frame), but the EKF and UKF run 65 mm RMSE against "
+    "triangulation's 19 mm: at frames 158 and 166 they update the red marker from both cameras with a joint NIS of 170 "
+    "and 798 on 4 degrees of freedom, each camera within its own gate, and drift up to 0.42 m until a restart at frame "
+    "174; on pyrender's render of the clip the first such pair was gated by one camera's own gate. The "
+    "EKF has no joint check (ekf_imm has); issue #38"))])
+def test_a_rendered_clip_a_second_and_a_half_late(rasteriser, tmp_path):
     """#39 (sync) and #38 item 2, rendered: the right camera 1.5 s (45 frames) late, no
     timestamps.csv. The offset is found from the detections to within 0.05 frame and applied; every
     filter then sees the right camera's detections re-timed to the left camera's instants (the
@@ -474,6 +485,7 @@ def test_a_rendered_clip_a_second_and_a_half_late(tmp_path):
 
     d = load_scenario("sync_offset").model_dump(mode="json")
     d["rig"]["sync_offset_s"], d["frames"] = 1.5, 200  # the search reaches a quarter of the clip: 50 frames
+    d["render"]["rasteriser"] = rasteriser
     render_clip(parse_scenario(d), tmp_path / "clip", fmt="png", workers=1)
     (tmp_path / "clip" / "timestamps.csv").unlink()  # the offset must come from the detections
     detect_clip(tmp_path / "clip")

@@ -573,7 +573,7 @@ SIGNAL_CASES = {
                          "triangulation,ekf", "--no-images"], lambda t: t / "out"),
     "run": (lambda t: ["run", str(shutil.copytree(SAMPLE, t / "clip")), "--methods", "triangulation,ekf"],
             lambda t: t / "clip" / "out"),
-    "render-batch": (lambda t: ["render-batch", "default", "--seeds", "0..2", "--frames", "60", "-o", str(t / "rb"),
+    "render-batch": (lambda t: ["render-batch", "default", "--seeds", "0..2", "--frames", "600", "-o", str(t / "rb"),
                                 "--workers", "2"], lambda t: t / "rb"),
 }
 

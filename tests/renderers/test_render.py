@@ -91,9 +91,10 @@ def test_render_is_deterministic(png_clip, tmp_path):
 
 
 def test_no_gl_backend_is_one_clear_line(tmp_path):
+    """A scene only pyrender draws (lit shading) without EGL: one line saying how to get it."""
     env = {**os.environ, "PYOPENGL_PLATFORM": "egl", "__EGL_VENDOR_LIBRARY_FILENAMES": str(tmp_path / "none.json")}
     proc = subprocess.run(
-        [sys.executable, "-m", "pipeline.app.cli", "render", "receding", "-o", str(tmp_path / "c"), "--frames", "2"],
+        [sys.executable, "-m", "pipeline.app.cli", "render", "skin_wall", "-o", str(tmp_path / "c"), "--frames", "2"],
         capture_output=True, text=True, env=env, timeout=120,
     )
     assert proc.returncode == 2
