@@ -39,7 +39,7 @@ class RenderResult:
     cameras: tuple[str, ...] = ("left", "right")
 
 
-def _staging_dir(clip_dir: Path) -> Path:
+def staging_dir(clip_dir: Path) -> Path:
     """The name of a fresh hidden folder beside ``clip_dir`` for one attempt at rendering it
     (stale ones of killed attempts are removed); the caller makes it."""
     import uuid
@@ -72,7 +72,7 @@ def _is_our_description(path: Path) -> bool:
     return isinstance(info, dict) and {"fps", "frames", "markers"} <= info.keys()
 
 
-def _check_ours(clip_dir: Path) -> None:
+def check_ours(clip_dir: Path) -> None:
     """Refuse, before any work, a folder that is neither new, empty nor a clip stereotrack rendered."""
     check_replaceable(clip_dir, RENDERED_MARK, "clip")
     info = clip_dir / CLIP_INFO
@@ -186,7 +186,7 @@ def perturbed_rig(rig: StereoRig, err: CalibrationErrorSpec, seed: int) -> Stere
     return StereoRig(Camera(K1, D=D1), Camera(K2, R, -R @ C, D2), rig.image_size)
 
 
-def _finish_clip(scenario: Scenario, staging: Path, clip_dir: Path, fmt: Format,
+def finish_clip(scenario: Scenario, staging: Path, clip_dir: Path, fmt: Format,
                  counts: list[np.ndarray | None], truth: Truth | None = None) -> RenderResult:
     """Write the truth (``truth``, or simulated again) and calibration of a clip whose frames are
     all in ``staging``, commit it, and warn about its notes."""

@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from pipeline.core.errors import StereotrackError
-from renderers.clipfiles import RIG_FILE, RenderResult, _check_ours, _finish_clip, _staging_dir
+from renderers.clipfiles import RIG_FILE, RenderResult, check_ours, finish_clip, staging_dir
 from renderers.motion import Truth, simulate_truth
 from renderers.scenario import Scenario
 from renderers.truth import frame_times
@@ -177,12 +177,12 @@ def render_clips(
 
     dirs = [Path(d) for _, d in jobs]
     for d in dirs:  # before any work: a folder stereotrack did not render is never replaced
-        _check_ours(d)
+        check_ours(d)
         ensure_dir(d.parent)
     stagings: list[Path] = []
     try:  # an interrupt while the staging folders are being made leaves none of them behind
         for d in dirs:
-            stagings.append(_staging_dir(d))  # named first, made after: the cleanup below sees each
+            stagings.append(staging_dir(d))  # named first, made after: the cleanup below sees each
             stagings[-1].mkdir(parents=True)
         if workers <= 1:
             return _render_here(jobs, stagings, dirs, fmt, progress)
@@ -217,7 +217,7 @@ def _render_here(jobs: Sequence[tuple[Scenario, str | Path]], stagings: list[Pat
 
                 counts.append(render_camera(scen, c, stagings[j], fmt, tick, renderer, truth))
             done += scen.frames
-            results.append(_finish_clip(scen, stagings[j], dirs[j], fmt, counts, truth))
+            results.append(finish_clip(scen, stagings[j], dirs[j], fmt, counts, truth))
     finally:
         if renderer is not None:
             renderer.delete()
@@ -258,7 +258,7 @@ def _render_threads(jobs: Sequence[tuple[Scenario, str | Path]], stagings: list[
                     counts[j][c] = f.result()
                     cams_done[j] += 1
                     if cams_done[j] == jobs[j][0].rig.n_cameras:
-                        results[j] = _finish_clip(jobs[j][0], stagings[j], dirs[j], fmt, counts[j], truths[j])
+                        results[j] = finish_clip(jobs[j][0], stagings[j], dirs[j], fmt, counts[j], truths[j])
                 if progress is not None:
                     progress(int(sum(k / jobs[jc[0]][0].rig.n_cameras for jc, k in list(frames_done.items()))), total)
         except BaseException:
@@ -303,7 +303,7 @@ def _render_pool(jobs: Sequence[tuple[Scenario, str | Path]], stagings: list[Pat
                 frames_done[(j, c)] = jobs[j][0].frames
                 cams_done[j] += 1
                 if cams_done[j] == jobs[j][0].rig.n_cameras:
-                    results[j] = _finish_clip(jobs[j][0], stagings[j], dirs[j], fmt, counts[j])
+                    results[j] = finish_clip(jobs[j][0], stagings[j], dirs[j], fmt, counts[j])
             if progress is not None:
                 progress(int(sum(k / jobs[jc[0]][0].rig.n_cameras for jc, k in frames_done.items())), total)
     except BaseException:
