@@ -31,9 +31,13 @@ _GAMMAINCINV: dict[float, tuple[float, ...]] = {  # q → P⁻¹(dof/2, q) for d
         10.9600246305106, 11.66833207932267,
     ),
 }
-_CHDTRI: dict[float, tuple[float, ...]] = {  # gate → the upper 1 − gate quantile of χ² for dof = 1, 2, 3
+_CHDTRI: dict[float, tuple[float, ...]] = {  # gate → the upper 1 − gate quantile of χ² for dof = 1, 2, 3 (…)
     0.9995: (12.11566514639738, 15.201804919084385, 17.72999622894616),
     0.9999: (15.136705226623606, 18.420680743952584, 21.107513466160444),
+    1 - 1e-6: (  # the joint check's, dof 1–8 (up to four cameras)
+        23.92812697687947, 27.631021115871036, 30.66484970615427, 33.37684158165888, 35.88818687961042,
+        38.25833637714585, 40.52183123411472, 42.70091392647789,
+    ),
 }
 
 

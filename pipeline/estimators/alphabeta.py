@@ -140,6 +140,18 @@ class AlphaBetaEstimator(Estimator):
             kept[2 * c : 2 * c + 2] = np.nan
         return kept, int(g.sum())
 
+    def _point(self, y: np.ndarray) -> np.ndarray:
+        """The 3-D measurement of a frame: its triangulation; with one camera kept, the point of
+        that camera's ray nearest the prediction, to first order ``x + J⁺ (y_c − h_c(x))`` with
+        ``J⁺ = Jᵀ (J Jᵀ)⁻¹`` (the correction moves the track across the ray, never along it)."""
+        assert self.f is not None
+        rows = np.flatnonzero(np.isfinite(y))
+        if len(rows) != 2:
+            return self.model.inverse_function(y[None])[0]
+        h, H = self.model.linearize(np.r_[self.f.x, np.zeros(3)])
+        J = H[rows, :3]
+        return self.f.x + J.T @ np.linalg.solve(J @ J.T, y[rows] - h[rows])
+
     def _step(self, y: np.ndarray) -> Step:
         cfg = self.config
         image = cfg.space == "image"
@@ -165,11 +177,11 @@ class AlphaBetaEstimator(Estimator):
                 self.gated_run, self.drift_run, restarted = 0, 0, True
                 have = True
             else:
-                z = kept if image else self.model.inverse_function(kept[None])[0]
+                z = kept if image else self._point(kept)
                 self.f.correct(z)
-                self._correct_covariance(z)
-                # in 3-D space one camera kept triangulates nothing: the frame only predicted
-                have = bool(np.isfinite(z).any()) if image else bool(np.all(np.isfinite(z)))
+                if image or np.isfinite(kept).sum() != 2:  # one camera's ray leaves the depth's error as predicted
+                    self._correct_covariance(z)
+                have = bool(np.isfinite(z).any())
         extra = {"gated": float(n_gated), "restart": float(restarted)}
         f = self.f
         assert f is not None  # started above, or earlier

@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.core.chi2 import chi2_upper
 from pipeline.estimators.base import (
     Estimator,
     Start,
@@ -34,6 +35,7 @@ from pipeline.estimators.base import (
     use_compiled,
     white_noise_acceleration,
 )
+from pipeline.estimators.gating import JOINT_GATE
 from pipeline.estimators.kalman_common import (
     GatedFilter,
     KalmanConfig,
@@ -52,6 +54,7 @@ class EKFEstimator(GatedFilter, Estimator):
 
     name = "ekf"
     any_cameras = True
+    joint_check = True
     Config = KalmanConfig
     config: KalmanConfig  # the validated settings, of this method's own type
     models_time_offset = True
@@ -178,8 +181,9 @@ class EKFEstimator(GatedFilter, Estimator):
         """What the compiled core takes of the filter (an ``EKFModel`` of ``kernels``): both cameras'
         3 × 4 matrices, the time offset, the noises and the gate's threshold (inf: no gate)."""
         threshold = self.gate_threshold() if self.config.gate > 0 else np.inf
+        joint = chi2_upper(4, JOINT_GATE) if self.joint_check and np.isfinite(threshold) else np.inf
         return kernels.EKFModel(np.stack([c.P for c in self.rig.cameras]), self.model.time_offset, self.dt, self.Q,
-                                self.R, threshold, self.config.restart_after)
+                                self.R, threshold, self.config.restart_after, joint)
 
     def run_batch(self, Y: np.ndarray) -> np.ndarray:
         """The filter over M tracks (M × frames × 4 → M × frames × 3): the starts found for all

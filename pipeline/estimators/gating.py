@@ -106,9 +106,14 @@ def camera_nis(model: StereoMeasurementModel, x: np.ndarray, P: np.ndarray, Y: n
     if np.ndim(Y) == 1:
         return camera_nis_of(S, Y - h)
     with np.errstate(invalid="ignore"):
-        r = Y - h
-    n = np.shape(Y)[-1] // 2
-    out = np.full((*np.shape(Y)[:-1], n), np.nan)
+        return block_nis(S, Y - h)
+
+
+def block_nis(S: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Each camera's ``rᵀ S_c⁻¹ r`` over its 2×2 block of ``S`` (…×2N×2N), in closed form, for
+    innovations ``r`` (…×2N) → …×N (NaN where a camera has no observation)."""
+    n = np.shape(r)[-1] // 2
+    out = np.full((*np.shape(r)[:-1], n), np.nan)
     for c in range(n):
         i = 2 * c
         a, b, d = S[..., i, i], S[..., i, i + 1], S[..., i + 1, i + 1]
@@ -157,3 +162,54 @@ def reprojection_errors(rig: StereoRig | Rig, positions: np.ndarray, Y: np.ndarr
         out = np.sqrt(np.nansum(r**2, axis=1) / np.maximum(n, 1))
     out[n == 0] = np.nan
     return out
+
+
+#: the probability of the joint check (:func:`joint_gate`): a pair of cameras that each passed its
+#: own gate is split only when together they are a one-in-a-million event under the prediction
+#: (the stricter the second test, the fewer cameras it drops from a marker that truly manoeuvres)
+JOINT_GATE = 1 - 1e-6
+
+
+def joint_gate(y: np.ndarray, h: np.ndarray, S: np.ndarray, gate: float) -> tuple[np.ndarray, int]:
+    """(``y`` with cameras dropped, how many) until the cameras kept pass the χ² gate together
+    (2·kept degrees of freedom), dropping the one whose own NIS is largest each time. Each camera
+    may lie within its own gate while the pair is improbable: a look-alike in one camera shifts
+    the disparity, which the prediction's depth uncertainty correlates across the cameras."""
+    dropped = 0
+    while True:
+        rows = np.flatnonzero(np.isfinite(y))
+        if len(rows) <= 2:
+            return y, dropped
+        r, Sk = y[rows] - h[rows], S[np.ix_(rows, rows)]
+        if float(r @ np.linalg.solve(Sk, r)) <= chi2_upper(len(rows), gate):
+            return y, dropped
+        with np.errstate(invalid="ignore"):
+            worst = int(np.nanargmax(camera_nis_of(S, y - h)))  # the largest own NIS among the cameras kept
+        y = y.copy()
+        y[2 * worst : 2 * worst + 2] = np.nan
+        dropped += 1
+
+
+def joint_gate_batch(Y: np.ndarray, h: np.ndarray, S: np.ndarray, gate: float = JOINT_GATE) -> np.ndarray:
+    """:func:`joint_gate` of M tracks at once (``Y``, ``h`` M×2N, ``S`` M×2N×2N): ``Y`` with the
+    cameras dropped. The rows a track lacks are set apart (zero residual, unit variance), so each
+    track's NIS is over the rows it has."""
+    Y = Y.copy()
+    while True:
+        ok = np.isfinite(Y)
+        n = ok.sum(axis=1)
+        idx = np.flatnonzero(n > 2)
+        if not len(idx):
+            return Y
+        both = ok[idx, :, None] & ok[idx, None, :]
+        Sk = np.where(both, S[idx], np.eye(Y.shape[1]))
+        r = np.where(ok[idx], Y[idx] - h[idx], 0.0)
+        nis = np.einsum("mi,mi->m", r, np.linalg.solve(Sk, r[..., None])[..., 0])
+        limit = np.array([chi2_upper(int(d), gate) for d in n[idx]])
+        bad = idx[nis > limit]
+        if not len(bad):
+            return Y
+        with np.errstate(invalid="ignore"):
+            worst = np.nanargmax(block_nis(S[bad], Y[bad] - h[bad]), axis=1)
+        for m, c in zip(bad, worst, strict=True):
+            Y[m, 2 * c : 2 * c + 2] = np.nan

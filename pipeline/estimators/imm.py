@@ -13,8 +13,8 @@ probability ``switch_probability`` per frame (``Π = [[1−p, p], [p, 1−p]]``)
     x = Σⱼ μⱼ xⱼ,  P = Σⱼ μⱼ [Pⱼ + (xⱼ − x)(xⱼ − x)ᵀ]                          (11.6.6-16, -17)
 
 One frame's cameras are gated once, against the mixture's prediction (``Σⱼ c̄ⱼ A x⁰ⱼ``), and both
-models update from the cameras kept, so the gate and the restarts are the EKF's; then the cameras
-kept are checked together (:func:`joint_gate`): a look-alike blob within one camera's own gate
+models update from the cameras kept, so the gate, its joint check of the cameras kept
+(:func:`~pipeline.estimators.gating.joint_gate`) and the restarts are the EKF's: a look-alike blob within one camera's own gate
 still moves the triangulated depth far more than the marker can, and an update from it hands the
 manoeuvre model the likelihood, whose wider gates then keep the look-alike (on the rendered
 ``lookalike`` clip the IMM ran 3.9 m off without the check). With ``manoeuvre_q_scale = 1`` the
@@ -26,10 +26,8 @@ from __future__ import annotations
 import numpy as np
 from pydantic import Field
 
-from pipeline.core.chi2 import chi2_upper
 from pipeline.estimators.base import Estimator, Step, Track, not_started, white_noise_acceleration
 from pipeline.estimators.ekf import EKFEstimator
-from pipeline.estimators.gating import camera_nis_of
 from pipeline.estimators.kalman_common import KalmanConfig, available_rows, filtered_step, gated_step
 from pipeline.estimators.registration import register
 
@@ -82,8 +80,6 @@ class IMMEstimator(EKFEstimator):
             if restart is not None:
                 self._restart(restart.state, restart.covariance)
                 return gated_step(self._imm_step(filtered_step(self._x, self._P, False)), n_gated, True)
-            y, n_joint = joint_gate(y, h_all, S_all, JOINT_GATE)
-            n_gated += n_joint
         rows = available_rows(y)
         if not len(rows):
             self._xs, self._Ps, self.mu, self._x, self._P = xs, Ps, c, x, P
@@ -131,32 +127,6 @@ class IMMEstimator(EKFEstimator):
 
     def run_batch(self, Y: np.ndarray) -> np.ndarray:
         return Estimator.run_batch(self, Y)
-
-
-#: the probability of the joint check (:func:`joint_gate`): a pair of cameras that each passed its
-#: own gate is split only when together they are a one-in-a-million event under the prediction
-#: (the stricter the second test, the fewer cameras it drops from a marker that truly manoeuvres)
-JOINT_GATE = 1 - 1e-6
-
-
-def joint_gate(y: np.ndarray, h: np.ndarray, S: np.ndarray, gate: float) -> tuple[np.ndarray, int]:
-    """(``y`` with cameras dropped, how many) until the cameras kept pass the χ² gate together
-    (2·kept degrees of freedom), dropping the one whose own NIS is largest each time. Each camera
-    may lie within its own gate while the pair is improbable: a look-alike in one camera shifts
-    the disparity, which the prediction's depth uncertainty correlates across the cameras."""
-    dropped = 0
-    while True:
-        rows = available_rows(y)
-        if len(rows) <= 2:
-            return y, dropped
-        r, Sk = y[rows] - h[rows], S[np.ix_(rows, rows)]
-        if float(r @ np.linalg.solve(Sk, r)) <= chi2_upper(len(rows), gate):
-            return y, dropped
-        with np.errstate(invalid="ignore"):
-            worst = int(np.nanargmax(camera_nis_of(S, y - h)))  # the largest own NIS among the cameras kept
-        y = y.copy()
-        y[2 * worst : 2 * worst + 2] = np.nan
-        dropped += 1
 
 
 def _combine(w: np.ndarray, xs: list[np.ndarray], Ps: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:

@@ -13,7 +13,7 @@ from pydantic import Field
 from pipeline.core.camera import StereoMeasurementModel
 from pipeline.core.chi2 import chi2_upper
 from pipeline.estimators.base import Estimator, EstimatorConfig, Start, Step, Track, transition, use_compiled
-from pipeline.estimators.gating import camera_gate, gated_cameras, reprojection_errors
+from pipeline.estimators.gating import JOINT_GATE, camera_gate, gated_cameras, joint_gate, joint_gate_batch, reprojection_errors
 
 
 class KalmanConfig(EstimatorConfig):
@@ -63,7 +63,7 @@ def joseph_update(x: np.ndarray, P: np.ndarray, H: np.ndarray, r: np.ndarray, R:
     return x, IKH @ P @ IKH.transpose(0, 2, 1) + K @ R @ K.transpose(0, 2, 1)
 
 
-#: (positions M×3, observations M×4) → (H M×m×6, residual M×m, R M×m×m, has-measurement M)
+#: (states M×6, observations M×2N) → (H M×m×6, residual M×m, R M×m×m, has-measurement M)
 Linearize = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]
 
 
@@ -73,6 +73,8 @@ class GatedFilter(Estimator):
     :meth:`step`, :meth:`run`, :func:`kalman_batch` — gates identically."""
 
     config: KalmanConfig  # the host estimator's settings
+    #: whether the cameras each gate keeps are then checked together (:func:`~pipeline.estimators.gating.joint_gate`)
+    joint_check: bool = False
     #: the host's state transition and process noise (set by its ``reset``)
     A: np.ndarray
     Q: np.ndarray
@@ -93,13 +95,19 @@ class GatedFilter(Estimator):
         after ``restart_after`` frames in a row with a camera gated, the track restarts from this
         frame's detections (when they triangulate plausibly). ``h``, ``H``, ``S``: the model at
         ``x`` and the innovation covariance under the gate's noise, when the caller has them."""
+        if self.joint_check and S is None:
+            h, H = self.model.linearize(x)
+            S = H @ P @ H.T + self.gate_covariance()
         g = gated_cameras(self.model, x, P, y, self.gate_threshold(), self.gate_covariance(), h, H, S)
-        gated = bool(g.any())
         kept = y
-        if gated:
+        if g.any():
             kept = y.copy()
             for c in np.flatnonzero(g):
                 kept[2 * c : 2 * c + 2] = np.nan
+        if self.joint_check and np.isfinite(self.gate_threshold()):
+            kept, _ = joint_gate(kept, h, S, JOINT_GATE)
+            g = np.isfinite(y).reshape(-1, 2).all(axis=1) & ~np.isfinite(kept).reshape(-1, 2).all(axis=1)
+        gated = bool(g.any())
         seen = np.isfinite(y).reshape(-1, 2).any(axis=1).tolist()  # per camera; one track: plain Python
         had = gated or any(seen)
         self.gated_run = self.gated_run + 1 if gated else (0 if had else self.gated_run)
@@ -200,7 +208,7 @@ def kalman_batch(est: GatedFilter, Y: np.ndarray, linearize: Linearize) -> np.nd
             run_gated[idx], unseen[idx], returning[idx] = after_gap(run_gated[idx], unseen[idx], returning[idx], had,
                                                                    gated, est.config.restart_after)
             fresh = _restart_batch(est, idx, k, Y, run_gated, x, P, gated)
-            H, r, R, have = linearize(x[idx, :3], Yk)
+            H, r, R, have = linearize(x[idx], Yk)
             have &= ~fresh
             u = idx[have]
             if len(u):
@@ -211,10 +219,18 @@ def kalman_batch(est: GatedFilter, Y: np.ndarray, linearize: Linearize) -> np.nd
 
 def _gate_batch(est: GatedFilter, x: np.ndarray, P: np.ndarray, Yk: np.ndarray, threshold: float,
                 R: np.ndarray) -> np.ndarray:
-    g = gated_cameras(est.model, x, P, Yk, threshold, R)
+    """The cameras of M tracks as :meth:`GatedFilter.gate` keeps them (each on its own, then,
+    where the filter asks for it, together)."""
+    h = H = S = None
+    if est.joint_check:
+        h, H = est.model.function(x), est.model.jacobian(x)
+        S = H @ P @ H.transpose(0, 2, 1) + R
+    g = gated_cameras(est.model, x, P, Yk, threshold, R, h, H, S)
     Yk = Yk.copy()
-    for c in range(2):
+    for c in range(g.shape[1]):
         Yk[g[:, c], 2 * c : 2 * c + 2] = np.nan
+    if est.joint_check and np.isfinite(threshold):
+        Yk = joint_gate_batch(Yk, h, S)
     return Yk
 
 

@@ -18,6 +18,7 @@ class UKFEstimator(GatedFilter, Estimator):
     """Unscented Kalman filter on the stereo (or N-camera) reprojection (white-noise acceleration)."""
 
     name = "ukf"
+    joint_check = True
     any_cameras = True
     Config = KalmanConfig
     config: KalmanConfig  # the validated settings, of this method's own type

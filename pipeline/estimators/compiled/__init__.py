@@ -95,7 +95,7 @@ def warm_up(*names: str) -> None:
 
 def _warm_ekf() -> None:
     n, I6 = 3, np.eye(6)
-    model = EKFModel(np.ones((2, 3, 4)), 0.0, 0.1, I6, np.eye(4), np.inf, 8)
+    model = EKFModel(np.ones((2, 3, 4)), 0.0, 0.1, I6, np.eye(4), np.inf, 8, np.inf)
     ekf_frames(np.full((n, 4), np.nan), 1, 0, model, new_track(np.zeros(6), I6.copy()), new_output(n))
 
 

@@ -19,8 +19,9 @@ from .linalg import Workspace, ekf_predict, inv_small, joseph_inlined, joseph_up
 
 #: the model a track is filtered with: both cameras' 3 × 4 matrices ``Pm`` (2 × 3 × 4), the time
 #: offset δ, the frame step, the process and pixel noise ``Q`` (6 × 6) and ``R`` (4 × 4), the gate's
-#: threshold on a camera's NIS (inf: no gate) and the gated run after which a restart is asked for
-EKFModel = namedtuple("EKFModel", ["Pm", "delta", "dt", "Q", "R", "threshold", "restart_after"])
+#: threshold on a camera's NIS (inf: no gate), the gated run after which a restart is asked for, and
+#: the joint check's threshold on both cameras' NIS together (inf: none; ``gating.joint_gate``)
+EKFModel = namedtuple("EKFModel", ["Pm", "delta", "dt", "Q", "R", "threshold", "restart_after", "joint"])
 #: a track's state: ``x`` (6), ``P`` (6 × 6), its :data:`GATE` record, and the prediction kept while
 #: a restart is asked for (``scratch_x``, ``scratch_P``)
 EKFTrack = namedtuple("EKFTrack", ["x", "P", "gate", "scratch_x", "scratch_P"])
@@ -127,8 +128,27 @@ def _gate(y, model, track, h, H, r, kept, ws, nz):
             kept[2 * c], kept[2 * c + 1] = np.nan, np.nan
             g.camera[c] = 1
             n_gated += 1
+    if n_gated == 0 and model.joint < np.inf and _joint_nis(S, r, ws) > model.joint:  # each within its gate, not both
+        c = 0 if camera_nis2(S, r, 0) >= camera_nis2(S, r, 1) else 1
+        kept[2 * c], kept[2 * c + 1] = np.nan, np.nan
+        g.camera[c] = 1
+        n_gated = 1
     _count_gated(g, y, n_gated > 0, model.restart_after)
     return n_gated
+
+
+@kernel(inline=True)
+def _joint_nis(S, r, ws):
+    """``rᵀ S⁻¹ r`` over both cameras (4 rows; 0 unless both observed: the check is of a pair)."""
+    for i in range(4):
+        if not math.isfinite(r[i]):
+            return 0.0
+    inv_small(S, 4, ws.Si, ws.work)
+    acc = 0.0
+    for i in range(4):
+        for j in range(4):
+            acc += r[i] * ws.Si[i, j] * r[j]
+    return acc
 
 
 @kernel
