@@ -224,6 +224,36 @@ def _render_here(jobs: Sequence[tuple[Scenario, str | Path]], stagings: list[Pat
     return results
 
 
+class _Clips:
+    """The clips of a multi-clip render and their cameras' progress: a clip is finished (its files
+    written and committed) once all its cameras are. Shared by the thread and the process paths."""
+
+    def __init__(self, jobs: Sequence[tuple[Scenario, str | Path]], stagings: list[Path], dirs: list[Path],
+                 fmt: Format, truths: list[Truth] | None = None) -> None:
+        self.jobs, self.stagings, self.dirs, self.fmt = jobs, stagings, dirs, fmt
+        self.truths: list[Truth | None] = list(truths) if truths is not None else [None] * len(jobs)
+        self.counts: list[list] = [[None] * scen.rig.n_cameras for scen, _ in jobs]
+        self.cams_done = [0] * len(jobs)
+        self.results: list[RenderResult | None] = [None] * len(jobs)
+        self.frames_done: dict[tuple[int, int], int] = {}
+        self.total = sum(s.frames for s, _ in jobs)
+
+    def camera_done(self, j: int, c: int, count: np.ndarray | None) -> None:
+        scen = self.jobs[j][0]
+        self.counts[j][c], self.frames_done[(j, c)] = count, scen.frames
+        self.cams_done[j] += 1
+        if self.cams_done[j] == scen.rig.n_cameras:
+            self.results[j] = finish_clip(scen, self.stagings[j], self.dirs[j], self.fmt, self.counts[j], self.truths[j])
+
+    def report(self, progress: Callable[[int, int], None] | None) -> None:
+        if progress is not None:
+            done = sum(k / self.jobs[j][0].rig.n_cameras for (j, _), k in list(self.frames_done.items()))
+            progress(int(done), self.total)
+
+    def finished(self) -> list[RenderResult]:
+        return [r for r in self.results if r is not None]
+
+
 def _render_threads(jobs: Sequence[tuple[Scenario, str | Path]], stagings: list[Path], dirs: list[Path],
                     fmt: Format, workers: int, progress: Callable[[int, int], None] | None) -> list[RenderResult]:
     """Every camera of every clip (all drawn by the analytic rasteriser) on ``workers`` threads of
@@ -232,21 +262,16 @@ def _render_threads(jobs: Sequence[tuple[Scenario, str | Path]], stagings: list[
     import concurrent.futures as cf
 
     stop = threading.Event()
-    frames_done: dict[tuple[int, int], int] = {}
-    truths = [simulate_truth(scen) for scen, _ in jobs]
+    clips = _Clips(jobs, stagings, dirs, fmt, [simulate_truth(scen) for scen, _ in jobs])
 
     def one(j: int, c: int) -> np.ndarray | None:
         def tick(k: int) -> None:
             if stop.is_set():
                 raise InterruptedError
-            frames_done[(j, c)] = k + 1
+            clips.frames_done[(j, c)] = k + 1
 
-        return render_camera(jobs[j][0], c, stagings[j], fmt, tick, None, truths[j])
+        return render_camera(jobs[j][0], c, stagings[j], fmt, tick, None, clips.truths[j])
 
-    counts: list[list] = [[None] * scen.rig.n_cameras for scen, _ in jobs]
-    cams_done = [0] * len(jobs)
-    results: list[RenderResult | None] = [None] * len(jobs)
-    total = sum(s.frames for s, _ in jobs)
     with cf.ThreadPoolExecutor(max_workers=workers, thread_name_prefix="render") as pool:
         futs = {pool.submit(one, j, c): (j, c) for j, (scen, _) in enumerate(jobs) for c in range(scen.rig.n_cameras)}
         try:
@@ -254,17 +279,12 @@ def _render_threads(jobs: Sequence[tuple[Scenario, str | Path]], stagings: list[
             while pending:
                 finished, pending = cf.wait(pending, timeout=0.2, return_when=cf.FIRST_COMPLETED)
                 for f in finished:
-                    j, c = futs[f]
-                    counts[j][c] = f.result()
-                    cams_done[j] += 1
-                    if cams_done[j] == jobs[j][0].rig.n_cameras:
-                        results[j] = finish_clip(jobs[j][0], stagings[j], dirs[j], fmt, counts[j], truths[j])
-                if progress is not None:
-                    progress(int(sum(k / jobs[jc[0]][0].rig.n_cameras for jc, k in list(frames_done.items()))), total)
+                    clips.camera_done(*futs[f], f.result())
+                clips.report(progress)
         except BaseException:
             stop.set()
             raise
-    return [r for r in results if r is not None]
+    return clips.finished()
 
 
 def _render_pool(jobs: Sequence[tuple[Scenario, str | Path]], stagings: list[Path], dirs: list[Path], fmt: Format,
@@ -275,15 +295,11 @@ def _render_pool(jobs: Sequence[tuple[Scenario, str | Path]], stagings: list[Pat
 
     from pipeline.core.lifeline import child_environment, end_pool, signals_deferred
 
-    total = sum(s.frames for s, _ in jobs)
     ctx = mp.get_context("spawn")
     q: mp.Queue = ctx.Queue()
     pool = cf.ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
                                   initargs=(os.getpid(), q))
-    frames_done: dict[tuple[int, int], int] = {}
-    counts: list[list] = [[None] * scen.rig.n_cameras for scen, _ in jobs]
-    cams_done = [0] * len(jobs)
-    results: list[RenderResult | None] = [None] * len(jobs)
+    clips = _Clips(jobs, stagings, dirs, fmt)
     try:
         with signals_deferred(), child_environment({"LP_NUM_THREADS": "1"}):  # submitting spawns the workers
             futs = {pool.submit(_render_job, scen.model_dump_json(), c, str(stagings[j]), fmt, j): (j, c)
@@ -291,26 +307,22 @@ def _render_pool(jobs: Sequence[tuple[Scenario, str | Path]], stagings: list[Pat
         pending = set(futs)
         while pending:
             finished, pending = cf.wait(pending, timeout=0.2, return_when=cf.FIRST_COMPLETED)
-            _drain(q, frames_done)
+            _drain(q, clips.frames_done)
             for f in finished:
                 j, c = futs[f]
                 try:
-                    counts[j][c] = f.result()
+                    count = f.result()
                 except cf.process.BrokenProcessPool:
                     cam = jobs[j][0].rig.camera_names()[c]
                     raise StereotrackError(f"the render worker for the {cam} camera of {dirs[j]} died "
                                            "(killed, or out of memory)") from None
-                frames_done[(j, c)] = jobs[j][0].frames
-                cams_done[j] += 1
-                if cams_done[j] == jobs[j][0].rig.n_cameras:
-                    results[j] = finish_clip(jobs[j][0], stagings[j], dirs[j], fmt, counts[j])
-            if progress is not None:
-                progress(int(sum(k / jobs[jc[0]][0].rig.n_cameras for jc, k in frames_done.items())), total)
+                clips.camera_done(j, c, count)
+            clips.report(progress)
     except BaseException:
         end_pool(pool)
         raise
     pool.shutdown()
-    return [r for r in results if r is not None]  # every clip finished (a failure raised above)
+    return clips.finished()  # every clip finished (a failure raised above)
 
 
 def _drain(q: mp.Queue, frames_done: dict[tuple[int, int], int]) -> None:
