@@ -208,21 +208,46 @@ def test_the_joint_check_keeps_a_lookalike_from_the_filters(method):
     assert np.median(with_check) <= 1.01 * np.median(without), (np.median(with_check), np.median(without))
 
 
-@pytest.mark.slow
-def test_the_rendered_lookalike_clip_as_a_user_runs_it(tmp_path):
-    """The ``lookalike`` scenario as the failure was found (90 frames, PNG), rendered, detected and
-    estimated at the defaults (σ estimated): the IMM no further off than the EKF. Without the joint
-    check it ran 3.9 m off after the red cube crossed the marker (RMSE 979 mm against the EKF's
-    49 mm). Not held out: the check was set on it."""
+@pytest.fixture(scope="module")
+def lookalike_clip(tmp_path_factory):
+    """The ``lookalike`` scenario as the failure was found (90 frames, PNG), rendered and detected."""
     from detectors.stage import detect_clip
-    from pipeline.core.settings import RunSettings
-    from pipeline.estimate import estimate_clip
     from renderers.render import render_clip
     from renderers.scenario import load_scenario
 
-    clip = tmp_path / "lookalike"
+    clip = tmp_path_factory.mktemp("lookalike") / "lookalike"
     render_clip(load_scenario("lookalike").with_overrides(frames=90), clip, fmt="png", workers=1)
     detect_clip(clip)
-    res = estimate_clip(clip, RunSettings(methods=["ekf", "ekf_imm"]))
-    got = {m: res.metrics["methods"][m]["rmse"] for m in ("ekf", "ekf_imm")}
+    return clip
+
+
+def _lookalike_rmse(clip, methods: list[str], gate: bool, out) -> dict[str, float]:
+    """Each method's 3-D RMSE on the clip, estimated at the defaults (σ estimated), gates on or off."""
+    from pipeline.core.settings import RunSettings
+    from pipeline.estimate import estimate_clip
+
+    configs = {} if gate else {m: {"gate": 0.0} for m in methods}
+    res = estimate_clip(clip, RunSettings(methods=methods, configs=configs), out_dir=out, in_dir=clip / "out")
+    return {m: res.metrics["methods"][m]["rmse"] for m in methods}
+
+
+@pytest.mark.slow
+def test_the_rendered_lookalike_clip_as_a_user_runs_it(lookalike_clip, tmp_path):
+    """Estimated at the defaults (σ estimated): the IMM no further off than the EKF. Without the
+    joint check it ran 3.9 m off after the red cube crossed the marker (RMSE 979 mm against the
+    EKF's 49 mm). Not held out: the check was set on it."""
+    got = _lookalike_rmse(lookalike_clip, ["ekf", "ekf_imm"], True, tmp_path)
     assert got["ekf_imm"] <= got["ekf"], got
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("method", ["kf3d", "kf3d_rts", "alphabetagamma", pytest.param("alphabeta", marks=pytest.mark.xfail(
+    strict=True, reason="38.6 mm gated against 36.2 ungated: both cameras sit on the static look-alike for five frames "
+    "and agree, and the robust NIS scale, which counts gated innovations too, has widened the gate; issue #38"))])
+def test_on_the_rendered_lookalike_clip_the_3d_filters_gated_are_no_worse_than_ungated(method, lookalike_clip, tmp_path):
+    """#38 (item 5): kf3d and the 3-D alpha-betas gated are no further off than ungated. Before
+    the joint check and the update from one kept camera, kf3d coasted eight frames on a velocity
+    the merging blobs had corrupted: 58.5 mm gated against 47.6 ungated (now 22.9)."""
+    gated = _lookalike_rmse(lookalike_clip, [method], True, tmp_path / "gated")[method]
+    ungated = _lookalike_rmse(lookalike_clip, [method], False, tmp_path / "ungated")[method]
+    assert gated <= ungated, (gated, ungated)
