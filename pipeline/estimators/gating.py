@@ -177,11 +177,15 @@ def joint_gate(y: np.ndarray, h: np.ndarray, S: np.ndarray, gate: float) -> tupl
     the disparity, which the prediction's depth uncertainty correlates across the cameras."""
     dropped = 0
     while True:
-        rows = np.flatnonzero(np.isfinite(y))
-        if len(rows) <= 2:
-            return y, dropped
-        r, Sk = y[rows] - h[rows], S[np.ix_(rows, rows)]
-        if float(r @ np.linalg.solve(Sk, r)) <= chi2_upper(len(rows), gate):
+        ok = np.isfinite(y)
+        if ok.all():  # the common case, without the copies of fancy indexing
+            r, Sk = y - h, S
+        else:
+            rows = np.flatnonzero(ok)
+            if len(rows) <= 2:
+                return y, dropped
+            r, Sk = y[rows] - h[rows], S[np.ix_(rows, rows)]
+        if float(r @ np.linalg.solve(Sk, r)) <= chi2_upper(len(r), gate):
             return y, dropped
         with np.errstate(invalid="ignore"):
             worst = int(np.nanargmax(camera_nis_of(S, y - h)))  # the largest own NIS among the cameras kept

@@ -104,9 +104,10 @@ class GatedFilter(Estimator):
             kept = y.copy()
             for c in np.flatnonzero(g):
                 kept[2 * c : 2 * c + 2] = np.nan
-        if self.joint_check and np.isfinite(self.gate_threshold()):
-            kept, _ = joint_gate(kept, h, S, JOINT_GATE)
-            g = np.isfinite(y).reshape(-1, 2).all(axis=1) & ~np.isfinite(kept).reshape(-1, 2).all(axis=1)
+        if self.joint_check and self.config.gate > 0:
+            kept, dropped = joint_gate(kept, h, S, JOINT_GATE)
+            if dropped:
+                g = np.isfinite(y).reshape(-1, 2).all(axis=1) & ~np.isfinite(kept).reshape(-1, 2).all(axis=1)
         gated = bool(g.any())
         seen = np.isfinite(y).reshape(-1, 2).any(axis=1).tolist()  # per camera; one track: plain Python
         had = gated or any(seen)

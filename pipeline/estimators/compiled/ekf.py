@@ -98,8 +98,10 @@ def ekf_frames(Y, k0, resume, model, track, out):
         if m == 0:
             _ekf_output(k, x, P, out, True)
             continue
-        have_S = gate_on and m == 4 and not resumed  # the gate's h, H, P Hᵀ and S are this update's
-        if not have_S:
+        have_S = 0  # the gate's h, H, P Hᵀ and S (and the joint check's S⁻¹) are this update's
+        if gate_on and m == 4 and not resumed:
+            have_S = 2 if model.joint < np.inf else 1
+        if have_S == 0:
             stereo_linearize(model.Pm, model.delta, x, h, H)
         _gather_rows(rows, m, H, kept, h, model.R, Hs, rs, Rs)
         out.nis[k] = _update(x, P, Hs, rs, Rs, m, nz, ws, have_S)
@@ -139,7 +141,8 @@ def _gate(y, model, track, h, H, r, kept, ws, nz):
 
 @kernel(inline=True)
 def _joint_nis(S, r, ws):
-    """``rᵀ S⁻¹ r`` over both cameras (4 rows; 0 unless both observed: the check is of a pair)."""
+    """``rᵀ S⁻¹ r`` over both cameras (4 rows; 0 unless both observed: the check is of a pair),
+    leaving ``S⁻¹`` in ``ws.Si`` for the update."""
     for i in range(4):
         if not math.isfinite(r[i]):
             return 0.0

@@ -108,16 +108,17 @@ def _joseph(x, P, Hs, rs, Rs, m, nz, ws, have_S):
     mirrored: a covariance is symmetric). Only the first ``nz`` columns of ``H`` are nonzero (3
     without a time offset: the velocity does not enter ``h``), and the products skip the zeros (sums
     of the same nonzero terms in the same order as the full products). ``ws``: the scratch
-    :class:`Workspace`; ``have_S``: ``ws.PHt`` and ``ws.S`` hold ``P Hᵀ`` and ``S`` already (the
-    gate's, for four rows)."""
+    :class:`Workspace`; ``have_S``: 0, or 1 when ``ws.PHt`` and ``ws.S`` hold ``P Hᵀ`` and ``S``
+    already (the gate's, for four rows), 2 when ``ws.Si`` holds ``S⁻¹`` too (the joint check's)."""
     PHt, S, Si, K, IKH, T6, KR = ws.PHt, ws.S, ws.Si, ws.K, ws.IKH, ws.T6, ws.KR
-    if not have_S:
+    if have_S == 0:
         mm(P, Hs, PHt, 6, nz, m, True)
         mm(Hs, PHt, S, m, nz, m, False)
         for i in range(m):
             for j in range(m):
                 S[i, j] += Rs[i, j]
-    inv_small(S, m, Si, ws.work)
+    if have_S < 2:
+        inv_small(S, m, Si, ws.work)
     mm(PHt, Si, K, 6, m, m, False)
     mm(K, Hs, IKH, 6, m, nz, False)  # columns ≥ nz of I − KH are the identity's
     for i in range(6):
