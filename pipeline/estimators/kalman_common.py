@@ -95,7 +95,7 @@ class GatedFilter(Estimator):
         after ``restart_after`` frames in a row with a camera gated, the track restarts from this
         frame's detections (when they triangulate plausibly). ``h``, ``H``, ``S``: the model at
         ``x`` and the innovation covariance under the gate's noise, when the caller has them."""
-        if self.joint_check and S is None:
+        if self.joint_check and (h is None or S is None):
             h, H = self.model.linearize(x)
             S = H @ P @ H.T + self.gate_covariance()
         g = gated_cameras(self.model, x, P, y, self.gate_threshold(), self.gate_covariance(), h, H, S)
@@ -105,6 +105,7 @@ class GatedFilter(Estimator):
             for c in np.flatnonzero(g):
                 kept[2 * c : 2 * c + 2] = np.nan
         if self.joint_check and self.config.gate > 0:
+            assert h is not None and S is not None  # computed above when not given
             kept, dropped = joint_gate(kept, h, S, JOINT_GATE)
             if dropped:
                 g = np.isfinite(y).reshape(-1, 2).all(axis=1) & ~np.isfinite(kept).reshape(-1, 2).all(axis=1)
@@ -230,7 +231,7 @@ def _gate_batch(est: GatedFilter, x: np.ndarray, P: np.ndarray, Yk: np.ndarray, 
     Yk = Yk.copy()
     for c in range(g.shape[1]):
         Yk[g[:, c], 2 * c : 2 * c + 2] = np.nan
-    if est.joint_check and np.isfinite(threshold):
+    if h is not None and S is not None and np.isfinite(threshold):  # the filter asks for the joint check
         Yk = joint_gate_batch(Yk, h, S)
     return Yk
 
