@@ -46,6 +46,7 @@ class IMMEstimator(EKFEstimator):
     """IMM of two EKFs (smooth and manoeuvring motion); run when --methods names it."""
 
     name = "ekf_imm"
+    joint_check_cameras = 99  # any rig: without the check its manoeuvre model keeps a look-alike
     default = False
     Config = IMMConfig
     config: IMMConfig

@@ -73,11 +73,17 @@ class GatedFilter(Estimator):
     :meth:`step`, :meth:`run`, :func:`kalman_batch` — gates identically."""
 
     config: KalmanConfig  # the host estimator's settings
-    #: whether the cameras each gate keeps are then checked together (:func:`~pipeline.estimators.gating.joint_gate`)
-    joint_check: bool = False
+    #: the most cameras a rig may have for the cameras each gate keeps to be checked together
+    #: (:func:`~pipeline.estimators.gating.joint_gate`; 0: never)
+    joint_check_cameras: int = 0
     #: the host's state transition and process noise (set by its ``reset``)
     A: np.ndarray
     Q: np.ndarray
+
+    @property
+    def joint_check(self) -> bool:
+        """Whether this filter checks the cameras kept together on its rig."""
+        return self.rig.n <= self.joint_check_cameras
 
     def gate_threshold(self) -> float:
         cfg = self.config
