@@ -14,8 +14,9 @@ probability ``switch_probability`` per frame (``Π = [[1−p, p], [p, 1−p]]``)
 
 One frame's cameras are gated once, against the mixture's prediction (``Σⱼ c̄ⱼ A x⁰ⱼ``), and both
 models update from the cameras kept, so the gate, its joint check of the cameras kept
-(:func:`~pipeline.estimators.gating.joint_gate`) and the restarts are the EKF's: a look-alike blob within one camera's own gate
-still moves the triangulated depth far more than the marker can, and an update from it hands the
+(:func:`~pipeline.estimators.gating.joint_gate`, on any rig here) and the restarts are the EKF's:
+a look-alike blob within one camera's own gate still moves the triangulated depth far more than
+the marker can, and an update from it hands the
 manoeuvre model the likelihood, whose wider gates then keep the look-alike (on the rendered
 ``lookalike`` clip the IMM ran 3.9 m off without the check). With ``manoeuvre_q_scale = 1`` the
 two models are one EKF and so is the result wherever the joint check keeps every camera (tested).

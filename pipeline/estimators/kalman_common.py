@@ -99,8 +99,8 @@ class GatedFilter(Estimator):
              H: np.ndarray | None = None, S: np.ndarray | None = None) -> tuple[np.ndarray, int, Start | None]:
         """(the observation with gated cameras missing, how many were gated, a restart or None):
         each camera on its own, then (``joint_check``) the cameras kept together; a camera the joint
-        check drops counts as gated. After ``restart_after`` frames in a row with a camera gated, the track restarts from this
-        frame's detections (when they triangulate plausibly). ``h``, ``H``, ``S``: the model at
+        check drops counts as gated. After ``restart_after`` frames in a row with a camera gated,
+        the track restarts from this frame's detections (when they triangulate plausibly). ``h``, ``H``, ``S``: the model at
         ``x`` and the innovation covariance under the gate's noise, when the caller has them."""
         if self.joint_check and (h is None or S is None):
             h, H = self.model.linearize(x)
