@@ -16,6 +16,7 @@ from pipeline.core.calibration import save_calibration
 from pipeline.core.camera import StereoRig
 from pipeline.core.clip import CLIP_INFO, TIMESTAMPS
 from pipeline.core.errors import StereotrackError
+from pipeline.core.interrupts import raise_if_interrupted
 from pipeline.core.io import check_replaceable, write_json, write_text
 from pipeline.core.outputs import OUT
 from pipeline.core.rig import Rig
@@ -97,6 +98,7 @@ def _commit(staging: Path, clip_dir: Path) -> None:
     """Move a complete render into ``clip_dir``. A new folder is one rename; over an existing clip
     the old rendered files go first, calib.yaml first of all, and the new calib.yaml comes last,
     so an interrupted commit leaves a folder that is recognisably no clip (no calibration)."""
+    raise_if_interrupted()  # nothing is committed once a signal came
     if not clip_dir.exists():
         staging.rename(clip_dir)
         return

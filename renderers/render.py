@@ -293,7 +293,8 @@ def _render_pool(jobs: Sequence[tuple[Scenario, str | Path]], stagings: list[Pat
     thread each, a user's own LP_NUM_THREADS aside); a clip is finished when both its cameras are."""
     import concurrent.futures as cf
 
-    from pipeline.core.lifeline import child_environment, end_pool, signals_deferred
+    from pipeline.core.interrupts import signals_deferred
+    from pipeline.core.lifeline import child_environment, end_pool
 
     ctx = mp.get_context("spawn")
     q: mp.Queue = ctx.Queue()

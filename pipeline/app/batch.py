@@ -24,6 +24,7 @@ from typing import Any
 from pipeline.app.manifest import verify_manifest, write_manifest
 from pipeline.core.calibration import has_calibration
 from pipeline.core.errors import StereotrackError, first_line
+from pipeline.core.interrupts import raise_if_interrupted
 from pipeline.core.io import check_replaceable, ensure_dir, write_json
 from pipeline.core.lifeline import OutputLock, die_with_parent, ignore_sigint, still_parented
 from pipeline.core.outputs import DETECT_INFO, ESTIMATES, FIGURES, MANIFEST, OUT, Outputs, partial_folder
@@ -153,6 +154,7 @@ def _swap_in(partial: Path, final: Path) -> None:
     aside first, then deleted), so ``final`` is at every moment either the old or the new output."""
     import uuid
 
+    raise_if_interrupted()  # nothing is committed once a signal came
     old = None
     if final.exists():
         old = final.with_name(f".{final.name}.old-{uuid.uuid4().hex[:12]}")
@@ -316,7 +318,8 @@ def _run_local(todo: list[Path], keys: dict[Path, str], out_root: Path, job: Bat
     when the batch is interrupted (Ctrl-C, SIGTERM) instead of finishing their clips."""
     from concurrent.futures.process import BrokenProcessPool
 
-    from pipeline.core.lifeline import child_environment, end_pool, signals_deferred
+    from pipeline.core.interrupts import signals_deferred
+    from pipeline.core.lifeline import child_environment, end_pool
 
     ctx = mp.get_context("spawn")
     stages = ctx.Queue() if on_stage is not None else None

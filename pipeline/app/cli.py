@@ -41,7 +41,8 @@ def main() -> None:
     import os
 
     from pipeline.core import allocator
-    from pipeline.core.lifeline import install_signal_handlers, one_blas_thread, received_signal
+    from pipeline.core.interrupts import install_signal_handlers
+    from pipeline.core.lifeline import one_blas_thread
 
     one_blas_thread()  # before numpy loads: the estimators' matrices are tiny (see CHILD_THREADS)
     allocator.tune()  # frames churn through the allocator: keep their pages (see the module)
@@ -55,19 +56,22 @@ def main() -> None:
     try:
         app()
     except StereotrackError as exc:
+        _interrupted_if_signalled()  # an error that followed a signal is the signal's
         _error(str(exc))
         sys.exit(2)
     except OSError as exc:  # an output path that cannot be written, a disk that filled up
+        _interrupted_if_signalled()
         where = f"{exc.filename}: " if exc.filename else ""
         _error(where + str(exc.strerror or exc))
         sys.exit(2)
     except KeyboardInterrupt:
         _interrupted()
     except SystemExit as exc:
-        if exc.code == 130 and received_signal() is not None:  # typer turns KeyboardInterrupt into Exit(130)
-            _interrupted()
+        if exc.code in (0, None, 130):  # typer turns KeyboardInterrupt into Exit(130); a signal whose
+            _interrupted_if_signalled()  # interrupt a library swallowed ends the command here at the latest
         raise
     except Exception as exc:  # a bug, not a bad input: still one line, the traceback on request
+        _interrupted_if_signalled()
         if os.environ.get("STEREOTRACK_DEBUG"):
             raise
         import traceback
@@ -76,13 +80,22 @@ def main() -> None:
         _error(f"internal error: {type(exc).__name__}: {first_line(exc) if str(exc).strip() else ''} "
                f"({Path(last.filename).name}:{last.lineno}); rerun with STEREOTRACK_DEBUG=1 for the traceback")
         sys.exit(1)
+    else:
+        _interrupted_if_signalled()
+
+
+def _interrupted_if_signalled() -> None:
+    from pipeline.core.interrupts import received_signal
+
+    if received_signal() is not None:
+        _interrupted()
 
 
 def _interrupted() -> None:
     import os
     import signal
 
-    from pipeline.core.lifeline import received_signal
+    from pipeline.core.interrupts import received_signal
 
     sig = received_signal() or signal.SIGINT
     console.print(f"[bold red]interrupted[/] ({signal.Signals(sig).name}): stopped; nothing half-written was kept",

@@ -12,6 +12,8 @@ from rich.progress import (
 )
 from rich.text import Text
 
+from pipeline.core.interrupts import raise_if_interrupted
+
 
 class RemainingColumn(TimeRemainingColumn):
     """Time remaining, except for a task whose units take unequal times (``eta=False`` among its
@@ -37,6 +39,16 @@ class CountColumn(MofNCompleteColumn):
 class StageProgress(Progress):
     """A progress display that leaves no bar behind when its stage fails: the error line follows
     the command directly, not a frozen ``0/?`` bar above it."""
+
+    def update(self, *args, **kwargs) -> None:
+        """Update a task; a signal whose interrupt was lost stops the command here (see
+        :func:`~pipeline.core.interrupts.raise_if_interrupted`)."""
+        raise_if_interrupted()
+        super().update(*args, **kwargs)
+
+    def advance(self, *args, **kwargs) -> None:
+        raise_if_interrupted()
+        super().advance(*args, **kwargs)
 
     def __exit__(self, exc_type, exc, tb) -> None:
         if exc_type is None:

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.core.errors import StereotrackError, first_line
+from pipeline.core.interrupts import raise_if_interrupted
 
 
 @contextlib.contextmanager
@@ -29,6 +30,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     try:  # made inside: an interrupt as the temporary file is made leaves it behind no more
         tmp_path = partial_beside(Path(path))
         yield tmp_path
+        raise_if_interrupted()  # nothing is committed once a signal came
         os.replace(tmp_path, path)
     except OSError as exc:  # a full disk, a read-only one: named by the file it was writing
         if tmp_path is not None:

@@ -1,4 +1,4 @@
-"""Processes that die with their parent, and one writer per output folder.
+"""Processes that die with their parent, and one writer per output folder (signals: :mod:`pipeline.core.interrupts`).
 
 * :func:`die_with_parent` — called first thing in every child process stereotrack starts (batch
   pool workers, render workers): a daemon thread polls the parent's PID and ends the child with
@@ -90,59 +90,6 @@ def terminate_with_parent() -> None:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # 1 = PR_SET_PDEATHSIG
     except (OSError, AttributeError):
         pass
-
-
-_received: int | None = None  # the signal that ended the command
-_deferring = 0
-_pending: int | None = None
-
-
-def install_signal_handlers() -> None:
-    """SIGINT and SIGTERM raise KeyboardInterrupt in the main thread, so that every lock, temporary
-    file and worker is released on the way out (a command's entry point calls this once)."""
-    import signal
-
-    for s in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(s, _on_signal)
-
-
-def received_signal() -> int | None:
-    """The signal that interrupted this command, if one did."""
-    return _received
-
-
-def _on_signal(signum: int, frame: object) -> None:
-    global _received, _pending
-    _received = signum
-    if _deferring:
-        _pending = signum
-        return
-    _interrupt()
-
-
-def _interrupt() -> None:
-    """Raise KeyboardInterrupt once: a second signal during the clean-up is ignored."""
-    import signal
-
-    for s in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(s, signal.SIG_IGN)
-    raise KeyboardInterrupt
-
-
-@contextlib.contextmanager
-def signals_deferred():
-    """Hold SIGINT/SIGTERM while starting worker processes: an interrupt in the middle of handing a
-    spawned child its start-up data would leave it to die with a traceback of its own. The signal
-    takes effect (KeyboardInterrupt) as the block ends."""
-    global _deferring, _pending
-    _deferring += 1
-    try:
-        yield
-    finally:
-        _deferring -= 1
-        if not _deferring and _pending is not None:
-            _pending = None
-            _interrupt()
 
 
 def end_pool(pool) -> None:

@@ -28,6 +28,7 @@ import numpy as np
 
 from pipeline.core.camera import StereoRig
 from pipeline.core.errors import StereotrackError
+from pipeline.core.interrupts import raise_if_interrupted
 from pipeline.core.io import partial_beside
 from pipeline.core.rig import Rig
 from pipeline.evaluation.identity import switches_of
@@ -379,6 +380,7 @@ class Recorder:
                                    self.path)
         self.rec.disconnect()
         _check_reads_back(self.tmp, self.path)
+        raise_if_interrupted()  # nothing is committed once a signal came
         os.replace(self.tmp, self.path)
         return self.path
 

@@ -610,6 +610,35 @@ def test_signal_ends_cleanly(command, sig, tmp_path):
     assert not (out / ".stereotrack.lock").exists()
 
 
+LOST_INTERRUPT = """
+import signal, sys
+import pipeline.core.interrupts as interrupts
+import renderers.motion, renderers.render
+truth = renderers.motion.simulate_truth
+def lost(scenario):  # the handler ran, and its KeyboardInterrupt was swallowed inside a library
+    interrupts._received = signal.SIGTERM
+    return truth(scenario)
+renderers.render.simulate_truth = lost
+sys.argv = ["stereotrack", *sys.argv[1:]]
+from pipeline.app.cli import main
+main()
+"""
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_signal_whose_interrupt_a_library_swallowed_still_ends_the_command(workers, tmp_path):
+    """A KeyboardInterrupt raised inside a C extension's import can be lost (numpy.random, loaded
+    lazily, swallowed 2 of 200 signals sent as it loaded; a render-batch then rendered every clip
+    and exited 0): the command still stops at its next commit or progress tick, commits nothing."""
+    out = tmp_path / "rb"
+    res = subprocess.run([sys.executable, "-c", LOST_INTERRUPT, "render-batch", "default", "--seeds", "0..2",
+                          "--frames", "30", "-o", str(out), "--workers", str(workers)],
+                         capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert res.returncode == 128 + signal.SIGTERM, res.stderr
+    assert "interrupted (SIGTERM): stopped; nothing half-written was kept" in res.stderr
+    assert not [p for p in out.rglob("*") if p.is_file()], list(out.rglob("*"))
+
+
 # ---------------------------------------------------------------------------------------------
 # 8. Edge clips
 # ---------------------------------------------------------------------------------------------
