@@ -54,7 +54,7 @@ class EKFEstimator(GatedFilter, Estimator):
 
     name = "ekf"
     any_cameras = True
-    joint_check_cameras = 2  # a stereo pair: see the docs on more cameras
+    joint_check = True
     Config = KalmanConfig
     config: KalmanConfig  # the validated settings, of this method's own type
     models_time_offset = True

@@ -7,12 +7,16 @@ from __future__ import annotations
 import math
 import statistics
 from collections import deque
+from dataclasses import dataclass
 
 import numpy as np
 
 from pipeline.core.camera import StereoMeasurementModel, StereoRig
 from pipeline.core.chi2 import chi2_upper
 from pipeline.core.rig import Rig
+
+#: the smallest detection noise (px) the robust gates assume (see :class:`RobustNISScale`)
+GATE_FLOOR_PX = 1.0
 
 
 def plausible_residual(sigma: float, gate: float) -> float:
@@ -24,15 +28,23 @@ def plausible_residual(sigma: float, gate: float) -> float:
 
 
 def stereo_consistent(model: StereoMeasurementModel, y: np.ndarray, sigma: float, gate: float) -> bool:
-    """Whether both cameras' detections of one frame are one point: they triangulate in front of
-    both cameras with a reprojection residual within the χ² gate of a noise of ``sigma`` px (at
-    least :data:`GATE_FLOOR_PX`). A wrong blob in one camera is off the other's epipolar line; two
-    detections far from a fixed-gain filter's prediction that agree are its lag (or a real jump,
-    which a restart would follow anyway), not an outlier its gate can tell."""
+    """Whether both cameras' detections of one frame are one point (:func:`views_consistent` with
+    both present). A wrong blob in one camera is off the other's epipolar line; two detections far
+    from a fixed-gain filter's prediction that agree are its lag (or a real jump, which a restart
+    would follow anyway), not an outlier its gate can tell."""
+    return bool(np.isfinite(y).all()) and views_consistent(model, y, sigma, gate)
+
+
+def views_consistent(model: StereoMeasurementModel, y: np.ndarray, sigma: float, gate: float,
+                     floor: float = GATE_FLOOR_PX) -> bool:
+    """Whether the k ≥ 2 cameras that observe ``y`` see one point: its triangulation lies in front
+    of them and reprojects within the χ² gate (2k − 3 degrees of freedom, probability ``gate``) of
+    a noise of ``sigma`` px, at least ``floor`` (any residual with gating off, ``gate`` 0)."""
     y = np.asarray(y, dtype=float)[None]
-    if not np.isfinite(y).all():
+    k = int(np.isfinite(y).reshape(-1, 2).all(axis=1).sum())
+    if k < 2:
         return False
-    limit = plausible_residual(max(sigma, GATE_FLOOR_PX), gate)
+    limit = max(sigma, floor) ** 2 * chi2_upper(2 * k - 3, gate) if gate > 0 else float("inf")
     return bool(plausible_triangulation(model, model.inverse_function(y), y, limit)[0])
 
 
@@ -59,8 +71,6 @@ def camera_gate(gate: float) -> float:
 
 
 LN4 = math.log(4.0)  # the median of χ²₂
-#: the smallest detection noise (px) the robust gates assume (see :class:`RobustNISScale`)
-GATE_FLOOR_PX = 1.0
 
 
 class RobustNISScale:
@@ -170,11 +180,43 @@ def reprojection_errors(rig: StereoRig | Rig, positions: np.ndarray, Y: np.ndarr
 JOINT_GATE = 1 - 1e-6
 
 
-def joint_gate(y: np.ndarray, h: np.ndarray, S: np.ndarray, gate: float) -> tuple[np.ndarray, int]:
+@dataclass(frozen=True)
+class ViewCheck:
+    """What the joint check asks of three cameras or more, from their detections alone (at the
+    filter's own noise ``sigma`` and gate probability): see :meth:`odd_one`."""
+
+    model: StereoMeasurementModel
+    sigma: float
+    gate: float
+
+    def agree(self, y: np.ndarray) -> bool:
+        """Whether the cameras of ``y`` see one point (:func:`views_consistent`, no floor)."""
+        return views_consistent(self.model, y, self.sigma, self.gate, floor=0.0)
+
+    def odd_one(self, y: np.ndarray) -> int | None:
+        """The camera to drop from ``y``: the one without which the others reproject best, if they
+        then agree; None when all agree (the prediction is what is off), or when no one camera's
+        absence makes the others agree (blobs merged in several views: which is wrong cannot be
+        told, and all are kept, as without the check)."""
+        if self.agree(y):
+            return None
+        cams = np.flatnonzero(np.isfinite(y).reshape(-1, 2).all(axis=1))
+        Z = np.repeat(np.asarray(y, dtype=float)[None], len(cams), axis=0)
+        for i, c in enumerate(cams):
+            Z[i, 2 * c : 2 * c + 2] = np.nan
+        best = int(np.argmin(reprojection_residual(self.model, self.model.inverse_function(Z), Z)))
+        return int(cams[best]) if self.agree(Z[best]) else None
+
+
+def joint_gate(y: np.ndarray, h: np.ndarray, S: np.ndarray, gate: float, views: ViewCheck | None = None
+               ) -> tuple[np.ndarray, int]:
     """(``y`` with cameras dropped, how many) until the cameras kept pass the χ² gate together
     (2·kept degrees of freedom), dropping the one whose own NIS is largest each time. Each camera
     may lie within its own gate while the pair is improbable: a look-alike in one camera shifts
-    the disparity, which the prediction's depth uncertainty correlates across the cameras."""
+    the disparity, which the prediction's depth uncertainty correlates across the cameras. With
+    three cameras or more (``views``) their detections decide which camera goes
+    (:meth:`ViewCheck.odd_one`): by the largest own NIS, merged blobs in two views of a ring of
+    four had the good cameras dropped and pulled the filters off (EKF 1.12 → 1.77 mm)."""
     dropped = 0
     while True:
         ok = np.isfinite(y)
@@ -187,22 +229,34 @@ def joint_gate(y: np.ndarray, h: np.ndarray, S: np.ndarray, gate: float) -> tupl
             r, Sk = y[rows] - h[rows], S[np.ix_(rows, rows)]
         if float(r @ np.linalg.solve(Sk, r)) <= chi2_upper(len(r), gate):
             return y, dropped
-        with np.errstate(invalid="ignore"):
-            worst = int(np.nanargmax(camera_nis_of(S, y - h)))  # the largest own NIS among the cameras kept
+        worst = _odd_one(y, h, S, views)
+        if worst is None:
+            return y, dropped
         y = y.copy()
         y[2 * worst : 2 * worst + 2] = np.nan
         dropped += 1
 
 
-def joint_gate_batch(Y: np.ndarray, h: np.ndarray, S: np.ndarray, gate: float = JOINT_GATE) -> np.ndarray:
+def _odd_one(y: np.ndarray, h: np.ndarray, S: np.ndarray, views: ViewCheck | None) -> int | None:
+    """The camera a failed joint check drops (None: none): by the detections with three cameras
+    or more (``views``), else the one whose own NIS is largest."""
+    if views is not None and np.isfinite(y).sum() >= 6:
+        return views.odd_one(y)
+    with np.errstate(invalid="ignore"):
+        return int(np.nanargmax(camera_nis_of(S, y - h)))
+
+
+def joint_gate_batch(Y: np.ndarray, h: np.ndarray, S: np.ndarray, gate: float = JOINT_GATE,
+                     views: ViewCheck | None = None) -> np.ndarray:
     """:func:`joint_gate` of M tracks at once (``Y``, ``h`` M×2N, ``S`` M×2N×2N): ``Y`` with the
     cameras dropped. The rows a track lacks are set apart (zero residual, unit variance), so each
     track's NIS is over the rows it has."""
     Y = Y.copy()
+    kept = np.zeros(len(Y), dtype=bool)  # cameras that agree: as they are
     while True:
         ok = np.isfinite(Y)
         n = ok.sum(axis=1)
-        idx = np.flatnonzero(n > 2)
+        idx = np.flatnonzero((n > 2) & ~kept)
         if not len(idx):
             return Y
         both = ok[idx, :, None] & ok[idx, None, :]
@@ -213,7 +267,12 @@ def joint_gate_batch(Y: np.ndarray, h: np.ndarray, S: np.ndarray, gate: float = 
         bad = idx[nis > limit]
         if not len(bad):
             return Y
-        with np.errstate(invalid="ignore"):
-            worst = np.nanargmax(block_nis(S[bad], Y[bad] - h[bad]), axis=1)
+        if views is not None:
+            odd = [_odd_one(Y[m], h[m], S[m], views) for m in bad]
+            kept[bad] = [c is None for c in odd]
+            bad, worst = bad[~kept[bad]], np.array([c for c in odd if c is not None], dtype=int)
+        else:
+            with np.errstate(invalid="ignore"):
+                worst = np.nanargmax(block_nis(S[bad], Y[bad] - h[bad]), axis=1)
         for m, c in zip(bad, worst, strict=True):
             Y[m, 2 * c : 2 * c + 2] = np.nan

@@ -14,7 +14,7 @@ probability ``switch_probability`` per frame (``Π = [[1−p, p], [p, 1−p]]``)
 
 One frame's cameras are gated once, against the mixture's prediction (``Σⱼ c̄ⱼ A x⁰ⱼ``), and both
 models update from the cameras kept, so the gate, its joint check of the cameras kept
-(:func:`~pipeline.estimators.gating.joint_gate`, on any rig here) and the restarts are the EKF's:
+(:func:`~pipeline.estimators.gating.joint_gate`) and the restarts are the EKF's:
 a look-alike blob within one camera's own gate still moves the triangulated depth far more than
 the marker can, and an update from it hands the
 manoeuvre model the likelihood, whose wider gates then keep the look-alike (on the rendered
@@ -47,7 +47,7 @@ class IMMEstimator(EKFEstimator):
     """IMM of two EKFs (smooth and manoeuvring motion); run when --methods names it."""
 
     name = "ekf_imm"
-    joint_check_cameras = 99  # any rig: without the check its manoeuvre model keeps a look-alike
+    joint_check = True  # without it the manoeuvre model keeps a look-alike
     default = False
     Config = IMMConfig
     config: IMMConfig

@@ -13,7 +13,15 @@ from pydantic import Field
 from pipeline.core.camera import StereoMeasurementModel
 from pipeline.core.chi2 import chi2_upper
 from pipeline.estimators.base import Estimator, EstimatorConfig, Start, Step, Track, transition, use_compiled
-from pipeline.estimators.gating import JOINT_GATE, camera_gate, gated_cameras, joint_gate, joint_gate_batch, reprojection_errors
+from pipeline.estimators.gating import (
+    JOINT_GATE,
+    ViewCheck,
+    camera_gate,
+    gated_cameras,
+    joint_gate,
+    joint_gate_batch,
+    reprojection_errors,
+)
 
 
 class KalmanConfig(EstimatorConfig):
@@ -73,17 +81,17 @@ class GatedFilter(Estimator):
     :meth:`step`, :meth:`run`, :func:`kalman_batch` — gates identically."""
 
     config: KalmanConfig  # the host estimator's settings
-    #: the most cameras a rig may have for the cameras each gate keeps to be checked together
-    #: (:func:`~pipeline.estimators.gating.joint_gate`; 0: never)
-    joint_check_cameras: int = 0
+    #: whether the cameras each gate keeps are checked together
+    #: (:func:`~pipeline.estimators.gating.joint_gate`)
+    joint_check: bool = False
     #: the host's state transition and process noise (set by its ``reset``)
     A: np.ndarray
     Q: np.ndarray
 
-    @property
-    def joint_check(self) -> bool:
-        """Whether this filter checks the cameras kept together on its rig."""
-        return self.rig.n <= self.joint_check_cameras
+    def view_check(self) -> ViewCheck | None:
+        """What the joint check asks of three cameras or more (None on a stereo pair, where a
+        look-alike on the epipolar line makes one point too)."""
+        return ViewCheck(self.model, self.model.pixel_sigma, self.config.gate) if self.rig.n >= 3 else None
 
     def gate_threshold(self) -> float:
         cfg = self.config
@@ -113,7 +121,7 @@ class GatedFilter(Estimator):
                 kept[2 * c : 2 * c + 2] = np.nan
         if self.joint_check and self.config.gate > 0:
             assert h is not None and S is not None  # computed above when not given
-            kept, dropped = joint_gate(kept, h, S, JOINT_GATE)
+            kept, dropped = joint_gate(kept, h, S, JOINT_GATE, self.view_check())
             if dropped:
                 g = np.isfinite(y).reshape(-1, 2).all(axis=1) & ~np.isfinite(kept).reshape(-1, 2).all(axis=1)
         gated = bool(g.any())
@@ -239,7 +247,7 @@ def _gate_batch(est: GatedFilter, x: np.ndarray, P: np.ndarray, Yk: np.ndarray, 
     for c in range(g.shape[1]):
         Yk[g[:, c], 2 * c : 2 * c + 2] = np.nan
     if h is not None and S is not None and np.isfinite(threshold):  # the filter asks for the joint check
-        Yk = joint_gate_batch(Yk, h, S)
+        Yk = joint_gate_batch(Yk, h, S, views=est.view_check())
     return Yk
 
 

@@ -48,7 +48,7 @@ class KF3DEstimator(GatedFilter, Estimator):
 
     name = "kf3d"
     any_cameras = True
-    joint_check_cameras = 2  # a stereo pair: see the docs on more cameras
+    joint_check = True
     Config = KF3DConfig
     config: KF3DConfig  # the validated settings, of this method's own type
 

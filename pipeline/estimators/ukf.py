@@ -18,7 +18,7 @@ class UKFEstimator(GatedFilter, Estimator):
     """Unscented Kalman filter on the stereo (or N-camera) reprojection (white-noise acceleration)."""
 
     name = "ukf"
-    joint_check_cameras = 2  # a stereo pair: see the docs on more cameras
+    joint_check = True
     any_cameras = True
     Config = KalmanConfig
     config: KalmanConfig  # the validated settings, of this method's own type

@@ -209,3 +209,35 @@ def test_triangulation_names_the_camera_it_drops():
     dropped = extra["dropped:cam1"] > 0
     assert (dropped & bad).sum() >= 0.95 * bad.sum() and (dropped & ~bad).sum() <= 3
     assert all(np.nansum(extra[f"dropped:{n}"]) <= 3 for n in rig.names if n != "cam1")
+
+
+def test_the_joint_check_over_n_cameras_drops_only_an_odd_one_out():
+    """With three cameras or more a failed joint check asks the detections which camera goes
+    (:class:`~pipeline.estimators.gating.ViewCheck`): none when they agree on one point (the
+    prediction is what is off), the one without which the others agree, and none when no single
+    camera's absence makes them agree (merged blobs in two views) — not the one of largest NIS."""
+    from pipeline.core.camera import StereoMeasurementModel
+    from pipeline.estimators.gating import ViewCheck, joint_gate
+
+    rig = ring_rig(5)
+    model = StereoMeasurementModel(rig, pixel_sigma=0.1)
+    views = ViewCheck(model, 0.1, 0.9995)
+    X = np.array([0.05, -0.02, 2.0])
+    y = rig.project(X[None])[0] + np.random.default_rng(0).normal(0, 0.1, 2 * rig.n)
+    assert views.odd_one(y) is None
+    one = y.copy()
+    one[4:6] += (3.0, -2.0)  # camera 2 sees another blob
+    assert views.odd_one(one) == 2
+    two = one.copy()
+    two[8:10] += (-2.5, 2.0)  # and camera 4 too
+    assert views.odd_one(two) is None
+    # a prediction 1 cm off with a tight covariance: every camera fails together, none is dropped
+    h, H = model.linearize(np.r_[X + 0.01, np.zeros(3)])
+    S = H @ np.diag([1e-6] * 3 + [1e-4] * 3) @ H.T + 0.01 * np.eye(2 * rig.n)
+    kept, dropped = joint_gate(y, h, S, 1 - 1e-6, views)
+    assert dropped == 0 and np.array_equal(kept, y)
+    kept, dropped = joint_gate(one, rig.project(X[None])[0], 0.02 * np.eye(2 * rig.n), 1 - 1e-6, views)
+    assert dropped == 1 and np.isnan(kept[4:6]).all() and np.isfinite(np.delete(kept, [4, 5])).all()
+    # without the detections' say, the largest own NIS goes: here the prediction's error decides
+    kept, dropped = joint_gate(y, h, S, 1 - 1e-6)
+    assert dropped > 0

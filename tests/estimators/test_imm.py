@@ -199,7 +199,7 @@ def test_the_joint_check_keeps_a_lookalike_from_the_filters(method):
         t = est.run(Y)
         with_check.append(rmse(t, X))
         off = create(method, rig, DT)
-        off.joint_check_cameras = 0
+        off.joint_check = False
         without.append(rmse(off.run(Y), X))
         if i % 6 == 0:
             np.testing.assert_allclose(est.run_batch(np.stack([Y, Y]))[1], t.position, atol=1e-9)

@@ -90,7 +90,12 @@ def test_a_four_camera_clip_runs_end_to_end(qualisys_clip):
             assert entry["rmse"] < 0.004, (m, entry["rmse"])
     assert methods["predict_only"]["rmse"] > 10 * methods["ekf"]["rmse"]
     per_camera = methods["ekf"]["reprojection_per_camera_px"]
-    assert set(per_camera) == set(Clip(clip).cameras) and max(per_camera.values()) < 0.5
+    assert set(per_camera) == set(Clip(clip).cameras)
+    est = res.estimate  # a camera that sees a wrong blob stands out (a marker hidden behind another: 2–4 px off)
+    wrong = sum((np.linalg.norm((Y - est.rig.project(est.truth.positions[m])).reshape(len(Y), -1, 2), axis=2) > 2).sum(axis=0)
+                for m, Y in est.aligned.items())
+    assert max(per_camera, key=per_camera.get) == est.rig.names[int(np.argmax(wrong))], (per_camera, wrong)
+    assert all(v < 0.5 for name, v in per_camera.items() if wrong[est.rig.names.index(name)] == 0), (per_camera, wrong)
     assert (res.out_dir / "run.rrd").is_file() and (res.out_dir / "report.html").is_file()
     from tests.pipeline.test_pipeline import read_recording
 
@@ -221,3 +226,78 @@ def test_cameras_out_of_sync_are_aligned_by_their_timestamps(tmp_path):
         synced = res.estimate.metrics["methods"][m]["rmse"]
         assert synced < 0.002 and off.metrics["methods"][m]["rmse"] > 5 * synced
         assert found.metrics["methods"][m]["rmse"] < 2 * synced
+
+
+def _filtered_with_and_without_the_check(clip, methods=("ekf", "ukf", "kf3d")):
+    """(pooled 3-D RMSE of each method as `run` gives it — σ estimated, the joint check on —, the same
+    with the check off, the estimate result) on a rendered clip's detections."""
+    from pipeline.estimators import create
+
+    res = process_clip(clip, settings=RunSettings(images=False, recording=False, figures=False,
+                                                 methods=("triangulation", *methods)))
+    est, sigma = res.estimate, res.estimate.metrics["pixel_sigma_estimate"]
+    with_check, without = {}, {}
+    for m in methods:
+        sq_on, sq_off = [], []
+        for marker, Y in est.aligned.items():
+            X = est.truth.positions[marker]
+            on = create(m, est.rig, est.dt, {"pixel_sigma": sigma})
+            t = on.run(Y)
+            np.testing.assert_allclose(on.run_batch(np.stack([Y, Y]))[1], t.position, atol=1e-9)
+            off = create(m, est.rig, est.dt, {"pixel_sigma": sigma})
+            off.joint_check = False
+            sq_on.append(np.linalg.norm(t.position - X, axis=1) ** 2)
+            sq_off.append(np.linalg.norm(off.run(Y).position - X, axis=1) ** 2)
+        with_check[m], without[m] = (float(np.sqrt(np.nanmean(np.concatenate(sq)))) for sq in (sq_on, sq_off))
+        assert abs(with_check[m] - est.metrics["methods"][m]["rmse"]) < 1e-5 * with_check[m]  # what `run` reports
+    return with_check, without, est
+
+
+@pytest.mark.slow
+def test_the_joint_check_drops_a_camera_that_sees_a_wrong_blob(qualisys_clip):
+    """#38, measured on this clip (its 9 detections 2–4 px off are markers hidden from a camera
+    behind another): with three cameras or more a failed joint check drops the camera the others
+    agree without (:meth:`~pipeline.estimators.gating.ViewCheck.odd_one`), not the one of largest
+    own NIS. The EKF, UKF and kf3d with the check: at most half their RMSE without it (0.35 against
+    1.51 mm, kf3d 0.36 against 1.63)."""
+    _, clip = qualisys_clip
+    with_check, without, _ = _filtered_with_and_without_the_check(clip)
+    for m in with_check:
+        assert with_check[m] <= 0.5 * without[m], (m, with_check[m], without[m])
+
+
+def _held_out_ring(cameras: int, radius: float, height: float, fps: int, seed: int):
+    """The ring scenario on another ring, its sinusoids 1.3× faster and 0.9 rad later, its straight
+    mover 1.5× faster (90 frames)."""
+    from renderers.scenario import parse_scenario
+
+    data = load_scenario("ring").model_dump(mode="json")
+    data["rig"]["ring"] = {"cameras": cameras, "radius": radius, "height": height}
+    data["rig"].pop("views")  # made from the ring
+    for obj in data["objects"]:
+        motion = obj["motion"]
+        if motion["type"] == "sinusoid":
+            motion["frequency_hz"] = [1.3 * f for f in motion["frequency_hz"]]
+            motion["phase"] = [p + 0.9 for p in (motion.get("phase") or [0.0] * 3)]
+        else:
+            motion["velocity"] = [1.5 * v for v in motion["velocity"]]
+    data.update(frames=90, fps=fps, seed=seed)
+    return parse_scenario(data)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("cameras", "radius", "height", "fps", "seed"), [(5, 2.2, -1.0, 60, 8), (3, 2.2, 0.4, 30, 9)],
+                         ids=["ring5_60fps", "ring3_below"])
+def test_the_joint_check_helps_on_rings_it_was_not_chosen_on(cameras, radius, height, fps, seed, tmp_path):
+    """Held out: the rule for three cameras or more was chosen on the ring scenario's markers on
+    eight rings (3–6 cameras, two with timestamps) and the Qualisys clip (better than no check on
+    all but one, a ring of three, 6 % worse); these scenes were written before they were measured:
+    the markers' motions changed, a ring of five at 60 fps and a ring of three below the volume.
+    With the check the EKF, UKF and kf3d are at most 0.85× their RMSE without it (measured EKF
+    0.44 against 0.66 mm and 0.51 against 1.11)."""
+    clip = tmp_path / "clip"
+    render_clip(_held_out_ring(cameras, radius, height, fps, seed), clip, fmt="mp4", workers=2)
+    with_check, without, est = _filtered_with_and_without_the_check(clip)
+    assert est.rig.n == cameras
+    for m in with_check:
+        assert with_check[m] <= 0.85 * without[m], (m, with_check[m], without[m])
