@@ -17,6 +17,7 @@ from collections.abc import Callable, Iterator, Sequence
 from typing import Any, TypeVar
 
 from pipeline.core.allocator import trim
+from pipeline.core.interrupts import signals_deferred
 from pipeline.core.lifeline import die_with_parent, end_pool, ignore_sigint, one_blas_thread
 
 T = TypeVar("T")
@@ -52,12 +53,12 @@ def forked_map(fn: Callable[[T], R], items: Sequence[T], workers: int) -> Iterat
     try:
         # the workers fork at the first submit; at most AHEAD jobs per worker are queued or done and
         # unread, so that a caller that streams the results (a long clip's tracks) holds few at a time
-        queued = deque(pool.submit(_call, i) for i in range(min(len(items), AHEAD * workers)))
+        queued = deque(_submit(pool, i) for i in range(min(len(items), AHEAD * workers)))
         for i in range(len(items)):
             result = queued.popleft().result()
             trim()  # what the pool's reader thread unpickled and the caller has dropped (see trim)
             if i + len(queued) + 1 < len(items):
-                queued.append(pool.submit(_call, i + len(queued) + 1))
+                queued.append(_submit(pool, i + len(queued) + 1))
             if i == len(items) - 1:  # the workers end with the last result, not when the caller drops the map
                 pool.shutdown(wait=True)
             yield result
@@ -67,6 +68,13 @@ def forked_map(fn: Callable[[T], R], items: Sequence[T], workers: int) -> Iterat
     finally:
         _JOB = None
         pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _submit(pool, i: int):
+    """``pool.submit(_call, i)`` with signals held: a submit may fork a worker, and a signal that
+    lands in fork's handlers is printed with a traceback and swallowed there."""
+    with signals_deferred():
+        return pool.submit(_call, i)
 
 
 def _init(parent_pid: int) -> None:

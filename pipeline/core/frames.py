@@ -20,6 +20,7 @@ import numpy as np
 
 from pipeline.core.errors import ClipError
 from pipeline.core.forked import can_fork
+from pipeline.core.interrupts import signals_deferred
 from pipeline.core.lifeline import die_with_parent, ignore_sigint
 
 VIDEO_EXTS = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm")
@@ -246,7 +247,8 @@ class _InProcess:
         self.recv, send = ctx.Pipe(duplex=False)
         self.proc = ctx.Process(target=_camera_process, args=(reader, work, send, os.getpid()), daemon=True,
                                 name=f"stereotrack-{reader.source.stem}")
-        self.proc.start()
+        with signals_deferred():  # a signal inside fork's handlers would be printed and swallowed there
+            self.proc.start()
         send.close()
         self.chunk: deque = deque()
         self.ended = False
