@@ -57,15 +57,18 @@ def dask_processes(folder: Path, workers: int):
 def batch_at(tree: Path, inp: Path, out: Path, workers: int) -> float:
     """Seconds the batch takes with the code in ``tree`` (its own interpreter, its own imports)."""
     shutil.rmtree(out, ignore_errors=True)
-    # pipeline.app.batch since the folders were layers; pipeline.batch in older trees
-    code = ("import sys, time, importlib, importlib.util; sys.path.insert(0, sys.argv[1]); "
-            "run_batch = getattr(importlib.import_module('pipeline.app.batch' if importlib.util.find_spec('pipeline.app') "
-            "else 'pipeline.batch'), 'run_batch'); t = time.perf_counter(); "
+    # pipeline.app.batch since the folders were layers; pipeline.batch in older trees (looked for in
+    # the tree's files: an import spec would find this checkout's pipeline.app through its editable install)
+    module = "pipeline.app.batch" if (tree / "pipeline" / "app" / "batch.py").is_file() else "pipeline.batch"
+    code = ("import sys, time, importlib; sys.path.insert(0, sys.argv[1]); "
+            f"run_batch = importlib.import_module({module!r}).run_batch; t = time.perf_counter(); "
             f"r = run_batch(sys.argv[2], sys.argv[3], workers={workers}, methods={METHODS!r}); "
             "assert all(o.status == 'ok' for o in r), [o.error for o in r]; print(time.perf_counter() - t)")
     env = {**os.environ, "PYTHONPATH": str(tree)}
     res = subprocess.run([sys.executable, "-c", code, str(tree), str(inp), str(out)], capture_output=True, text=True,
-                         env=env, cwd=tree, check=True)
+                         env=env, cwd=tree)
+    if res.returncode:
+        raise SystemExit(f"the batch at {tree} failed:\n{res.stderr[-3000:]}")
     return float(res.stdout.strip().splitlines()[-1])
 
 

@@ -113,7 +113,7 @@ def main() -> None:
     if len(peaks) > 1:
         print(f"\nPeak at {args.frames[-1]} frames over the peak at {args.frames[0]}: {peaks[-1] / peaks[0]:.2f}× "
               f"({(peaks[-1] - peaks[0]) / (args.frames[-1] - args.frames[0]) * 1024:.0f} kB per frame). The estimate "
-              "stage's methods and the report's figures run in worker processes forked from the command (`--workers`, "
+              "stage's methods run in worker processes forked from the command (`--workers`, "
               "2 by default): most of a worker's resident memory is pages it shares with the command, copied only "
               "where one of them writes; `process_clip` below runs in one process.", flush=True)
         stage_table(clips)

@@ -315,17 +315,15 @@ def report_cmd(
     clip: Annotated[Path, typer.Argument(help="Clip folder whose out/ holds estimates and metrics.")],
     output: Annotated[Path | None, typer.Option("-o", "--output", help="Where the outputs go (default CLIP/out); "
                                                 "inputs are always read from CLIP/out.")] = None,
-    workers: Annotated[int, typer.Option("--workers", min=1, help="Processes the figures are drawn in (1: this "
-                                         "process; the figures are the same).")] = 2,
 ) -> None:
-    """Write out/report.md with the metrics table and figures."""
+    """Write out/report.md and out/report.html with the metrics tables and figures."""
     from pipeline.present.report import write_report
 
     writable_output(output)
     with stage_lock(clip, output, "report"), progress_bar() as bar:
         task = bar.add_task("report", total=None)
         path = write_report(clip, output, progress=lambda d, t: bar.update(task, completed=d, total=t),
-                            in_dir=Outputs.of(clip).folder, workers=workers)
+                            in_dir=Outputs.of(clip).folder)
     mark_output(output)
     out.print(f"wrote {path}")
 

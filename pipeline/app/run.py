@@ -121,7 +121,7 @@ def _process_clip(clip_: Clip, out_dir: Path, settings: RunSettings, hooks: RunH
         est = estimate_clip(clip_, settings, out_dir, replace(hooks, method=finished), detections=det.detections(),
                             keep_tracks=keep_tracks, workers=workers)
         hooks.say("report (figures)" if settings.figures else "report")
-        report = write_report(clip_, out_dir, progress=hooks.progress, figures=settings.figures, workers=workers,
+        report = write_report(clip_, out_dir, progress=hooks.progress, figures=settings.figures,
                               data=report_data(clip_, est, det.marker_colours, out_dir, data))
         rrd = None
         if recorder is not None:

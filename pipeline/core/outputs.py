@@ -72,7 +72,7 @@ class Outputs:
                     "restart counts, speed; the run's checks")
     report_md = _File(REPORT_MD, "the report in Markdown, its figures in `figures/`")
     report_html = _File(REPORT_HTML, "the report, self-contained (figures embedded, nothing fetched)")
-    figures_dir = _File(FIGURES, "the Markdown report's PNG figures")
+    figures_dir = _File(FIGURES, "the Markdown report's SVG figures")
     recording = _File(RECORDING, "the rerun recording (`rerun run.rrd`)")
     manifest = _File(MANIFEST, "the settings and checksums of a batch's clip folder: what makes it complete")
     export_dir = _File(EXPORT, "`<method>.trc`, `.c3d` or `.csv` after `stereotrack export`")
@@ -92,5 +92,5 @@ class Outputs:
         return self.folder / ESTIMATES / f"{method}.csv"
 
     def figure(self, name: str) -> Path:
-        """A report figure (PNG)."""
-        return self.folder / FIGURES / f"{name}.png"
+        """A report figure (SVG)."""
+        return self.folder / FIGURES / f"{name}.svg"

@@ -1,9 +1,8 @@
-"""Self-contained HTML pages (report.html, summary.html): one stylesheet, figures embedded as
-data URIs, nothing fetched from elsewhere, so a page can be mailed or opened offline."""
+"""Self-contained HTML pages (report.html, summary.html): one stylesheet, figures inline (SVG),
+nothing fetched from elsewhere, so a page can be mailed or opened offline."""
 
 from __future__ import annotations
 
-import base64
 import html
 
 STYLE = """
@@ -20,7 +19,7 @@ td.num{text-align:right;white-space:nowrap}td.best{font-weight:700;background:#e
 .checks li.pass::before{content:"✓ ";color:#2e7d32;font-weight:700}
 .checks li.fail::before{content:"✗ ";color:#c62828;font-weight:700}
 .note{color:#555;font-size:.9em;margin:.2em 0}code,pre{background:#f4f4f4;border-radius:3px;padding:.1em .3em}
-pre{padding:.6em}figure{margin:1em 0}figure img{max-width:100%}figcaption{color:#555;font-size:.9em}
+pre{padding:.6em}figure{margin:1em 0}figure img,figure svg{max-width:100%;height:auto}figcaption{color:#555;font-size:.9em}
 """
 
 
@@ -31,11 +30,10 @@ def page(title: str, body: list[str]) -> str:
             f"<body>{''.join(body)}</body></html>\n")
 
 
-def figure(png: bytes, caption: str) -> str:
-    """A PNG figure embedded as a data URI, with its caption."""
-    data = base64.b64encode(png).decode("ascii")
-    return (f"<figure><img alt='{html.escape(caption)}' src='data:image/png;base64,{data}'>"
-            f"<figcaption>{html.escape(caption)}</figcaption></figure>")
+def figure(svg: str, caption: str) -> str:
+    """An SVG figure inline (scaled to the page's width), with its caption."""
+    svg = svg.replace("<svg ", f"<svg role=img aria-label='{html.escape(caption)}' ", 1)
+    return f"<figure>{svg}<figcaption>{html.escape(caption)}</figcaption></figure>"
 
 
 def swatch(hex_colour: str, name: str) -> str:

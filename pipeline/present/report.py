@@ -1,5 +1,5 @@
 """``out/report.md`` and the self-contained ``out/report.html``: the run's tables (errors in
-millimetres, each column's best value marked), its input checks, and matplotlib figures
+millimetres, each column's best value marked), its input checks, and SVG figures
 (trajectories, error per frame, image-plane tracks, the target's α and z, filter consistency),
 built from the stage files so a person who never opens rerun can read a run.
 
@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from pipeline.core.clip import Clip
-from pipeline.core.io import write_bytes, write_text
+from pipeline.core.io import write_text
 from pipeline.core.outputs import Outputs, final_folder
 from pipeline.evaluation.metrics import RUNAWAY, runaways
 from pipeline.present import html as H
@@ -172,7 +172,7 @@ def markdown_report(data: ReportData, figures: list[tuple[str, str, str]], repla
     return "\n".join(lines)
 
 
-def html_report(data: ReportData, figures: list[tuple[str, str, bytes]], replay: str) -> str:
+def html_report(data: ReportData, figures: list[tuple[str, str, str]], replay: str) -> str:
     """report.html: the same content with figures embedded and a legend of method colours."""
     failed, checks = check_lines(data.metrics)
     body = [f"<h1>stereotrack report: {inline(data.name)}</h1><p>{inline(_summary_line(data.metrics))}</p>",
@@ -189,7 +189,7 @@ def html_report(data: ReportData, figures: list[tuple[str, str, bytes]], replay:
         body += [f"<h2>{title}</h2>", f"<p class=note>{inline(intro)}</p>" if intro else "", to_html(t)]
     if figures:
         body.append("<h2>Figures</h2>")
-    body += [H.figure(png, caption) for _, caption, png in figures]
+    body += [H.figure(svg, caption) for _, caption, svg in figures]
     if not figures:
         body.append("<p class=note>No figures (a batch draws them with <code>--figures</code>).</p>")
     return H.page(f"stereotrack report: {data.name}", body)
@@ -197,20 +197,19 @@ def html_report(data: ReportData, figures: list[tuple[str, str, bytes]], replay:
 
 def write_report(clip: str | Path | Clip, out_dir: str | Path | None = None,
                  progress: Callable[[int, int], None] | None = None, in_dir: str | Path | None = None,
-                 figures: bool = True, data: ReportData | None = None, workers: int = 1) -> Path:
-    """Write ``report.md``, ``report.html`` and (with ``figures``) ``figures/*.png`` into
+                 figures: bool = True, data: ReportData | None = None) -> Path:
+    """Write ``report.md``, ``report.html`` and (with ``figures``) ``figures/*.svg`` into
     ``out_dir`` (default ``CLIP/out``) from ``data`` (a run's results in memory, see
     :func:`report_data`), else from the stage files in ``in_dir`` (default ``out_dir``);
-    ``progress`` gets (figures done, figures in all); ``workers``: processes the figures are drawn
-    in (see :func:`~pipeline.present.figures.render_figures`). Returns report.md's path."""
+    ``progress`` gets (figures done, figures in all). Returns report.md's path."""
     clip_ = Clip.open(clip)
     out = Outputs.of(clip_.folder, out_dir)
     out_dir = out.folder
     if data is None:
         data = load_report_data(clip_, Path(in_dir) if in_dir else out_dir, out_dir)
-    figs = render_figures(data, progress, workers) if figures else []
-    for name, _, png in figs:
-        write_bytes(out.figure(name), png)
+    figs = render_figures(data, progress) if figures else []
+    for name, _, svg in figs:
+        write_text(out.figure(name), svg)
     replay = f"stereotrack view {final_folder(out_dir)}"  # a batch's clip: where it will be, not its attempt
     write_text(out.report_html, html_report(data, figs, replay))
     path = out.report_md

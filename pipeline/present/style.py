@@ -4,8 +4,17 @@ rerun recording, so a curve is the same method everywhere."""
 from __future__ import annotations
 
 import zlib
+from typing import NamedTuple
 
 import numpy as np
+
+
+class LineStyle(NamedTuple):
+    """How a series is stroked in the report's figures."""
+    colour: str
+    style: str
+    width: float
+    opacity: float
 
 #: 24 colours picked greedily for the largest smallest CIELAB distance (CIE76 ΔE) from each other,
 #: from black, white and grey (truth, backgrounds), starting from matplotlib's first five tab10
@@ -20,7 +29,7 @@ LINE_STYLES = ["-", "--", "-.", ":"]
 #: palette wraps); mid grey and small in the recording, visible on its light and dark themes
 TRUTH_RGB = (0, 0, 0)
 TRUTH_RGB_VIEWER = (128, 128, 128)
-TRUTH_STYLE = {"color": "black", "ls": (0, (4, 2)), "lw": 2.2, "alpha": 0.55}
+TRUTH_STYLE = LineStyle("#000000", "--", 2.2, 0.55)
 
 
 def lab(rgb) -> np.ndarray:
@@ -49,12 +58,6 @@ def _index(method: str) -> int:
 def method_rgb(method: str) -> tuple[int, int, int]:
     """The method's colour (RGB 0–255): registry order through the palette."""
     return PALETTE[_index(method) % len(PALETTE)]
-
-
-def method_colour(method: str) -> tuple[float, float, float]:
-    """The method's colour for matplotlib (0–1)."""
-    r, g, b = method_rgb(method)
-    return r / 255, g / 255, b / 255
 
 
 def method_hex(method: str) -> str:

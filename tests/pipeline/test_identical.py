@@ -134,11 +134,6 @@ def test_report_figures_score_and_draw_the_group(identical_run):
     """The report of identical markers: each track's error per frame is against the marker it
     follows (read back from the stage files, its RMS is the metrics' RMSE), the error figure draws
     every method, and the trajectories draw every member's truth beside the tracks."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     from pipeline.core.clip import Clip
     from pipeline.present.figures import FIGURES
     from pipeline.present.report_data import load_report_data
@@ -151,12 +146,11 @@ def test_report_figures_score_and_draw_the_group(identical_run):
         # the CSV keeps 10 significant digits of each position
         assert rms == pytest.approx(res.estimate.metrics["methods"][method]["rmse"], rel=1e-6)
     figs = dict(FIGURES)
-    fig, _ = figs["error"](data, plt)
-    assert {ln.get_label() for ln in fig.axes[0].get_lines()} >= {"triangulation", "ekf"}
-    fig, _ = figs["trajectories"](data, plt)
-    truth_lines = [ln for ln in fig.axes[0].get_lines() if ln.get_label() == "truth"]
+    fig, _ = figs["error"](data)
+    assert set(fig.axes[0].names()) >= {"triangulation", "ekf"}
+    fig, _ = figs["trajectories"](data)
+    truth_lines = [n for n in fig.axes[0].names() if n == "truth"]
     assert len(truth_lines) == len(data.groups[next(iter(data.groups))]) == 4
-    plt.close("all")
 
 
 @pytest.mark.slow

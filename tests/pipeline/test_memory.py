@@ -14,8 +14,8 @@ from pipeline.core.calibration import save_calibration
 from pipeline.core.camera import StereoRig
 from tests.conftest import REPO
 
-#: peak RSS allowed for `run` on 600 frames of 320×240 (the whole process: Python, OpenCV, rerun,
-#: matplotlib). Streaming measured 280 MB here; holding the decoded frames, as before, took 535 MB.
+#: peak RSS allowed for `run` on 600 frames of 320×240 (the whole process: Python, OpenCV, rerun;
+#: matplotlib when the figures were PNGs). Streaming measured 280 MB here; holding the decoded frames, as before, took 535 MB.
 CEILING_MB = 400
 
 

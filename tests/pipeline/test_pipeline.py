@@ -8,6 +8,7 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
+from xml.etree import ElementTree
 
 import numpy as np
 import pytest
@@ -77,10 +78,10 @@ def test_every_file_written_is_documented(e2e_run):
 @pytest.mark.slow
 def test_report_written(e2e_run):
     text = e2e_run.report.read_text()
-    assert "| ekf |" in text and "figures/trajectories.png" in text and "figures/error.png" in text
-    for fig in ("trajectories.png", "error.png", "image_tracks.png"):
-        png = e2e_run.out_dir / "figures" / fig
-        assert png.is_file() and png.read_bytes()[:4] == b"\x89PNG"
+    assert "| ekf |" in text and "figures/trajectories.svg" in text and "figures/error.svg" in text
+    for fig in ("trajectories.svg", "error.svg", "image_tracks.svg"):
+        svg = e2e_run.out_dir / "figures" / fig
+        assert svg.is_file() and ElementTree.parse(svg).getroot().tag == "{http://www.w3.org/2000/svg}svg"
 
 
 def read_recording(path) -> tuple[dict[str, dict[str, list]], set[str], object]:
@@ -137,7 +138,7 @@ def test_streamed_run_writes_what_a_kept_run_writes(e2e_run, tmp_path, monkeypat
     for meth in METHODS:
         assert (streamed / "estimates" / f"{meth}.csv").read_bytes() == (kept / "estimates" / f"{meth}.csv").read_bytes()
     figures = sorted(p.name for p in (kept / "figures").iterdir())
-    assert figures == sorted(p.name for p in (streamed / "figures").iterdir()) and "trajectories.png" in figures
+    assert figures == sorted(p.name for p in (streamed / "figures").iterdir()) and "trajectories.svg" in figures
     for name in figures:
         assert (streamed / "figures" / name).read_bytes() == (kept / "figures" / name).read_bytes(), name
     a, b = read_recording(e2e_run.recording)[0], read_recording(res.recording)[0]
@@ -334,11 +335,11 @@ def test_version_and_plain_flags():
 
 def test_every_method_has_its_own_colour():
     from pipeline.estimators import registry
-    from pipeline.present.style import method_colour, method_rgb
+    from pipeline.present.style import method_hex, method_rgb
 
     names = list(registry())
     assert len({method_rgb(m) for m in names}) == len(names)
-    assert method_colour("ekf") == tuple(c / 255 for c in method_rgb("ekf"))
+    assert method_hex("ekf") == "#{:02x}{:02x}{:02x}".format(*method_rgb("ekf"))
 
 
 def test_output_option_is_output_only(tmp_path):

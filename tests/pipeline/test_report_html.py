@@ -49,10 +49,6 @@ def parse(path: Path) -> _Page:
     return page
 
 
-def legend_labels(fig) -> set[str]:
-    return {t.get_text() for leg in fig.legends for t in leg.get_texts()}
-
-
 def test_method_colours_are_distinct():
     """No two registered methods' colours closer than MIN_DELTA_E (CIE76 in CIELAB), nor any to
     the truth's black; the measure itself: black to white is 100."""
@@ -70,8 +66,8 @@ def test_method_colours_are_distinct():
 def test_report_html_is_self_contained_and_lists_every_method(e2e_run):  # noqa: F811
     html = e2e_run.out_dir / "report.html"
     page = parse(html)
-    sources = [v for k, v in page.attrs if k == "src"]
-    assert sources and all(v.startswith("data:image/png;base64,") for v in sources)
+    figures = len(list((e2e_run.out_dir / "figures").glob("*.svg")))
+    assert figures >= 3 and html.read_text().count("<svg ") == figures  # every figure inline
     assert not [v for k, v in page.attrs if k in ("href", "src") and "://" in v]
     methods = list(e2e_run.estimate.metrics["methods"])
     assert set(methods) <= set(page.rows)
@@ -81,14 +77,23 @@ def test_report_html_is_self_contained_and_lists_every_method(e2e_run):  # noqa:
 
 
 @pytest.mark.slow
+def test_the_report_command_draws_its_figures_without_matplotlib(e2e_run, tmp_path):  # noqa: F811
+    """#42: matplotlib's import alone took longer than the detect stage; the figures are SVG."""
+    from tests.pipeline.test_startup import loaded
+
+    clip = tmp_path / "clip"
+    shutil.copytree(e2e_run.clip, clip)
+    shutil.rmtree(clip / "out" / "figures")
+    mods = loaded(f"import sys; sys.argv = ['stereotrack', 'report', {str(clip)!r}]\n"
+                  "from pipeline.app.cli import main\nmain()")
+    assert "pipeline" in mods and (clip / "out" / "figures" / "error.svg").is_file()
+    assert not mods & {"matplotlib", "PIL", "scipy", "filterpy"}, sorted(mods & {"matplotlib", "PIL", "scipy", "filterpy"})
+
+
+@pytest.mark.slow
 def test_figures_draw_the_runs_methods_only(e2e_run, tmp_path):  # noqa: F811
     """A stale estimate CSV from an earlier run (a method not in metrics.json) is not drawn; every
     figure's legend lists every method it plots and the truth."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     out = tmp_path / "out"
     shutil.copytree(e2e_run.out_dir, out)
     shutil.copy(out / "estimates" / "ekf.csv", out / "estimates" / "stale_method.csv")
@@ -98,28 +103,21 @@ def test_figures_draw_the_runs_methods_only(e2e_run, tmp_path):  # noqa: F811
     assert "stale_method" not in data.point
     figs = dict(FIGURES)
     methods = set(e2e_run.estimate.metrics["methods"])
-    assert legend_labels(figs["trajectories"](data, plt)[0]) == methods | {"truth"}
-    assert legend_labels(figs["error"](data, plt)[0]) == methods
-    plt.close("all")
+    assert figs["trajectories"](data)[0].legend_labels() == methods | {"truth"}
+    assert figs["error"](data)[0].legend_labels() == methods
 
 
 @pytest.mark.slow
 def test_runaways_are_clipped_and_named(e2e_run, tmp_path):  # noqa: F811
     """A method whose error is far above the others' sets no axis: the error figure's y range is
     that of the tracking methods, and the caption and tables name the runaway."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     data = load_report_data(Clip.open(e2e_run.clip), e2e_run.out_dir, e2e_run.out_dir)
     T = data.truth["red"]
     data.point["runaway"] = {"red": T + np.array([0.0, 0.0, 5.0])}  # 5 m off every frame
     data.errors["runaway"] = {"red": np.full(len(T), 5.0)}
     data.metrics["methods"]["runaway"] = {"rmse": 5.0}
-    fig, caption = dict(FIGURES)["error"](data, plt)
-    assert "runaway (RMSE 5e+03 mm)" in caption and fig.axes[0].get_ylim()[1] < 1000  # mm
-    plt.close("all")
+    fig, caption = dict(FIGURES)["error"](data)
+    assert "runaway (RMSE 5e+03 mm)" in caption and fig.axes[0].limits()[1][1] < 1000  # mm
 
 
 @pytest.mark.slow

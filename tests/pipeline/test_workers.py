@@ -1,5 +1,5 @@
-"""#42: the estimate stage's methods and the report's figures in forked worker processes write
-byte for byte what one process writes (timings aside), through the library and the command line;
+"""#42: the estimate stage's methods in forked worker processes write byte for byte what one
+process writes (timings aside), through the library and the command line;
 ``run``'s recording holds the frames its cameras' workers encoded."""
 
 from __future__ import annotations
@@ -13,7 +13,6 @@ from detectors.stage import detect_clip
 from pipeline.core.forked import can_fork
 from pipeline.core.settings import RunSettings
 from pipeline.estimate import EstimateResult, estimate_clip
-from pipeline.present.report import write_report
 from tests.helpers import untimed
 
 pytestmark = pytest.mark.skipif(not can_fork(), reason="the platform does not fork (workers run in the caller)")
@@ -45,18 +44,6 @@ def test_every_default_method_in_workers_writes_what_one_process_writes(target_c
     for workers in (2, 3):
         assert_same_estimates(one, estimate_clip(target_clip, RunSettings(), tmp_path / f"w{workers}",
                                                  in_dir=target_detected, workers=workers))
-
-
-@pytest.mark.slow
-def test_report_figures_drawn_in_workers_are_the_same_pngs(target_clip, target_detected, tmp_path):
-    est = tmp_path / "est"
-    estimate_clip(target_clip, RunSettings(methods=("triangulation", "ekf", "four_point")), est, in_dir=target_detected)
-    pngs = {}
-    for workers in (1, 2):
-        out = tmp_path / f"report{workers}"
-        write_report(target_clip, out, in_dir=est, workers=workers)
-        pngs[workers] = {p.name: p.read_bytes() for p in (out / "figures").glob("*.png")}
-    assert len(pngs[1]) >= 3 and pngs[1] == pngs[2]
 
 
 def _recorded_images(rrd: Path) -> list[tuple[str, int, bytes]]:
