@@ -10,7 +10,7 @@ from collections.abc import Callable
 import numpy as np
 
 from pipeline.present.report_data import ReportData
-from pipeline.present.style import TRUTH_STYLE, marker_rgb, method_hex, method_linestyle
+from pipeline.present.style import TRUTH_STYLE, marker_rgb, method_hex, method_linestyle, rgb_hex
 from pipeline.present.svg import Axes, Figure
 
 #: frames in the moving mean of the consistency figure
@@ -69,10 +69,6 @@ def _envelope(y: np.ndarray, x: np.ndarray | None = None) -> tuple[np.ndarray, n
     idx = np.stack([base + np.minimum(lo, hi), base + np.maximum(lo, hi)], axis=1).ravel()
     idx = np.unique(idx[idx < n])
     return x[idx], y[idx]
-
-
-def _hex(rgb: tuple[int, int, int]) -> str:
-    return "#{:02x}{:02x}{:02x}".format(*rgb)
 
 
 def _truth_line(ax: Axes, x, y) -> None:
@@ -143,7 +139,7 @@ def fig_image_tracks(data: ReportData) -> tuple[Figure, str] | None:
     for c, ax in enumerate(fig.axes[:n]):
         for i, (mk, Y) in enumerate(sorted(data.obs.items())):
             u, v = _thin(Y[:, 2 * c], Y[:, 2 * c + 1])
-            ax.dots(u, v, _hex(marker_rgb(data.marker_colours, mk, i)), name=mk)
+            ax.dots(u, v, rgb_hex(marker_rgb(data.marker_colours, mk, i)), name=mk)
         ax.xlabel, ax.ylabel = "u (px)", "v (px)"
         ax.title = f"{data.cameras[c]} camera: detections (px)"
         ax.yinvert = True

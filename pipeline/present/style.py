@@ -62,7 +62,12 @@ def method_rgb(method: str) -> tuple[int, int, int]:
 
 def method_hex(method: str) -> str:
     """The method's colour as ``#rrggbb`` (HTML)."""
-    return "#{:02x}{:02x}{:02x}".format(*method_rgb(method))
+    return rgb_hex(method_rgb(method))
+
+
+def rgb_hex(rgb: tuple[int, int, int]) -> str:
+    """An RGB colour (0–255) as ``#rrggbb`` (HTML, SVG)."""
+    return "#{:02x}{:02x}{:02x}".format(*rgb)
 
 
 def method_linestyle(method: str) -> str:
