@@ -12,6 +12,7 @@ import numpy as np
 
 from detectors.base import Detector, register
 from detectors.blob import BlobDetector, Detection, MarkerColor
+from detectors.merged import LUMP_BESIDE_PX, LUMP_PX, MERGE_GROWTH, unmerge
 
 #: recent blob areas kept per marker (their median is the size a window's find must reach)
 AREA_MEMORY = 5
@@ -20,6 +21,9 @@ AREA_MEMORY = 5
 #: recent sizes make the judgement
 SIZE_JUMP = 20.0
 SIZE_SAMPLES = 3
+#: frames a blob of a marker's colour seen beside it counts as a look-alike nearby (hidden behind the
+#: marker, it comes out on the other side)
+BESIDE_FRAMES = 30
 
 
 def label_order(points: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
@@ -77,18 +81,51 @@ class BlobTracker(Detector):
         self.windows: dict[str, tuple[int, int, int, int]] = {}
         self.areas: dict[str, deque] = {}
         self.labelled: dict[str, np.ndarray] = {}
+        self.colours = {mk.name: mk for mk in markers}
+        self.frame = 0  # frames seen: the recent positions' clock
+        self.recent: dict[str, deque] = {}  # per single marker: its last two (frame, u, v)
+        self.others: dict[str, list[Detection]] = {}  # this frame, per single marker: its colour's other blobs
+        self.beside: dict[str, int] = {}  # per single marker: the last frame a blob of its colour lay beside it
 
     def reset(self) -> None:
-        self.windows = {}
+        self.windows, self.recent, self.beside = {}, {}, {}
 
     def detect(self, frame: np.ndarray) -> list[Detection]:
+        self.others = {}
         expected = {m: statistics.median(a) for m, a in self.areas.items() if a}
         dets = self._best_per_marker(self.blob.detect(frame, rois=self.windows, expected_area=expected))
-        dets = [d for d in dets if d.marker in self.grouped or self._plausible_size(d)]
+        dets = [d if d.marker in self.grouped else self._own_disc(frame, d, expected.get(d.marker))
+                for d in dets if d.marker in self.grouped or self._plausible_size(d)]
+        self.frame += 1
+        for d in dets:
+            if d.marker not in self.grouped:
+                self.recent.setdefault(d.marker, deque(maxlen=2)).append((self.frame, d.u, d.v))
         self.windows = {d.marker: search_window(d, frame.shape) for d in dets if d.marker not in self.grouped}
         for d in dets:  # a marker not seen keeps its recent sizes: what comes back must match them
             self.areas.setdefault(d.marker, deque(maxlen=AREA_MEMORY)).append(d.area)
         return dets
+
+    def _own_disc(self, frame: np.ndarray, d: Detection, area: float | None) -> Detection:
+        """``d``, or where it is :data:`~detectors.merged.MERGE_GROWTH` times the marker's recent
+        size (merged with a look-alike), the marker's own disc in it nearest where its last two
+        positions put it now (:func:`~detectors.merged.unmerge`), the lump beside the disc held
+        to less (:data:`~detectors.merged.LUMP_BESIDE_PX`) where a blob of its colour lay within
+        two radii of it in the last :data:`BESIDE_FRAMES` frames (it may have passed behind it)."""
+        recent = self.recent.get(d.marker)
+        if area is None or d.area < MERGE_GROWTH * area:
+            r = np.sqrt(d.area / np.pi)
+            if any(np.hypot(o.u - d.u, o.v - d.v) - r - np.sqrt(o.area / np.pi) <= 2 * r for o in self.others.get(d.marker, ())):
+                self.beside[d.marker] = self.frame
+            return d
+        if not recent or len(self.areas[d.marker]) < SIZE_SAMPLES:
+            return d
+        k, u, v = recent[-1]
+        if len(recent) == 2:  # a constant image velocity over the frames between
+            k0, u0, v0 = recent[0]
+            step = (self.frame + 1 - k) / (k - k0)
+            u, v = u + (u - u0) * step, v + (v - v0) * step
+        lump = LUMP_BESIDE_PX if self.frame - self.beside.get(d.marker, -BESIDE_FRAMES - 1) <= BESIDE_FRAMES else LUMP_PX
+        return unmerge(frame, self.colours[d.marker], d, area, (u, v), lump) or d
 
     def _plausible_size(self, d: Detection) -> bool:
         """Whether a single marker's blob is within :data:`SIZE_JUMP`× of its recent size (always,
@@ -110,6 +147,7 @@ class BlobTracker(Detector):
                 out += ds
             elif name not in self.groups:
                 out.append(ds[0])
+                self.others[name] = ds[1:]
             elif len(ds) >= 4:  # fewer than four points: the target is skipped this frame
                 ds = sorted(ds, key=lambda d: -d.area)[:4]
                 pts = np.array([[d.u, d.v] for d in ds])
