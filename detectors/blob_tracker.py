@@ -4,6 +4,7 @@ than the marker's recent size, and labelling a one-colour four-point target's po
 
 from __future__ import annotations
 
+import math
 import statistics
 from collections import deque
 from collections.abc import Collection
@@ -12,7 +13,7 @@ import numpy as np
 
 from detectors.base import Detector, register
 from detectors.blob import BlobDetector, Detection, MarkerColor
-from detectors.merged import LUMP_BESIDE_PX, LUMP_PX, MERGE_GROWTH, unmerge
+from detectors.merged import MERGE_GROWTH, unmerge
 
 #: recent blob areas kept per marker (their median is the size a window's find must reach)
 AREA_MEMORY = 5
@@ -24,6 +25,9 @@ SIZE_SAMPLES = 3
 #: frames a blob of a marker's colour seen beside it counts as a look-alike nearby (hidden behind the
 #: marker, it comes out on the other side)
 BESIDE_FRAMES = 30
+#: … a blob at least this share of the marker's size (smaller ones: pieces of the marker split by a
+#: finger or its own motion blur, on real footage)
+LOOKALIKE_SHARE = 0.2
 
 
 def label_order(points: np.ndarray, previous: np.ndarray | None) -> np.ndarray:
@@ -107,14 +111,14 @@ class BlobTracker(Detector):
 
     def _own_disc(self, frame: np.ndarray, d: Detection, area: float | None) -> Detection:
         """``d``, or where it is :data:`~detectors.merged.MERGE_GROWTH` times the marker's recent
-        size (merged with a look-alike), the marker's own disc in it nearest where its last two
-        positions put it now (:func:`~detectors.merged.unmerge`), the lump beside the disc held
-        to less (:data:`~detectors.merged.LUMP_BESIDE_PX`) where a blob of its colour lay within
-        two radii of it in the last :data:`BESIDE_FRAMES` frames (it may have passed behind it)."""
+        size and a blob of its colour (:data:`LOOKALIKE_SHARE` of its size or more) lay within two
+        radii of it in the last :data:`BESIDE_FRAMES` frames (a look-alike it merged with, perhaps after hiding it), the
+        marker's own disc in it nearest where its last two positions put it now
+        (:func:`~detectors.merged.unmerge`). A marker grown with no look-alike near (motion
+        blur, a hand, coming closer) keeps its blob's centre."""
         recent = self.recent.get(d.marker)
         if area is None or d.area < MERGE_GROWTH * area:
-            r = np.sqrt(d.area / np.pi)
-            if any(np.hypot(o.u - d.u, o.v - d.v) - r - np.sqrt(o.area / np.pi) <= 2 * r for o in self.others.get(d.marker, ())):
+            if any(self._lookalike_beside(d, o) for o in self.others.get(d.marker, ())):
                 self.beside[d.marker] = self.frame
             return d
         if not recent or len(self.areas[d.marker]) < SIZE_SAMPLES:
@@ -124,8 +128,17 @@ class BlobTracker(Detector):
             k0, u0, v0 = recent[0]
             step = (self.frame + 1 - k) / (k - k0)
             u, v = u + (u - u0) * step, v + (v - v0) * step
-        lump = LUMP_BESIDE_PX if self.frame - self.beside.get(d.marker, -BESIDE_FRAMES - 1) <= BESIDE_FRAMES else LUMP_PX
-        return unmerge(frame, self.colours[d.marker], d, area, (u, v), lump) or d
+        if self.frame - self.beside.get(d.marker, -BESIDE_FRAMES - 1) > BESIDE_FRAMES:
+            return d  # no look-alike seen near: a marker grown ragged (blur, a hand) is no merge
+        return unmerge(frame, self.colours[d.marker], d, area, (u, v)) or d
+
+    @staticmethod
+    def _lookalike_beside(d: Detection, o: Detection) -> bool:
+        """Whether blob ``o`` of ``d``'s colour is a look-alike beside it: :data:`LOOKALIKE_SHARE`
+        of its size or more, their outlines within two of ``d``'s radii (math, not numpy: every
+        marker, every frame)."""
+        r = math.sqrt(d.area / math.pi)
+        return o.area >= LOOKALIKE_SHARE * d.area and math.hypot(o.u - d.u, o.v - d.v) - r - math.sqrt(o.area / math.pi) <= 2 * r
 
     def _plausible_size(self, d: Detection) -> bool:
         """Whether a single marker's blob is within :data:`SIZE_JUMP`× of its recent size (always,

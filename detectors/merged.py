@@ -31,12 +31,9 @@ MERGE_GROWTH = 1.05
 #: a disc's centre lies where the blob reaches at least this share of the marker's radius all round
 FIT_SHARE = 0.8
 #: a merged blob's pixels outside the marker's disc hold a lump whose core lies this many px inside
-#: its edge (at least twice that across: the look-alike's share, where a lit or blurred marker's
-#: ragged rim or a disc grown as it comes closer leaves a crescent 1–3 px thick), on one side of
-#: the disc (their centroid outside it; a tilted plate's ellipse leaves them on two)
-LUMP_PX = 3.5
-#: … or this many px where a blob of the marker's colour was seen beside it before the blobs merged
-LUMP_BESIDE_PX = 1.5
+#: its edge (at least twice that across: the look-alike's share, not the disc's own rim), on one
+#: side of the disc (their centroid outside it; a tilted plate's ellipse leaves them on two)
+LUMP_PX = 1.5
 #: boundary pixels within this many px of the disc's rim take part in the circle fit: those within
 #: ``INLIER_PX`` of the circle through the most of them, of ``TRIALS`` random triples
 RIM_PX, INLIER_PX, TRIALS = 2.5, 0.75, 300
@@ -100,12 +97,11 @@ def disc_in_mask(mask: np.ndarray, radius: float, near: tuple[float, float]) -> 
     return u, v, r + 0.5  # boundary pixels' centres lie half a pixel inside the blob's edge
 
 
-def unmerge(frame: np.ndarray, mk: MarkerColor, d: Detection, area: float, near: tuple[float, float],
-            lump_px: float = LUMP_PX) -> Detection | None:
+def unmerge(frame: np.ndarray, mk: MarkerColor, d: Detection, area: float, near: tuple[float, float]) -> Detection | None:
     """``d``, a blob of ``mk`` larger than the marker's recent ``area``, replaced by the marker's
     own disc in it (:func:`disc_in_mask`) nearest ``near`` (its predicted position), reported with
-    that disc's area; None when the blob holds no such disc, or nothing beside it but a crescent
-    thinner than ``2·lump_px`` (:data:`LUMP_PX`)."""
+    that disc's area; None when the blob holds no such disc, or nothing beside it but its rim
+    (:data:`LUMP_PX`)."""
     half = int(2.0 * np.sqrt(d.area / np.pi)) + 4
     H, W = frame.shape[:2]
     x0, y0 = max(int(d.u) - half, 0), max(int(d.v) - half, 0)
@@ -122,7 +118,7 @@ def unmerge(frame: np.ndarray, mk: MarkerColor, d: Detection, area: float, near:
     yy, xx = np.mgrid[: blob.shape[0], : blob.shape[1]]
     rest = blob & ((xx - u) ** 2 + (yy - v) ** 2 > (r + 0.5) ** 2)  # the blob beyond the disc
     core = cv2.distanceTransform(np.pad(rest.astype(np.uint8), 1), cv2.DIST_L2, 5).max()
-    if core < lump_px or np.hypot(xx[rest].mean() - u, yy[rest].mean() - v) <= r:
+    if core < LUMP_PX or np.hypot(xx[rest].mean() - u, yy[rest].mean() - v) <= r:
         return None  # the disc alone, with a ragged rim, or with a rim all round (an ellipse)
     own = int(blob.sum() - rest.sum())  # the blob's pixels in the disc: its size as reported
     return Detection(d.marker, u + x0, v + y0, float(own), d.score)
