@@ -111,25 +111,23 @@ class BlobTracker(Detector):
 
     def _own_disc(self, frame: np.ndarray, d: Detection, area: float | None) -> Detection:
         """``d``, or where it is :data:`~detectors.merged.MERGE_GROWTH` times the marker's recent
-        size and a blob of its colour (:data:`LOOKALIKE_SHARE` of its size or more) lay within two
-        radii of it in the last :data:`BESIDE_FRAMES` frames (a look-alike it merged with, perhaps after hiding it), the
-        marker's own disc in it nearest where its last two positions put it now
-        (:func:`~detectors.merged.unmerge`). A marker grown with no look-alike near (motion
-        blur, a hand, coming closer) keeps its blob's centre."""
-        recent = self.recent.get(d.marker)
+        size and a look-alike lay beside it in the last :data:`BESIDE_FRAMES` frames (perhaps
+        hidden behind it since), the marker's own disc in it nearest where its last two positions
+        put it now (:func:`~detectors.merged.unmerge`). A marker grown with no look-alike near
+        (motion blur, a hand, coming closer) keeps its blob's centre."""
         if area is None or d.area < MERGE_GROWTH * area:
             if any(self._lookalike_beside(d, o) for o in self.others.get(d.marker, ())):
                 self.beside[d.marker] = self.frame
             return d
-        if not recent or len(self.areas[d.marker]) < SIZE_SAMPLES:
+        recent = self.recent.get(d.marker)
+        near = self.frame - self.beside.get(d.marker, -BESIDE_FRAMES - 1) <= BESIDE_FRAMES
+        if not near or not recent or len(self.areas[d.marker]) < SIZE_SAMPLES:
             return d
         k, u, v = recent[-1]
         if len(recent) == 2:  # a constant image velocity over the frames between
             k0, u0, v0 = recent[0]
             step = (self.frame + 1 - k) / (k - k0)
             u, v = u + (u - u0) * step, v + (v - v0) * step
-        if self.frame - self.beside.get(d.marker, -BESIDE_FRAMES - 1) > BESIDE_FRAMES:
-            return d  # no look-alike seen near: a marker grown ragged (blur, a hand) is no merge
         return unmerge(frame, self.colours[d.marker], d, area, (u, v)) or d
 
     @staticmethod
