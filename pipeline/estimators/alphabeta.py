@@ -75,6 +75,8 @@ class AlphaBetaEstimator(Estimator):
         order = 2 if gamma is None else 3
         self.F1 = np.array([[1.0, self.dt, 0.5 * self.dt**2], [0.0, 1.0, self.dt], [0.0, 0.0, 1.0]])[:order, :order]
         self.K1 = np.array([cfg.alpha, cfg.beta / self.dt, 2.0 * (gamma or 0.0) / self.dt**2])[:order]
+        self.IKH = np.eye(order) - np.outer(self.K1, np.eye(order)[0])  # the fixed gain's I − K H, and K Kᵀ
+        self.KKt = np.outer(self.K1, self.K1)
         self.scale = RobustNISScale(cfg.pixel_sigma)  # the innovations' variance over the model's (≥ 1; lag raises it)
         self.drift_run = 0  # frames in a row with one camera gated although the pair is one point
 
@@ -109,9 +111,8 @@ class AlphaBetaEstimator(Estimator):
         if self.config.space == "image":
             R = np.full(len(z), self.model.pixel_sigma**2)
         else:
-            R = np.diag(self.model.inverse_covariance(np.nan_to_num(z))) if corrected.all() else np.zeros(3)
-        IKH = np.eye(len(self.K1)) - np.outer(self.K1, np.eye(len(self.K1))[0])
-        upd = IKH @ self.P @ IKH.T + R[:, None, None] * np.outer(self.K1, self.K1)
+            R = np.diag(self.model.inverse_covariance(z)) if corrected.all() else np.zeros(3)
+        upd = self.IKH @ self.P @ self.IKH.T + R[:, None, None] * self.KKt
         self.P = np.where(corrected[:, None, None], upd, self.P)
 
     def _gate(self, y: np.ndarray) -> tuple[np.ndarray, int]:
@@ -129,7 +130,7 @@ class AlphaBetaEstimator(Estimator):
         else:
             P = np.zeros((6, 6))
             P[:3, :3] = np.diag(self.P[:, 0, 0])
-            nis = camera_nis(self.model, np.r_[self.f.x, np.zeros(3)], P, y)
+            nis = camera_nis(self.model, np.concatenate((self.f.x, np.zeros(3))), P, y)
         with np.errstate(invalid="ignore"):
             g = nis / self.scale.value > self.threshold
         self.scale.add(nis)
@@ -148,7 +149,7 @@ class AlphaBetaEstimator(Estimator):
         rows = np.flatnonzero(np.isfinite(y))
         if len(rows) != 2:
             return self.model.inverse_function(y[None])[0]
-        h, H = self.model.linearize(np.r_[self.f.x, np.zeros(3)])
+        h, H = self.model.linearize(np.concatenate((self.f.x, np.zeros(3))))
         J = H[rows, :3]
         return self.f.x + J.T @ np.linalg.solve(J @ J.T, y[rows] - h[rows])
 

@@ -57,10 +57,16 @@ def alpha_z_from_y(y1: float, y3: float, R: float, f: float = 1.0, formula: Form
     return math.asin(s), 2.0 * R * f / (y1 + y3), flag
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.cross`` of two 3-vectors, written out: the same products and differences (the same
+    float result) without its axis handling, which cost more than the rest of a frame's geometry."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
 def _rotation_to_axis(ray: np.ndarray) -> np.ndarray:
     """Rotation taking direction ``ray`` onto +z (Rodrigues), identity when already there."""
     r = ray / np.linalg.norm(ray)
-    v = np.cross(r, [0.0, 0.0, 1.0])
+    v = _cross(r, np.array([0.0, 0.0, 1.0]))
     s, c = np.linalg.norm(v), r[2]
     if s < 1e-15:
         return np.eye(3)
@@ -100,7 +106,7 @@ def measure_camera(points: np.ndarray, cam: Camera, R: float, formula: Formula =
     if points.shape != (4, 2) or not np.all(np.isfinite(points)):
         return _failed("fewer than four points")
     h = np.column_stack([cam.normalize(points), np.ones(4)])
-    c = np.cross(np.cross(h[0], h[2]), np.cross(h[1], h[3]))  # centre = line13 ∩ line24
+    c = _cross(_cross(h[0], h[2]), _cross(h[1], h[3]))  # centre = line13 ∩ line24
     if not np.all(np.isfinite(c)) or abs(c[2]) <= 1e-12 * np.linalg.norm(c) or not np.any(c):
         return _failed("degenerate: collinear points")
     Rv = _rotation_to_axis(c / c[2])  # virtual camera looking at the centre
@@ -127,7 +133,7 @@ def measure_camera(points: np.ndarray, cam: Camera, R: float, formula: Formula =
             return got
         normal_v, axis_v, dist_v, flag = got
     else:
-        normal_v = np.cross(vecs[0], vecs[1])  # (0,−cos α, sin α) × (1,0,0) = (0, sin α, cos α): flip to face the camera
+        normal_v = _cross(vecs[0], vecs[1])  # (0,−cos α, sin α) × (1,0,0) = (0, sin α, cos α): flip to face the camera
         normal_v, axis_v, dist_v, flag = -normal_v / np.linalg.norm(normal_v), vecs[1], float(np.mean(dists)), ""
     if normal_v[2] >= 0:
         return _failed("inconsistent labels: the plate would face away from the camera", phi_v)
