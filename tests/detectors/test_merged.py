@@ -11,8 +11,10 @@ import csv
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from detectors.blob import BlobDetector, MarkerColor
+from detectors.blob import BlobDetector, Detection, MarkerColor
 from detectors.blob_tracker import BlobTracker
 from detectors.merged import disc_in_mask, unmerge
 from detectors.stage import detect_clip
@@ -47,6 +49,31 @@ def test_the_marker_disc_is_found_in_a_blob_merged_with_a_lookalike(side, other)
     assert got is not None
     assert np.hypot(got[0] - c[0], got[1] - c[1]) < 0.35, got
     assert abs(got[2] - r) < 0.6, got
+
+
+_shape = st.tuples(st.booleans(), st.integers(-5, 70), st.integers(-5, 70), st.integers(0, 30), st.integers(0, 30))
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(8, 64), st.integers(8, 64), st.lists(_shape, min_size=1, max_size=3),
+       st.floats(0.5, 30.0), st.floats(-50.0, 120.0), st.floats(-50.0, 120.0), st.floats(1.0, 3000.0))
+def test_any_blob_gives_a_finite_disc_or_none(h, w, shapes, radius, nu, nv, area):
+    """Discs and boxes anywhere (cut by the frame's edge, touching, none), any recent size, a
+    prediction anywhere: :func:`disc_in_mask` and :func:`unmerge` return finite values or None,
+    never raise."""
+    mask = np.zeros((h, w), np.uint8)
+    for disc, x, y, a, b in shapes:
+        if disc:
+            cv2.circle(mask, (x, y), a, 1, -1)
+        else:
+            cv2.rectangle(mask, (x, y), (x + a, y + b), 1, -1)
+    got = disc_in_mask(mask, radius, (nu, nv))
+    assert got is None or all(np.isfinite(got))
+    frame = np.full((h, w, 3), 110, np.uint8)
+    frame[mask > 0] = (30, 30, 230)
+    d = Detection("red", min(abs(nu), w - 1), min(abs(nv), h - 1), area, 1.0)
+    found = unmerge(frame, MarkerColor.from_rgb("red", (230, 30, 30)), d, radius**2 * np.pi, (nu, nv))
+    assert found is None or (np.isfinite(found.u) and np.isfinite(found.v) and found.area > 0)
 
 
 def test_a_blob_too_small_for_the_marker_holds_no_disc():
