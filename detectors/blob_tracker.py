@@ -91,8 +91,8 @@ class BlobTracker(Detector):
         self.others: dict[str, list[Detection]] = {}  # this frame, per single marker: its colour's other blobs
         self.beside: dict[str, int] = {}  # per single marker: the last frame a blob of its colour lay beside it
 
-    def reset(self) -> None:
-        self.windows, self.recent, self.beside = {}, {}, {}
+    def reset(self) -> None:  # the look-alikes seen stay: a dropped frame does not move them
+        self.windows, self.recent = {}, {}
 
     def detect(self, frame: np.ndarray) -> list[Detection]:
         self.others = {}
