@@ -4,7 +4,7 @@ when the clip has truth, ``out/metrics.json`` (schemas in :mod:`pipeline.core.cl
 from __future__ import annotations
 
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -28,7 +28,7 @@ from pipeline.core.clip import (
 from pipeline.core.detections import Detections, GroupDetections, GroupFlags, split_groups
 from pipeline.core.errors import StereotrackError, first_line
 from pipeline.core.forked import forked_map
-from pipeline.core.io import read_csv, write_csv, write_json
+from pipeline.core.io import read_csv, write_csv_columns, write_json
 from pipeline.core.outputs import Outputs
 from pipeline.core.rig import Rig
 from pipeline.core.settings import RunHooks, RunSettings
@@ -36,6 +36,7 @@ from pipeline.core.sync import SyncEstimate, describe_views, grid_length, resolv
 from pipeline.core.version import stereotrack_version
 from pipeline.estimators import Estimator, Track, create, registry
 from pipeline.estimators.association import Association, associate, filter_tracks
+from pipeline.estimators.kalman_common import RTSMixin, filter_passes_shared
 from pipeline.estimators.registration import default_methods, is_builtin, origin
 from pipeline.evaluation.identity import MATCH_M, identity_metrics, matched_truth
 from pipeline.evaluation.metrics import compute_metrics, method_metrics
@@ -140,16 +141,17 @@ def estimate_clip(clip: str | Path | Clip, settings: RunSettings | None = None, 
     if point:
         _before_point_methods(seen)
     resolved: dict[str, dict[str, Any]] = {}
-    runs = forked_map(partial(_run_one, seen, configs, out_dir), [*target, *point], workers)
+    jobs = _jobs([*target, *point], configs)
+    runs = _Results(forked_map(partial(_run_job, seen, configs, out_dir), jobs, workers))
     target_tracks = {}
     for m in target:
-        target_tracks[m], resolved[m] = next(runs)
+        target_tracks[m], resolved[m] = runs.take(m)
         count.tick()
     result = EstimateResult(out_dir, seen.rig, seen.dt, seen.n, seen.obs, {}, seen.truth, seen.target, target_tracks,
                             aligned=seen.aligned)
     entries = {}
     for m in point:
-        (tracks, scores, identity), resolved[m] = next(runs)
+        (tracks, scores, identity), resolved[m] = runs.take(m)
         for _ in range(len(seen.aligned) + len(seen.groups)):
             count.tick()
         entries[m] = method_metrics(result, m, tracks, scores)
@@ -284,6 +286,52 @@ def _run_one(seen: Observed, configs: dict[str, dict[str, Any]], out_dir: Path, 
     return _run_point(m, seen, configs.get(m), out_dir, resolved), resolved[m]
 
 
+def _jobs(methods: list[str], configs: dict[str, dict[str, Any]]) -> list[tuple[str, ...]]:
+    """The methods in jobs for the workers: a smoother with its filter when both have the same
+    settings (its backward pass then takes the filter's tracks: one forward pass), and the methods
+    that import the same costly module when first run (:attr:`Estimator.startup_imports`) in one
+    job, so that one worker pays for it; jobs in the order of their first methods."""
+    reg = registry()
+    jobs: list[tuple[str, ...]] = []
+    job_of: dict[str, int] = {}
+    for m in methods:
+        cls, filt = reg[m], _smooths(reg[m])
+        j = job_of.get(filt) if filt is not None and configs.get(m) == configs.get(filt) else None
+        if j is None:
+            j = next((job_of[o] for o in job_of if set(reg[o].startup_imports) & set(cls.startup_imports)), None)
+        if j is None:
+            jobs.append(())
+            j = len(jobs) - 1
+        jobs[j], job_of[m] = (*jobs[j], m), j
+    return jobs
+
+
+def _smooths(cls: type) -> str | None:
+    """The filter a smoother's backward pass takes (None: not a smoother)."""
+    return cls.smooths() if issubclass(cls, RTSMixin) else None
+
+
+def _run_job(seen: Observed, configs: dict[str, dict[str, Any]], out_dir: Path, job: tuple[str, ...]
+             ) -> list[tuple[str, tuple[Any, dict[str, Any]]]]:
+    """The methods of one job in one process (:func:`_run_one` each), a filter's forward passes shared
+    with its smoother."""
+    with filter_passes_shared():
+        return [(m, _run_one(seen, configs, out_dir, m)) for m in job]
+
+
+class _Results:
+    """The jobs' results, taken method by method in whatever order the caller needs them (those
+    that come before theirs are kept until taken)."""
+
+    def __init__(self, jobs: Iterator[list[tuple[str, Any]]]) -> None:
+        self.jobs, self.kept = jobs, dict[str, Any]()
+
+    def take(self, m: str) -> Any:
+        while m not in self.kept:
+            self.kept.update(next(self.jobs))
+        return self.kept.pop(m)
+
+
 def _associate_groups(seen: Observed) -> None:
     """Each group of identical markers associated once, before the methods that filter it run."""
     for group, dets in seen.groups.items():
@@ -396,23 +444,29 @@ def _run_method(est: Estimator, Y: np.ndarray, marker: str) -> Track:
 
 
 def _write_estimates(path: Path, tracks: dict[str, Track], dt: float, scores: dict[str, FrameScores]) -> None:
-    def rows():
-        for marker, tr in tracks.items():
-            cons, group = scores[marker].columns(), marker.split("#", 1)[0]
-            for k in range(len(tr.position)):
-                yield (k, k * dt, marker, *tr.position[k], *tr.velocity[k], *cons[k], int(tr.predicted[k]), group)
-
-    write_csv(path, ESTIMATE_COLUMNS, rows())
+    parts = [_track_columns(marker, marker.split("#", 1)[0], tr, dt, scores[marker].columns())
+             for marker, tr in tracks.items()]
+    write_csv_columns(path, ESTIMATE_COLUMNS, _stacked(parts, len(ESTIMATE_COLUMNS)))
 
 
 def _write_target_estimates(path: Path, name: str, tr: Track, dt: float) -> None:
-    cons = score_track(tr, None).columns()
+    cols = [*_track_columns(name, name, tr, dt, score_track(tr, None).columns()), tr.extra["alpha"], tr.extra["distance"]]
+    write_csv_columns(path, TARGET_COLUMNS, cols)
 
-    def rows():
-        for k in range(len(tr.position)):
-            yield (k, k * dt, name, *tr.position[k], *tr.velocity[k], *cons[k], int(tr.predicted[k]), name,
-                   tr.extra["alpha"][k], tr.extra["distance"][k])
 
-    write_csv(path, TARGET_COLUMNS, rows())
+def _track_columns(marker: str, group: str, tr: Track, dt: float, cons: np.ndarray) -> list:
+    """One track's rows of the estimates CSV, column by column: frame, t, marker, position,
+    velocity, the consistency columns, predicted, group."""
+    n = len(tr.position)
+    frames = np.arange(n)
+    return [frames, frames * dt, [marker] * n, *tr.position.T, *tr.velocity.T, *cons.T,
+            np.asarray(tr.predicted, dtype=int), [group] * n]
+
+
+def _stacked(parts: list[list], width: int) -> list:
+    """Tracks' columns one after another (arrays joined, name lists added)."""
+    if not parts:
+        return [[] for _ in range(width)]
+    return [np.concatenate(c) if isinstance(c[0], np.ndarray) else [v for p in c for v in p] for c in zip(*parts, strict=True)]
 
 

@@ -28,7 +28,8 @@ class ABFilter:
     def correct(self, z: np.ndarray) -> None:
         """Correct the channels whose measurement is finite."""
         ok = np.isfinite(z)
-        r = np.where(ok, np.nan_to_num(z) - self.x, 0.0)
+        with np.errstate(invalid="ignore"):
+            r = np.where(ok, z - self.x, 0.0)  # a missing channel's NaN never reaches the state
         self.x = self.x + self.alpha * r
         self.v = self.v + self.beta * r / self.dt
         if self.gamma is not None:

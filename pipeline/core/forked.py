@@ -24,7 +24,7 @@ T = TypeVar("T")
 R = TypeVar("R")
 
 #: jobs per worker submitted ahead of the result the caller is reading
-AHEAD = 1
+AHEAD = 2
 
 #: the function and items of the map in progress, read by the forked workers (set before they fork)
 _JOB: tuple[Callable[[Any], Any], Sequence[Any]] | None = None

@@ -162,6 +162,25 @@ def write_csv(path: str | Path, header: Sequence[str], rows: Iterable[Sequence[A
             writer.writerow([_fmt(v) for v in row])
 
 
+def write_csv_columns(path: str | Path, header: Sequence[str], columns: Sequence[np.ndarray | Sequence[Any]]) -> None:
+    """:func:`write_csv` of a table given column by column (float or integer arrays, or lists of
+    names), the same bytes: each column is formatted at once instead of value by value."""
+    cells = [_cells(c) for c in columns]
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(header)
+        writer.writerows(zip(*cells, strict=True))
+
+
+def _cells(c: np.ndarray | Sequence[Any]) -> list[Any]:
+    """A column's cells as :func:`_fmt` makes them."""
+    if isinstance(c, np.ndarray) and c.dtype.kind == "f":
+        return [f"{v:.10g}" for v in c.tolist()]
+    if isinstance(c, np.ndarray) and c.dtype.kind in "iub":
+        return c.astype(int).tolist()
+    return [_fmt(v) for v in c]
+
+
 def _fmt(v: Any) -> Any:
     if isinstance(v, (float, np.floating)):
         return f"{float(v):.10g}"

@@ -130,7 +130,9 @@ class AlphaBetaEstimator(Estimator):
         else:
             P = np.zeros((6, 6))
             P[:3, :3] = np.diag(self.P[:, 0, 0])
-            nis = camera_nis(self.model, np.concatenate((self.f.x, np.zeros(3))), P, y)
+            x = np.concatenate((self.f.x, np.zeros(3)))
+            h, H = self.model.linearize(x)  # h and ∂h/∂x in one pass
+            nis = camera_nis(self.model, x, P, y, self.model.covar(), h, H)
         with np.errstate(invalid="ignore"):
             g = nis / self.scale.value > self.threshold
         self.scale.add(nis)

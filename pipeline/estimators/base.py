@@ -9,8 +9,7 @@ with ``h`` the :class:`pipeline.core.camera.StereoMeasurementModel` of the rig. 
 and four-point target alike — is built from a pydantic config + the stereo rig + ``dt`` and has
 three equivalent paths that give the same numbers (tested):
 
-- ``step(obs)``: one frame (streaming), then ``finish(steps, Y)`` for the whole track (a smoother
-  runs its backward pass there);
+- ``step(obs)``: one frame (streaming), then ``finish(steps, Y)`` for the whole track (smoothed there);
 - ``run(Y)``: a clip — ``reset``, ``step`` every frame, ``finish``;
 - ``run_batch(Ys)``: many tracks at once (vectorised where a method can be).
 
@@ -341,6 +340,9 @@ class Estimator(ABC):
     #: whether ``estimate`` runs the method when ``--methods`` does not name it (False: an option
     #: for one kind of motion, run when asked)
     default: ClassVar[bool] = True
+    #: modules the method imports when it first runs that take long to import (``estimate`` runs
+    #: the methods sharing one in one process, so that it is imported once)
+    startup_imports: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, rig: StereoRig | Rig, dt: float, config: EstimatorConfig | dict[str, Any] | None = None,
                  time_offset: float = 0.0) -> None:

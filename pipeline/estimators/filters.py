@@ -81,14 +81,25 @@ class MerweSigmaPoints:
         self.Wm, self.Wc = np.full(2 * n + 1, c), np.full(2 * n + 1, c)
         self.Wm[0] = lam / (n + lam)
         self.Wc[0] = lam / (n + lam) + (1 - alpha**2 + beta)
-        from scipy.linalg import cholesky  # the upper factor filterpy takes (numpy's, transposed, differs in the last bit)
+        from scipy.linalg.lapack import dpotrf  # the upper factor filterpy takes (numpy's, transposed, differs in the last bit)
 
-        self._cholesky = cholesky  # imported once per filter, not once per step
+        self._potrf = dpotrf  # imported once per filter, not once per step
 
     def sigma_points(self, x: np.ndarray, P: np.ndarray) -> np.ndarray:
         """The 2n + 1 points (rows) for mean ``x`` and covariance ``P``."""
-        U = self._cholesky(self.scale * P)
-        return np.vstack([x, x + U, x - U])
+        return np.vstack([x, x + (U := self.cholesky(self.scale * P)), x - U])
+
+    def cholesky(self, A: np.ndarray) -> np.ndarray:
+        """``scipy.linalg.cholesky(A)`` (the upper factor, LAPACK's ``dpotrf``) without its
+        per-call checks and dispatch, which cost more than the factorisation of a 6×6 matrix."""
+        if not np.isfinite(A).all():
+            raise ValueError("array must not contain infs or NaNs")
+        U, info = self._potrf(A, lower=0, clean=1)
+        if info > 0:
+            raise np.linalg.LinAlgError(f"{info}-th leading minor of the array is not positive definite")
+        if info < 0:
+            raise ValueError(f"LAPACK reported an illegal value in {-info}-th argument on entry to dpotrf")
+        return U
 
 
 def unscented_transform(sigmas: np.ndarray, Wm: np.ndarray, Wc: np.ndarray,
@@ -130,9 +141,10 @@ class UnscentedKalmanFilter:
         """Fold in ``z`` given the prior's sigma points through the measurement model (``sigmas_h``)."""
         pts = self.points
         zp, self.S = unscented_transform(sigmas_h, pts.Wm, pts.Wc, R)
+        dx, dz = self.sigmas_f - self.x, sigmas_h - zp
         Pxz = np.zeros((len(self.x), len(zp)))
-        for w, dx, dz in zip(pts.Wc, self.sigmas_f - self.x, sigmas_h - zp, strict=True):  # filterpy's order of sums
-            Pxz += w * np.outer(dx, dz)
+        for term in pts.Wc[:, None, None] * (dx[:, :, None] * dz[:, None, :]):  # filterpy's w · outer(dx, dz), all at once
+            Pxz += term  # summed point by point in its order
         self.K = np.dot(Pxz, np.linalg.inv(self.S))
         self.y = z - zp
         self.x = self.x + np.dot(self.K, self.y)

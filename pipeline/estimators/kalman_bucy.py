@@ -172,6 +172,7 @@ class KalmanBucyEstimator(TargetEstimator):
 
     name = "kalman_bucy"
     models_target_dynamics = True
+    startup_imports = ("scipy.linalg",)  # the Riccati solution, matrix exponentials
     Config = KalmanBucyConfig
     config: KalmanBucyConfig  # the validated settings, of this method's own type
 

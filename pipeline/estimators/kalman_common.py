@@ -4,8 +4,10 @@ Rauch–Tung–Striebel backward pass (filterpy's ``rts_smoother``)."""
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 import numpy as np
 from pydantic import Field
@@ -93,6 +95,12 @@ class GatedFilter(Estimator):
         look-alike on the epipolar line makes one point too)."""
         return ViewCheck(self.model, self.model.pixel_sigma, self.config.gate) if self.rig.n >= 3 else None
 
+    def complete(self, track: Track, Y: np.ndarray) -> Track:
+        """The filter's track as it is; remembered for its smoother under :func:`filter_passes_shared`."""
+        if _PASSES is not None:
+            _PASSES[_pass_key(self, self.name, Y)] = _copy_track(track, track.method)
+        return track
+
     def gate_threshold(self) -> float:
         cfg = self.config
         if getattr(self, "_gate_key", None) != cfg.gate:  # a χ² quantile costs more than a filter step
@@ -100,8 +108,13 @@ class GatedFilter(Estimator):
         return self._gate_value
 
     def gate_covariance(self) -> np.ndarray:
-        """The pixel noise the gate assumes: the model's ``σ² I``, times ``r_scale``."""
-        return self.model.covar() * self.config.r_scale
+        """The pixel noise the gate assumes: the model's ``σ² I``, times ``r_scale`` (read-only;
+        made once per noise setting, not every frame)."""
+        key = (self.model.pixel_sigma, self.config.r_scale)
+        if getattr(self, "_gate_cov_key", None) != key:
+            self._gate_cov_key, self._gate_cov = key, self.model.covar() * self.config.r_scale
+            self._gate_cov.flags.writeable = False
+        return self._gate_cov
 
     def gate(self, y: np.ndarray, x: np.ndarray, P: np.ndarray, h: np.ndarray | None = None,
              H: np.ndarray | None = None, S: np.ndarray | None = None) -> tuple[np.ndarray, int, Start | None]:
@@ -326,10 +339,60 @@ def filtered_step(x: np.ndarray, P: np.ndarray, predicted: bool, f=None, innovat
                 np.array(innovation_covariance, dtype=float).copy())
 
 
+#: the filters' finished tracks while :func:`filter_passes_shared` is in force, by (filter, settings,
+#: observations); None outside it
+_PASSES: dict[tuple, Track] | None = None
+
+
+@contextmanager
+def filter_passes_shared() -> Iterator[None]:
+    """Within: each Kalman filter's finished track is remembered, so that its smoother run on the
+    same observations with the same settings (``kf3d`` then ``kf3d_rts``) smooths it instead of
+    filtering them again: the forward pass is the same computation (the same numbers, tested)."""
+    global _PASSES
+    before, _PASSES = _PASSES, {}
+    try:
+        yield
+    finally:
+        _PASSES = before
+
+
+def _pass_key(est: GatedFilter, name: str, Y: np.ndarray) -> tuple:
+    """What makes two runs' forward passes the same: the filter, its settings, the rig, the step
+    and time offset, the observations."""
+    return (name, est.config.model_dump_json(), id(est.rig), est.dt, est.model.time_offset,
+            np.ascontiguousarray(Y, dtype=float).tobytes())
+
+
+def _copy_track(track: Track, method: str) -> Track:
+    """A track with its own arrays (callers mask theirs in place), named ``method``."""
+    def own(a):
+        return None if a is None else np.array(a, copy=True)
+
+    return dataclasses.replace(track, method=method, position=own(track.position), velocity=own(track.velocity),
+                               reprojection_error=own(track.reprojection_error), predicted=own(track.predicted),
+                               extra={k: own(v) for k, v in track.extra.items()}, covariance=own(track.covariance),
+                               nis=own(track.nis), nis_dof=own(track.nis_dof))
+
+
 class RTSMixin(GatedFilter):
     """Makes a Kalman-family estimator a smoother: every finished track (from :meth:`finish` or a
     compiled ``run``) gets :func:`rts_smooth` (the streaming ``step`` output stays the filter's);
-    ``run_batch`` loops over :meth:`run` so that every track is smoothed."""
+    ``run_batch`` loops over :meth:`run` so that every track is smoothed. Under
+    :func:`filter_passes_shared` a track its filter has just made of the same observations is
+    smoothed instead of filtered again."""
+
+    @classmethod
+    def smooths(cls) -> str:
+        """The name of the filter whose track this smoother's backward pass takes."""
+        return next(c.name for c in cls.__mro__[1:] if issubclass(c, Estimator) and not issubclass(c, RTSMixin)
+                    and "name" in vars(c))
+
+    def run(self, Y: np.ndarray) -> Track:
+        done = None if _PASSES is None else _PASSES.get(_pass_key(self, self.smooths(), Y))
+        if done is None:
+            return super().run(Y)
+        return self.complete(_copy_track(done, self.name), self.check(Y))
 
     def complete(self, track: Track, Y: np.ndarray) -> Track:
         tr = rts_smooth(self, track)

@@ -63,6 +63,7 @@ class PnPKFEstimator(TargetEstimator):
 
     name = "pnp_kf"
     models_target_dynamics = True
+    startup_imports = ("scipy.linalg",)  # the transition's matrix exponential
     Config = KalmanBucyConfig
     config: KalmanBucyConfig  # the validated settings, of this method's own type
 

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from pipeline.core import io
 from pipeline.core.errors import StereotrackError
@@ -36,3 +38,20 @@ def test_an_attempt_s_folder_names_its_final_one(tmp_path):
     attempt = partial_folder(final, "0123456789ab")
     assert attempt.name == ".clip.v2.partial-0123456789ab" and final_folder(attempt) == final
     assert final_folder(final) == final and final_folder(tmp_path / ".hidden") == tmp_path / ".hidden"
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(rows=st.integers(0, 6), floats=st.lists(st.floats(allow_nan=True, allow_infinity=True), min_size=18, max_size=18),
+       ints=st.lists(st.integers(-10**12, 10**12), min_size=6, max_size=6),
+       names=st.lists(st.text(max_size=6), min_size=6, max_size=6))
+def test_a_table_written_by_columns_is_the_one_written_by_rows(tmp_path, rows, floats, ints, names):
+    """``write_csv_columns`` (the estimates' writer) gives ``write_csv``'s bytes: floats to 10
+    digits with NaN, ±inf and −0, integers and booleans as integers, names quoted as CSV needs."""
+    f = np.array(floats[: 3 * rows], dtype=float).reshape(3, rows) if rows else np.zeros((3, 0))
+    i = np.array(ints[:rows], dtype=np.int64)
+    b = np.arange(rows) % 2 == 0
+    n = names[:rows]
+    io.write_csv(tmp_path / "rows.csv", ["a", "b", "c", "i", "flag", "name"],
+                 [(*f[:, k], i[k], b[k], n[k]) for k in range(rows)])
+    io.write_csv_columns(tmp_path / "cols.csv", ["a", "b", "c", "i", "flag", "name"], [*f, i, b, n])
+    assert (tmp_path / "cols.csv").read_bytes() == (tmp_path / "rows.csv").read_bytes()
