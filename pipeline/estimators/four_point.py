@@ -241,6 +241,24 @@ class TargetEstimator(Estimator):
         r = np.asarray(u, dtype=float) - predicted
         return bool(r @ np.linalg.solve(S, r) > threshold)
 
+    def views(self, obs: np.ndarray) -> list[TargetMeasurement]:
+        """Each measuring camera's own measurement (those that give none left out)."""
+        c = self.config
+        idx = {"left": [0], "right": [1], "both": [0, 1]}[c.cameras]
+        ms = [measure_camera(obs[:, 2 * i : 2 * i + 2], self.rig.cameras[i], c.radius, c.formula, camera_to_left(self.rig, i))
+              for i in idx]
+        return [m for m in ms if m.ok]
+
+    def kept_view(self, obs: np.ndarray, predicted: np.ndarray, S: np.ndarray) -> TargetMeasurement | None:
+        """When the fused measurement fails the gate: the one camera whose own measurement passes it
+        (``S``: the innovation covariance with one camera's noise), None unless exactly one does. A
+        plate mis-detected in one camera must not discard the other camera's good view of it."""
+        views = self.views(np.asarray(obs, dtype=float))
+        if len(views) < 2:
+            return None
+        kept = [m for m in views if not self.gated_measurement(np.array([m.alpha, m.distance]), predicted, S)]
+        return kept[0] if len(kept) == 1 else None
+
     def _step(self, obs: np.ndarray) -> Step:
         m = self.measure(obs)
         return self.target_step(m.alpha, m.distance, m.center, not m.ok)

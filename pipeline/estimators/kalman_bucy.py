@@ -136,7 +136,8 @@ class KalmanBucyConfig(TargetConfig):
     """Channel models, noise, gain and integration of the Kalman–Bucy filter."""
 
     gate: float = Field(0.0, ge=0.0, lt=1.0)
-    """the χ² gate on the fused [α, z] measurement (2 dof): off by default — with the pixel noise measured on a rendered
+    """the χ² gate on the fused [α, z] measurement (2 dof; when it fails, the one camera whose own view passes is used):
+    off by default — with the pixel noise measured on a rendered
     clip (hundredths of a pixel) it rejected good measurements and made kalman_bucy's α RMSE 0.0030 rad instead of
     0.0021; ``gate: 0.9995`` turns it on"""
     a_alpha: float = -1.0
@@ -219,17 +220,19 @@ class KalmanBucyEstimator(TargetEstimator):
             self._center_dir = m.center / m.center[2]
             return self.target_step(m.alpha, m.distance, m.center, False)
         u = np.array([m.alpha, m.distance]) if m.ok else None
-        gated = 0.0
+        gated, used = 0.0, m
         if u is not None and self.gated_measurement(u, C4 @ self.x, C4 @ self.P @ C4.T + np.diag(self.meas_var)):
-            u, gated = None, 1.0  # treated as a frame without a measurement
+            one = self.kept_view(obs, C4 @ self.x, C4 @ self.P @ C4.T + 2.0 * np.diag(self.meas_var))
+            u, gated, used = (None, 1.0, m) if one is None else (np.array([one.alpha, one.distance]), 1.0, one)
+        Rinv = self.Rinv if used is m else 0.5 * self.Rinv  # one camera's view: twice the fused noise
         if c.gain == "riccati":
             if u is not None:
-                self.K = self.P @ C4.T @ self.Rinv
-                self.P = riccati_step(self.P, self.dt, self.A, C4, self.GQG, self.Rinv, c.integration)
+                self.K = self.P @ C4.T @ Rinv
+                self.P = riccati_step(self.P, self.dt, self.A, C4, self.GQG, Rinv, c.integration)
             else:  # no measurement: the covariance grows with the model only
                 self.P = riccati_step(self.P, self.dt, self.A, np.zeros_like(C4), self.GQG, self.Rinv, c.integration)
         self.x = filter_step(self.x, u, self.dt, self.A, self.K, C4, c.integration, self._u_prev)
         self._u_prev = u
-        if m.ok and not gated:
-            self._center_dir = m.center / m.center[2]
+        if u is not None:
+            self._center_dir = used.center / used.center[2]
         return self.target_step(float(self.x[0]), float(self.x[2]), self._center_dir * self.x[2], u is None, gated)

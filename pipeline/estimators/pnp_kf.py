@@ -80,44 +80,49 @@ class PnPKFEstimator(TargetEstimator):
 
     def pnp(self, obs: np.ndarray) -> TargetMeasurement:
         """α, z and centre from PnP on each available camera, averaged in the left frame."""
+        views = self.views(obs)
+        if not views:
+            return TargetMeasurement(math.nan, math.nan, np.full(3, math.nan), math.nan, "no PnP solution")
+        return TargetMeasurement(float(np.mean([v.alpha for v in views])), float(np.mean([v.distance for v in views])),
+                                 np.mean([v.center for v in views], axis=0), math.nan)
+
+    def views(self, obs: np.ndarray) -> list[TargetMeasurement]:
+        """Each available camera's PnP: of IPPE's two poses, the one whose normal is nearest the
+        camera's previous one (the lower reprojection error on its first frame)."""
         c = self.config
-        idx = {"left": [0], "right": [1], "both": [0, 1]}[c.cameras]
-        alphas, dists, centers = [], [], []
-        for ci in idx:
-            pts = obs[:, 2 * ci : 2 * ci + 2]
-            if not np.all(np.isfinite(pts)):
+        out = []
+        for ci in {"left": [0], "right": [1], "both": [0, 1]}[c.cameras]:
+            cands = self._poses(obs[:, 2 * ci : 2 * ci + 2], ci)
+            if not cands:
                 continue
-            cam = self.rig.cameras[ci]
-            try:
-                n_sol, rvecs, tvecs, errs = cv2.solvePnPGeneric(
-                    object_points(c.radius), np.ascontiguousarray(pts[SQUARE_ORDER]), cam.K, None,
-                    flags=cv2.SOLVEPNP_IPPE_SQUARE,
-                )
-            except cv2.error:
-                continue
-            if not n_sol:
-                continue
-            to_left = camera_to_left(self.rig, ci)
-            cands = []
-            for rv, tv, err in zip(rvecs, tvecs, np.ravel(errs), strict=True):
-                Rt, _ = cv2.Rodrigues(rv)
-                Rl = to_left[:3, :3] @ Rt
-                center = to_left[:3, :3] @ tv.ravel() + to_left[:3, 3]
-                normal = Rl[:, 2]  # x × y: towards the camera
-                cands.append((Rl, center, normal, float(err)))
             prev = self.prev_normals.get(ci)
-            if prev is not None:
-                best = max(cands, key=lambda cd: float(cd[2] @ prev))
-            else:
-                best = min(cands, key=lambda cd: cd[3])
+            best = max(cands, key=lambda cd: float(cd[2] @ prev)) if prev is not None else min(cands, key=lambda cd: cd[3])
             self.prev_normals[ci] = best[2]
             alpha, _ = alpha_from_normal(best[2], best[0] @ AXIS_IN_SQUARE)
-            alphas.append(alpha)
-            dists.append(best[1][2])
-            centers.append(best[1])
-        if not alphas:
-            return TargetMeasurement(math.nan, math.nan, np.full(3, math.nan), math.nan, "no PnP solution")
-        return TargetMeasurement(float(np.mean(alphas)), float(np.mean(dists)), np.mean(centers, axis=0), math.nan)
+            out.append(TargetMeasurement(alpha, float(best[1][2]), best[1], math.nan))
+        return out
+
+    def _poses(self, pts: np.ndarray, ci: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, float]]:
+        """IPPE-square's poses of the plate in camera ``ci`` as (rotation, centre, normal, error) in
+        the left camera's frame; none without all four points or a solution."""
+        if not np.all(np.isfinite(pts)):
+            return []
+        cam = self.rig.cameras[ci]
+        try:
+            n_sol, rvecs, tvecs, errs = cv2.solvePnPGeneric(
+                object_points(self.config.radius), np.ascontiguousarray(pts[SQUARE_ORDER]), cam.K, None,
+                flags=cv2.SOLVEPNP_IPPE_SQUARE,
+            )
+        except cv2.error:
+            return []
+        to_left = camera_to_left(self.rig, ci)
+        cands = []
+        for rv, tv, err in zip(rvecs, tvecs, np.ravel(errs), strict=True) if n_sol else ():
+            Rt, _ = cv2.Rodrigues(rv)
+            Rl = to_left[:3, :3] @ Rt
+            center = to_left[:3, :3] @ tv.ravel() + to_left[:3, 3]
+            cands.append((Rl, center, Rl[:, 2], float(err)))  # the normal, x × y: towards the camera
+        return cands
 
     def _step(self, obs: np.ndarray) -> Step:
         c = self.config
@@ -141,10 +146,12 @@ class PnPKFEstimator(TargetEstimator):
         u = np.array([m.alpha, m.distance])
         kf = self.kf
         gated = m.ok and self.gated_measurement(u, (kf.H @ kf.x).ravel(), kf.H @ kf.P @ kf.H.T + kf.R)
-        use = m.ok and not gated
+        one = self.kept_view(obs, (kf.H @ kf.x).ravel(), kf.H @ kf.P @ kf.H.T + 2.0 * kf.R) if gated else None
+        use = m.ok and (not gated or one is not None)
         if use:
-            kf.update(u.reshape(2, 1))
-            self._center_dir = m.center / m.center[2]
+            used = m if one is None else one
+            kf.update(np.array([[used.alpha], [used.distance]]), R=None if one is None else 2.0 * kf.R)
+            self._center_dir = used.center / used.center[2]
         x = kf.x.ravel()
         nis = {"innovation": kf.y.ravel().copy(), "innovation_covariance": kf.S.copy()} if use else {}
         return self.target_step(float(x[0]), float(x[2]), self._center_dir * x[2], not use, float(gated),

@@ -170,3 +170,29 @@ def test_end_to_end_on_rendered_target(target_clip, tmp_path):
     header = (tmp_path / "estimates" / "kalman_bucy.csv").read_text().splitlines()[0]
     assert header.endswith("alpha,distance")
     assert res.target is not None and res.target.radius == pytest.approx(0.2)
+
+
+@pytest.mark.parametrize("method", ["kalman_bucy", "pnp_kf"])
+def test_the_fused_view_gated_the_other_camera_s_own_view_is_kept(method):
+    """A plate mis-detected in one camera: the filter's gate rejects the fused measurement and keeps
+    the other camera's own view (what ``views`` gives of it alone); with both cameras' views off, or
+    one camera's only, nothing is kept."""
+    est = create(method, RIG, 1 / 30, {"gate": 0.9995, "pixel_sigma": 0.5})
+    obs = observe(np.array([0.05, 0.0, 1.8]), 0.3, 0.0)
+    bad = obs.copy()
+    bad[0, 3] -= 40.0  # the right camera's points 1 and 3 apart: its foreshortening, α and z, wrong
+    bad[2, 3] += 40.0
+    good = est.views(obs)
+    assert len(good) == 2 and abs(good[0].alpha - 0.3) < 0.02 and abs(good[1].alpha - 0.3) < 0.02
+    predicted, S = np.array([0.3, 1.8]), np.diag([0.05**2, 0.02**2])
+    fused = est.measure(bad) if method == "kalman_bucy" else est.pnp(bad)
+    assert est.gated_measurement(np.array([fused.alpha, fused.distance]), predicted, S)
+    kept = est.kept_view(bad, predicted, S)
+    assert kept is not None and kept.alpha == good[0].alpha and kept.distance == good[0].distance  # the left's own
+    both = bad.copy()
+    both[0, 1] -= 40.0
+    both[2, 1] += 40.0
+    assert est.kept_view(both, predicted, S) is None
+    one = bad.copy()
+    one[:, :2] = np.nan  # the left camera missing: the fused view is the right's, nothing else to keep
+    assert est.kept_view(one, predicted, S) is None
