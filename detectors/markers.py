@@ -11,13 +11,14 @@ import yaml
 from detectors.blob import MarkerColor
 from pipeline.core.clip import MARKERS_FILE
 from pipeline.core.errors import StereotrackError, first_line
+from pipeline.core.io import safe_yaml_loader
 
 
 def read_markers_file(path: str | Path) -> list[str]:
     """``markers.yaml``: a list of ``--markers`` specs, or a mapping with key ``markers`` holding one."""
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        data = yaml.load(path.read_text(encoding="utf-8"), Loader=safe_yaml_loader())
     except (OSError, yaml.YAMLError, UnicodeDecodeError) as exc:
         raise StereotrackError(f"cannot read marker list ({first_line(exc)})", path) from None
     if isinstance(data, dict):

@@ -13,7 +13,7 @@ import numpy as np
 
 from pipeline.core.camera import Camera, StereoRig
 from pipeline.core.errors import CalibrationError
-from pipeline.core.io import atomic_path
+from pipeline.core.io import atomic_path, safe_yaml_loader
 from pipeline.core.lazy import lazy_module
 
 if TYPE_CHECKING:
@@ -57,9 +57,7 @@ class _Matrix:
 
 
 def _yaml_loader():
-    import yaml
-
-    base: Any = getattr(yaml, "CSafeLoader", yaml.SafeLoader)  # libyaml's parser where PyYAML has it: 10× faster
+    base: Any = safe_yaml_loader()
 
     class Loader(base):
         """PyYAML with OpenCV's ``!!opencv-matrix`` tag."""

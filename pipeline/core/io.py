@@ -306,6 +306,14 @@ def read_json_mapping(path: str | Path, what: str = "JSON file") -> dict:
     return data
 
 
+def safe_yaml_loader() -> type:
+    """PyYAML's safe loader on libyaml's parser where PyYAML has it (the same values, ten times
+    faster: `stereotrack scenarios` reads every scenario file), else its pure-Python one."""
+    import yaml
+
+    return getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
+
 def read_yaml_mapping(path: str | Path, error: type[StereotrackError] = StereotrackError) -> dict:
     """A YAML file whose top level is a mapping (empty file: ``{}``); otherwise a one-line
     ``error`` naming the file and the problem."""
@@ -313,7 +321,7 @@ def read_yaml_mapping(path: str | Path, error: type[StereotrackError] = Stereotr
 
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        data = yaml.load(path.read_text(encoding="utf-8"), Loader=safe_yaml_loader())
     except yaml.YAMLError as exc:
         raise error(f"not valid YAML ({first_line(exc)})", path) from None
     except UnicodeDecodeError:
