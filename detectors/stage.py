@@ -28,7 +28,7 @@ from pipeline.core.clip import CLIP_INFO, DETECTION_WRITTEN, MARKERS_FILE, TIMES
 from pipeline.core.detections import Detections, GroupDetections, GroupFlags, blob_flags, group_names, split_groups
 from pipeline.core.errors import StereotrackError
 from pipeline.core.frames import CameraReader, StereoFrameSource
-from pipeline.core.io import write_csv, write_json
+from pipeline.core.io import write_csv_columns, write_json
 from pipeline.core.outputs import Outputs
 from pipeline.core.rig import Rig
 from pipeline.core.settings import RunHooks, RunSettings
@@ -238,6 +238,12 @@ class DetectionTable:
                 "marker": names[np.frombuffer(self.marker, dtype=np.int16)],
                 **{k: np.frombuffer(getattr(self, k), dtype=float) for k in ("u", "v", "area", "score")}}
 
+    def table(self) -> list:
+        """The rows of :meth:`__iter__` as columns, for :func:`~pipeline.core.io.write_csv_columns`."""
+        return [np.frombuffer(self.frame, dtype=np.int64), [self.cameras[c] for c in self.camera],
+                [self.names[m] for m in self.marker], *(np.frombuffer(getattr(self, k), dtype=float)
+                                                         for k in ("u", "v", "area", "score"))]
+
     def __iter__(self) -> Iterator[tuple]:
         """The table's rows ``(frame, camera, marker, u, v, area, score)``, in the order found
         (``detections.csv``)."""
@@ -324,7 +330,7 @@ def _write_detections(out_dir: Path, clip: Clip, source: StereoFrameSource, scan
     index, merged = blob_flags(cols, group_names(cols, clip.identical_groups(), clip.cameras, path))
     observations, groups, flags = split_groups({**cols, "merged": merged}, scan.frames, path, clip.identical_groups(),
                                                clip.cameras)
-    write_csv(path, DETECTION_WRITTEN, ((*row, i, m) for row, i, m in zip(scan.rows, index, merged, strict=True)))
+    write_csv_columns(path, DETECTION_WRITTEN, [*scan.rows.table(), index, merged])
     summaries = summarize(cols, clip, scan.frames, scan.cameras)
     cameras = [asdict(s) for s in summaries]
     write_json(Outputs(out_dir).detect_info, {
