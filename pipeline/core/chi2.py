@@ -2,9 +2,10 @@
 
 ``scipy.special`` costs the estimate stage 0.15–0.2 s to import (``scipy._lib``'s array API layer
 and ``numpy.f2py``), more than most methods take to run. The quantiles a run asks for by default —
-χ²(dof)'s median and 95 % band for dof 1–12, and the gates' upper quantiles at the default gate
-probabilities — are scipy's own values, written out below (``tests/core/test_chi2.py`` recomputes
-each with scipy and compares them bit for bit); any other argument is computed by scipy as before.
+χ²(dof)'s median and 95 % band for dof 1–12, its 95 % quantile (the recording's ellipsoids), and
+the gates' upper quantiles at the default gate probabilities — are scipy's own values, written out
+below (``tests/core/test_chi2.py`` recomputes each with scipy and compares them bit for bit); any
+other argument is computed by scipy as before.
 """
 
 from __future__ import annotations
@@ -29,6 +30,11 @@ _GAMMAINCINV: dict[float, tuple[float, ...]] = {  # q → P⁻¹(dof/2, q) for d
         2.511943093657444, 3.6888794541139354, 4.674201802248074, 5.571643390938898, 6.4162509970150134,
         7.22468766772396, 8.006382137314663, 8.767273069742323, 9.511383899320816, 10.241588675403694,
         10.9600246305106, 11.66833207932267,
+    ),
+    0.95: (  # the recording's 95 % covariance ellipsoids (dof 3)
+        1.920729410347062, 2.9957322735539895, 3.9073639516255896, 4.743864518390577, 5.535248846758176,
+        6.295793621871988, 7.033570224670084, 7.753656527932725, 8.459488802310224, 9.153519026637573,
+        9.837568786341246, 10.513034908741535,
     ),
 }
 _CHDTRI: dict[float, tuple[float, ...]] = {  # gate → the upper 1 − gate quantile of χ² for dof = 1, 2, 3 (…)
