@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
@@ -97,8 +98,8 @@ class GatedFilter(Estimator):
 
     def complete(self, track: Track, Y: np.ndarray) -> Track:
         """The filter's track as it is; remembered for its smoother under :func:`filter_passes_shared`."""
-        if _PASSES is not None:
-            _PASSES[_pass_key(self, self.name, Y)] = _copy_track(track, track.method)
+        if _PASSES.tracks is not None:
+            _PASSES.tracks[_pass_key(self, self.name, Y)] = _copy_track(track, track.method)
         return track
 
     def gate_threshold(self) -> float:
@@ -339,9 +340,14 @@ def filtered_step(x: np.ndarray, P: np.ndarray, predicted: bool, f=None, innovat
                 np.array(innovation_covariance, dtype=float).copy())
 
 
-#: the filters' finished tracks while :func:`filter_passes_shared` is in force, by (filter, settings,
-#: observations); None outside it
-_PASSES: dict[tuple, Track] | None = None
+class _Passes(threading.local):
+    """Per thread (a Dask worker runs clips in threads): the filters' finished tracks while
+    :func:`filter_passes_shared` is in force, by (filter, settings, observations); None outside it."""
+
+    tracks: dict[tuple, Track] | None = None
+
+
+_PASSES = _Passes()
 
 
 @contextmanager
@@ -349,12 +355,11 @@ def filter_passes_shared() -> Iterator[None]:
     """Within: each Kalman filter's finished track is remembered, so that its smoother run on the
     same observations with the same settings (``kf3d`` then ``kf3d_rts``) smooths it instead of
     filtering them again: the forward pass is the same computation (the same numbers, tested)."""
-    global _PASSES
-    before, _PASSES = _PASSES, {}
+    before, _PASSES.tracks = _PASSES.tracks, {}
     try:
         yield
     finally:
-        _PASSES = before
+        _PASSES.tracks = before
 
 
 def _pass_key(est: GatedFilter, name: str, Y: np.ndarray) -> tuple:
@@ -389,7 +394,7 @@ class RTSMixin(GatedFilter):
                     and "name" in vars(c))
 
     def run(self, Y: np.ndarray) -> Track:
-        done = None if _PASSES is None else _PASSES.get(_pass_key(self, self.smooths(), Y))
+        done = None if _PASSES.tracks is None else _PASSES.tracks.get(_pass_key(self, self.smooths(), Y))
         if done is None:
             return super().run(Y)
         return self.complete(_copy_track(done, self.name), self.check(Y))

@@ -64,3 +64,21 @@ def test_a_smoother_with_other_settings_or_observations_filters_them_itself(rece
     assert_same_track(noisier, create("kf3d_rts", rig, dt, {"process_noise": 3.0}).run(Y))
     assert_same_track(moved, create("kf3d_rts", rig, dt, {}).run(other))
     assert create("kf3d_rts", rig, dt, {}).run(Y).seconds_per_step != filtered.seconds_per_step
+
+
+def test_a_thread_sees_only_its_own_passes(receding):
+    """Clips estimated in threads (a Dask worker's) share nothing: a smoother in another thread,
+    outside a block of its own, filters the observations itself."""
+    import threading
+
+    rig, dt, X, _ = receding
+    Y = hard_observations(rig, X)
+    out = {}
+    with filter_passes_shared():
+        filtered = create("kf3d", rig, dt, {}).run(Y)
+        other = threading.Thread(target=lambda: out.update(t=create("kf3d_rts", rig, dt, {}).run(Y)))
+        other.start()
+        other.join()
+        here = create("kf3d_rts", rig, dt, {}).run(Y)
+    assert here.seconds_per_step == filtered.seconds_per_step != out["t"].seconds_per_step
+    assert_same_track(out["t"], here)
