@@ -136,10 +136,9 @@ class KalmanBucyConfig(TargetConfig):
     """Channel models, noise, gain and integration of the Kalman–Bucy filter."""
 
     gate: float = Field(0.0, ge=0.0, lt=1.0)
-    """the χ² gate on the fused [α, z] measurement (2 dof; when it fails, the one camera whose own view passes is used):
-    off by default — with the pixel noise measured on a rendered
-    clip (hundredths of a pixel) it rejected good measurements and made kalman_bucy's α RMSE 0.0030 rad instead of
-    0.0021; ``gate: 0.9995`` turns it on"""
+    """the χ² gate on the fused [α, z] measurement (2 dof; when it fails, the one camera whose own view passes is
+    used): off by default — with the pixel noise measured on a rendered clip (hundredths of a pixel) it rejected good
+    measurements and made kalman_bucy's α RMSE 0.0030 rad instead of 0.0021; ``gate: 0.9995`` turns it on"""
     a_alpha: float = -1.0
     """the α channel's own dynamics a, in α̈ = a α̇ − L₀ α − L₁ α̇ (Soifer et al.)"""
     alpha_feedback: tuple[float, float] = (1.0, 0.73)
