@@ -105,10 +105,12 @@ def shoot(shots: list[Shot], out_dir: Path) -> None:
 
 
 def _st(*args: str) -> None:
+    from functools import partial
+
     from pipeline.core.lifeline import terminate_with_parent
 
-    subprocess.run([str(Path(sys.executable).with_name("stereotrack")), *args], check=True, cwd=REPO,
-                   stdout=subprocess.DEVNULL, preexec_fn=terminate_with_parent)  # ends with this script, SIGKILL too
+    subprocess.run([str(Path(sys.executable).with_name("stereotrack")), *args], check=True, cwd=REPO,  # ends with this
+                   stdout=subprocess.DEVNULL, preexec_fn=partial(terminate_with_parent, os.getpid()))  # script, SIGKILL too
 
 
 def docs_cases(work: Path) -> list[Shot]:

@@ -60,9 +60,12 @@ def view_cmd(
         return
     else:
         cmd = [viewer]
+    from functools import partial
+
     from pipeline.core.lifeline import terminate_with_parent
 
-    rc = subprocess.run([*cmd, *map(str, rrds)], check=False, preexec_fn=terminate_with_parent).returncode
+    rc = subprocess.run([*cmd, *map(str, rrds)], check=False,
+                        preexec_fn=partial(terminate_with_parent, os.getpid())).returncode
     if rc:
         raise typer.Exit(rc)
 

@@ -81,15 +81,20 @@ def die_with_parent(parent_pid: int) -> None:
     threading.Thread(target=watch, name="stereotrack-lifeline", daemon=True).start()
 
 
-def terminate_with_parent() -> None:
-    """For ``subprocess`` ``preexec_fn``: the child (a viewer binary, not Python) gets SIGTERM when
-    its parent dies, SIGKILL included (Linux ``PR_SET_PDEATHSIG``; elsewhere nothing)."""
+def terminate_with_parent(parent_pid: int) -> None:
+    """For ``subprocess`` ``preexec_fn`` (``partial(terminate_with_parent, os.getpid())``): the
+    child (a viewer binary, not Python) gets SIGTERM when its parent ``parent_pid`` dies, SIGKILL
+    included (Linux ``PR_SET_PDEATHSIG``; elsewhere nothing). A parent that died between the fork
+    and the ``prctl`` sends no signal: the child then sees another parent and exits before the
+    program starts (a loaded CI machine left a viewer running for minutes that way)."""
     try:
         import ctypes
 
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # 1 = PR_SET_PDEATHSIG
     except (OSError, AttributeError):
         pass
+    if os.getppid() != parent_pid:
+        os._exit(1)
 
 
 def end_pool(pool) -> None:

@@ -479,6 +479,22 @@ def test_the_viewer_dies_with_view(e2e_run, tmp_path):
     assert not [p for p in alive if p.status() != psutil.STATUS_ZOMBIE]
 
 
+def test_a_viewer_whose_parent_died_before_the_death_signal_was_armed_never_starts(tmp_path):
+    """``terminate_with_parent`` in a child whose parent is already gone (its parent is not the one
+    it was started by: killed between the fork and the ``prctl``, so no signal will come) ends the
+    child before the program runs. A loaded CI machine left a viewer serving for minutes that way."""
+    from functools import partial
+
+    from pipeline.core.lifeline import terminate_with_parent
+
+    ran = tmp_path / "ran"
+    code = f"open({str(ran)!r}, 'w').close()"
+    gone = subprocess.run([sys.executable, "-c", code], preexec_fn=partial(terminate_with_parent, os.getpid() + 1))
+    assert gone.returncode == 1 and not ran.exists()
+    alive = subprocess.run([sys.executable, "-c", code], preexec_fn=partial(terminate_with_parent, os.getpid()))
+    assert alive.returncode == 0 and ran.exists()
+
+
 def test_a_track_that_ends_leaves_no_point_behind():
     """The views show the latest batch at the cursor: after a track's last estimate an empty batch
     is logged, and frames before its first and after the empty one log nothing."""
