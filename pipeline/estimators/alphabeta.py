@@ -77,6 +77,7 @@ class AlphaBetaEstimator(Estimator):
         self.K1 = np.array([cfg.alpha, cfg.beta / self.dt, 2.0 * (gamma or 0.0) / self.dt**2])[:order]
         self.IKH = np.eye(order) - np.outer(self.K1, np.eye(order)[0])  # the fixed gain's I − K H, and K Kᵀ
         self.KKt = np.outer(self.K1, self.K1)
+        self.R_pixels = self.model.covar()  # the gate's pixel noise, σ² I
         self.scale = RobustNISScale(cfg.pixel_sigma)  # the innovations' variance over the model's (≥ 1; lag raises it)
         self.drift_run = 0  # frames in a row with one camera gated although the pair is one point
 
@@ -132,7 +133,7 @@ class AlphaBetaEstimator(Estimator):
             P[:3, :3] = np.diag(self.P[:, 0, 0])
             x = np.concatenate((self.f.x, np.zeros(3)))
             h, H = self.model.linearize(x)  # h and ∂h/∂x in one pass
-            nis = camera_nis(self.model, x, P, y, self.model.covar(), h, H)
+            nis = camera_nis(self.model, x, P, y, self.R_pixels, h, H)
         with np.errstate(invalid="ignore"):
             g = nis / self.scale.value > self.threshold
         self.scale.add(nis)

@@ -178,12 +178,23 @@ def camera_to_left(rig: StereoRig, index: int) -> np.ndarray:
     return T
 
 
+#: the cameras a ``cameras`` setting measures with
+CAMERA_INDICES: dict[str, tuple[int, ...]] = {"left": (0,), "right": (1,), "both": (0, 1)}
+
+
+def measure_views(rig: StereoRig, obs: np.ndarray, R: float, formula: Formula = "exact",
+                  cameras: Literal["left", "right", "both"] = "both") -> list[TargetMeasurement]:
+    """Each measuring camera's own measurement from one frame's observation (4 points ×
+    [u1, v1, u2, v2]), failed ones included (their flags say why)."""
+    return [measure_camera(obs[:, 2 * c : 2 * c + 2], rig.cameras[c], R, formula, camera_to_left(rig, c))
+            for c in CAMERA_INDICES[cameras]]
+
+
 def measure_stereo(rig: StereoRig, obs: np.ndarray, R: float, formula: Formula = "exact",
                    cameras: Literal["left", "right", "both"] = "both") -> TargetMeasurement:
     """Measurement from one frame's observation (4 points × [u1, v1, u2, v2]); ``both`` averages
-    the cameras' valid measurements."""
-    idx = {"left": [0], "right": [1], "both": [0, 1]}[cameras]
-    ms = [measure_camera(obs[:, 2 * c : 2 * c + 2], rig.cameras[c], R, formula, camera_to_left(rig, c)) for c in idx]
+    the cameras' valid measurements (:func:`measure_views`)."""
+    ms = measure_views(rig, obs, R, formula, cameras)
     good = [m for m in ms if m.ok]
     if not good:
         return TargetMeasurement(math.nan, math.nan, np.full(3, math.nan), math.nan,
@@ -244,10 +255,7 @@ class TargetEstimator(Estimator):
     def views(self, obs: np.ndarray) -> list[TargetMeasurement]:
         """Each measuring camera's own measurement (those that give none left out)."""
         c = self.config
-        idx = {"left": [0], "right": [1], "both": [0, 1]}[c.cameras]
-        ms = [measure_camera(obs[:, 2 * i : 2 * i + 2], self.rig.cameras[i], c.radius, c.formula, camera_to_left(self.rig, i))
-              for i in idx]
-        return [m for m in ms if m.ok]
+        return [m for m in measure_views(self.rig, obs, c.radius, c.formula, c.cameras) if m.ok]
 
     def kept_view(self, obs: np.ndarray, predicted: np.ndarray, S: np.ndarray) -> TargetMeasurement | None:
         """When the fused measurement fails the gate: the one camera whose own measurement passes it

@@ -18,6 +18,7 @@ from pipeline.core.lazy import lazy_module
 from pipeline.estimators.base import Step, expm
 from pipeline.estimators.filters import KalmanFilter
 from pipeline.estimators.four_point import (
+    CAMERA_INDICES,
     TargetEstimator,
     TargetMeasurement,
     alpha_from_normal,
@@ -91,7 +92,7 @@ class PnPKFEstimator(TargetEstimator):
         camera's previous one (the lower reprojection error on its first frame)."""
         c = self.config
         out = []
-        for ci in {"left": [0], "right": [1], "both": [0, 1]}[c.cameras]:
+        for ci in CAMERA_INDICES[c.cameras]:
             cands = self._poses(obs[:, 2 * ci : 2 * ci + 2], ci)
             if not cands:
                 continue
