@@ -13,15 +13,20 @@ from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import cv2
 import numpy as np
 
 from pipeline.core.errors import ClipError
 from pipeline.core.forked import can_fork
 from pipeline.core.interrupts import signals_deferred
+from pipeline.core.lazy import lazy_module
 from pipeline.core.lifeline import die_with_parent, ignore_sigint
+
+if TYPE_CHECKING:
+    import cv2
+else:
+    cv2 = lazy_module("cv2")  # imported on first use: `estimate` reads no frames
 
 VIDEO_EXTS = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm")
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")

@@ -57,6 +57,23 @@ def test_a_batch_worker_imports_no_scipy_filterpy_or_matplotlib() -> None:
     assert not mods & {"scipy", "filterpy", "matplotlib", "numba", "rerun", "pyrender"}, sorted(mods)
 
 
+def test_estimating_a_rendered_clip_imports_no_opencv(mp4_clip, tmp_path) -> None:
+    """`stereotrack estimate` reads detections, not frames: OpenCV (tens of ms to import) stays out
+    where the clip says its frame rate (clip.json; otherwise the video header is read for it)."""
+    import shutil
+
+    from detectors.stage import detect_clip
+    from pipeline.core.settings import RunSettings
+
+    clip = shutil.copytree(mp4_clip, tmp_path / "clip")
+    detect_clip(clip, RunSettings(detector="blob"))
+    args = ["stereotrack", "estimate", str(clip), "--methods", "ekf"]
+    mods = loaded(f"import sys; sys.argv = {args!r}\n"
+                  "from pipeline.app.cli import main\ntry:\n    main()\nexcept SystemExit as e:\n    assert not e.code, e")
+    assert "cv2" not in mods and "pipeline" in mods, sorted(mods)
+    assert (clip / "out" / "estimates" / "ekf.csv").is_file()
+
+
 def test_a_lazy_module_is_the_module_on_first_use_from_many_threads() -> None:
     """Eight threads touching it first at once all get the real attributes (no half-made module)."""
     lazy = LazyModule("colorsys")
