@@ -192,7 +192,7 @@ def _fmt(v: Any) -> Any:
 
 
 #: Columns that are names, never numbers (a marker called ``0`` stays ``"0"``).
-TEXT_COLUMNS = frozenset({"marker", "camera", "clip", "status", "method", "error"})
+TEXT_COLUMNS = frozenset({"marker", "group", "camera", "clip", "status", "method", "error"})
 
 
 def read_csv(path: str | Path, required: Sequence[str] = (), numeric: Sequence[str] = (),
@@ -243,8 +243,8 @@ def _read_blocks(path: Path, required: Sequence[str], must: set[str], finite: se
                     block.append(row)
                     lines.append(reader.line_num)
                 if block and (row is None or len(block) == CSV_BLOCK):
-                    for i, name in enumerate(header):
-                        values = [r[i].strip() if i < len(r) else "" for r in block]
+                    for name, values in zip(header, _transposed(block, len(header)), strict=False):
+                        values = list(map(str.strip, values))
                         parts[name].append(_column(values, name, lines, name in text, must, finite, path))
                     block, lines = [], []
     except (OSError, UnicodeDecodeError, csv.Error) as exc:
@@ -259,18 +259,29 @@ def _column(values: list[str], name: str, lines: list[int], text: bool, must: se
     if text:
         return np.array(values, dtype=object)
     try:
-        col = np.array([float(v) if v != "" else np.nan for v in values], dtype=float)
-    except ValueError:
-        if name in must:
-            row = next(j for j, v in enumerate(values) if not _is_number(v))
-            raise StereotrackError(f"line {lines[row]}: column '{name}' is not a number ({values[row]!r})",
-                                   path) from None
-        return np.array(values, dtype=object)
+        col = np.array(list(map(float, values)), dtype=float)  # the usual block: every cell a number
+    except ValueError:  # an empty cell (NaN here), or one that is not a number
+        try:
+            col = np.array([float(v) if v != "" else np.nan for v in values], dtype=float)
+        except ValueError:
+            if name in must:
+                row = next(j for j, v in enumerate(values) if not _is_number(v))
+                raise StereotrackError(f"line {lines[row]}: column '{name}' is not a number ({values[row]!r})",
+                                       path) from None
+            return np.array(values, dtype=object)
     if name in finite and not np.all(np.isfinite(col)):
         row = int(np.flatnonzero(~np.isfinite(col))[0])
         raise StereotrackError(f"line {lines[row]}: column '{name}' is {values[row] or 'empty'!s}, not a finite "
                                "number", path)
     return col
+
+
+def _transposed(block: list[list[str]], width: int) -> Iterable[Sequence[str]]:
+    """A block of rows as its first ``width`` columns, a short row's missing cells empty: transposed
+    by ``zip`` when no row is short (the usual), cell by cell otherwise."""
+    if min(map(len, block)) >= width:
+        return zip(*block, strict=False)
+    return ([r[i] if i < len(r) else "" for r in block] for i in range(width))
 
 
 def _is_number(v: str) -> bool:
