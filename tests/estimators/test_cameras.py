@@ -168,34 +168,40 @@ def test_stereo_only_methods_refuse_more_cameras_by_name():
 @pytest.mark.parametrize("case", range(len(CASES)))
 def test_each_camera_s_offset_is_found_against_the_first(case):
     """Cameras 8–20 ms early or late (held-out rigs included), offsets found from the detections
-    alone: every offset applied is within a quarter frame, one left unapplied only where its
-    interval holds 0 (at most one per rig), and the aligned observations triangulate within 1.15×
-    of synchronised cameras (the unaligned ones 1.2× or more worse)."""
+    alone, over four noise seeds: every offset applied is within a quarter frame, one left
+    unapplied only where its interval holds 0 (at most one per rig and seed), and the aligned
+    observations triangulate within 1.15× of synchronised cameras (median; the unaligned ones 1.2×
+    or more worse on the rig's own seed). One seed per rig was seed luck: over 12 seeds the
+    unsmoothed estimator's alignment was over 1.15× on 1 and 3 of them on the last two rigs."""
     from pipeline.core.sync import resolve_view_sync
 
-    rig, path, fps, sigma, seed = CASES[case]
+    rig, path, fps, sigma, seed0 = CASES[case]
     offsets = [0.0, 0.012, -0.008, 0.02, -0.015][: rig.n]
     t = np.arange(300) / fps
     dense = path(3000, 0.1 / fps)  # the path at ten times the frame rate, interpolated at each camera's instants
     td = np.arange(3000) * 0.1 / fps
-    rng = np.random.default_rng(seed)
     truth = np.column_stack([np.interp(t, td, dense[:, j]) for j in range(3)])
-    Y, synced = np.empty((300, 2 * rig.n)), np.empty((300, 2 * rig.n))
-    for c, off in enumerate(offsets):
-        X = np.column_stack([np.interp(t + off, td, dense[:, j]) for j in range(3)])
-        noise = rng.normal(0, sigma, (300, 2))
-        Y[:, 2 * c : 2 * c + 2] = rig.cameras[c].project(X) + noise
-        synced[:, 2 * c : 2 * c + 2] = rig.cameras[c].project(truth) + noise
-    found, aligned = resolve_view_sync("auto", rig, {"m": Y}, fps)
-    for c, name in enumerate(rig.names[1:], start=1):
-        est = found[name]
-        if est.applied:
-            assert abs(est.offset_s - offsets[c]) < 0.25 / fps, (name, est)
-        else:
-            assert est.ci_s is not None and est.ci_s[0] <= 0.0 <= est.ci_s[1], (name, est)
-    assert sum(not e.applied for e in found.values()) <= 1
     err = lambda Z: float(np.nanmedian(np.linalg.norm(rig.triangulate(Z) - truth, axis=1)))  # noqa: E731
-    assert err(Y) > 1.2 * err(synced) and err(aligned["m"]) <= 1.15 * err(synced)
+    late, aligned_ = [], []
+    for seed in range(seed0, seed0 + 400, 100):
+        rng = np.random.default_rng(seed)
+        Y, synced = np.empty((300, 2 * rig.n)), np.empty((300, 2 * rig.n))
+        for c, off in enumerate(offsets):
+            X = np.column_stack([np.interp(t + off, td, dense[:, j]) for j in range(3)])
+            noise = rng.normal(0, sigma, (300, 2))
+            Y[:, 2 * c : 2 * c + 2] = rig.cameras[c].project(X) + noise
+            synced[:, 2 * c : 2 * c + 2] = rig.cameras[c].project(truth) + noise
+        found, aligned = resolve_view_sync("auto", rig, {"m": Y}, fps)
+        for c, name in enumerate(rig.names[1:], start=1):
+            est = found[name]
+            if est.applied:
+                assert abs(est.offset_s - offsets[c]) < 0.25 / fps, (name, seed, est)
+            else:
+                assert est.ci_s is not None and est.ci_s[0] <= 0.0 <= est.ci_s[1], (name, seed, est)
+        assert sum(not e.applied for e in found.values()) <= 1, seed
+        late.append(err(Y) / err(synced))
+        aligned_.append(err(aligned["m"]) / err(synced))
+    assert late[0] > 1.2 and np.median(aligned_) <= 1.15, (late, aligned_)
 
 
 def test_triangulation_names_the_camera_it_drops():
