@@ -18,7 +18,8 @@ between two frames averages their noise), without which the cost dips at every h
 estimate minimises the mean of the weighted, clipped squared epipolar distances over a fine grid of
 δ and refines the minimum with a parabola; its 95 % interval comes from a moving-block bootstrap
 over frames (blocks keep the residuals' correlation in time), never narrower than the bound the
-clip itself gives, widened by ``CI_WIDEN``.
+clip itself gives, widened by ``CI_WIDEN``. Detections missed too often to smooth are used as
+they are, with the interval as it was for them.
 
 When a clip has ``timestamps.csv`` (per-camera frame times) those times are used instead: the right
 camera's detections are interpolated to the left camera's frame times, which handles offsets,
@@ -30,6 +31,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
 from functools import partial
+from typing import NamedTuple
 
 import numpy as np
 
@@ -39,6 +41,10 @@ from pipeline.core.rig import Rig
 
 #: each camera's track is smoothed over this many frames either side before the distances
 SMOOTH_HALF = 5
+#: … where the smoothed tracks keep this share of the frames with both cameras: with 10 % of the
+#: detections missed at random the smoothed tracks kept a tenth of them and erred 0.50 frame (rms)
+#: where the detections themselves erred 0.33; with 3 % missed, 0.09 against 0.16
+SMOOTH_KEEPS = 0.5
 #: the offsets searched finely, in frames either side of zero (fewer for short clips: a quarter of them)
 MAX_SHIFT_FRAMES = 10.0
 #: beyond that, a coarse search (half-frame steps) out to this many seconds (at most a quarter of the
@@ -52,15 +58,17 @@ GRID_STEP = 0.02  # frames
 #: epipolar distances beyond this (px) count as this: a mismatched pair must not decide δ
 CLIP_PX = 6.0
 BOOTSTRAP = 200
-#: frames per bootstrap block: about twice the smoothing's window, over which the distances of
-#: smoothed tracks are correlated (blocks of 10 held 0 in 46 of 48 clean manoeuvring clips)
-BLOCK = 4 * SMOOTH_HALF if SMOOTH_HALF else 10
+#: frames per bootstrap block on smoothed tracks: about twice the smoothing's window, over which
+#: their distances are correlated (blocks of 10 held 0 in 46 of 48 clean manoeuvring clips); on
+#: the detections themselves, RAW_BLOCK
+BLOCK, RAW_BLOCK = 4 * SMOOTH_HALF, 10
 #: the interval is ±1.96 bootstrap standard deviations widened by this: on a marker moving mostly
 #: along the epipolar lines the plain bootstrap's interval held 0 in 80–85 % of clean simulated
-#: clips; with the smoothed tracks, widened by √2 it held 0 in 47 of 48 clean manoeuvring clips
-#: (6 trajectories × 8 noise seeds), by 1.7 — the least of √2, 1.5, 1.6, 1.7, 1.8 and 2 to do so —
-#: in all 48; tests/estimators/test_survive.py::test_clean_clips_keep_zero_in_the_interval measures it
-CI_WIDEN = 1.7
+#: clips, widened by √2 (RAW_CI_WIDEN, the detections themselves) in all; with the smoothed tracks,
+#: widened by √2 it held 0 in 47 of 48 clean manoeuvring clips (6 trajectories × 8 noise seeds), by
+#: 1.7 — the least of √2, 1.5, 1.6, 1.7, 1.8 and 2 to do so — in all 48;
+#: tests/estimators/test_survive.py::test_clean_clips_keep_zero_in_the_interval measures it
+CI_WIDEN, RAW_CI_WIDEN = 1.7, float(np.sqrt(2.0))
 MIN_PAIRS = 12
 #: the distance table is made this many bytes of it at a time (a block of the shifts, every frame):
 #: whole, it grows with clip × shifts (48 MB at 3,000 frames, more than the rest of a run grows)
@@ -228,14 +236,28 @@ def _bound(rig: StereoRig, fitted: dict[str, np.ndarray], shift: float, residual
     return float(np.sqrt(residual**2 / info)) if info > 0 and residual > 0 else 0.0
 
 
-def _fitted(obs: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], Callable[[float], float]]:
-    """The tracks the distances are taken on, and their noise variance at a shift: smoothed
-    (:func:`smooth_tracks`) where that leaves :data:`MIN_PAIRS` frames with both cameras, else (a
-    short or broken clip) the detections themselves."""
-    fitted = smooth_tracks(obs)
-    if sum(int(np.all(np.isfinite(Y), axis=1).sum()) for Y in fitted.values()) >= MIN_PAIRS:
-        return fitted, interpolation_variance
-    return obs, _RAW
+class _Tracks(NamedTuple):
+    """The tracks the distances are taken on, their noise variance at a shift, and the bootstrap's
+    block and widening calibrated for their kind."""
+
+    obs: dict[str, np.ndarray]
+    variance: Callable[[float], float]
+    block: int
+    widen: float
+
+
+def _fitted(obs: dict[str, np.ndarray]) -> _Tracks:
+    """Smoothed tracks (:func:`smooth_tracks`) where they keep :data:`MIN_PAIRS` frames with both
+    cameras and at least :data:`SMOOTH_KEEPS` of the detections' pairs, else (a short clip, or
+    detections often missed: a window is whole only when all its frames are) the detections
+    themselves, as before the smoothing."""
+    def pairs(tracks: dict[str, np.ndarray]) -> int:
+        return sum(int(np.all(np.isfinite(Y), axis=1).sum()) for Y in tracks.values())
+
+    fitted = smooth_tracks(obs) if SMOOTH_HALF else obs
+    if SMOOTH_HALF and pairs(fitted) >= max(MIN_PAIRS, SMOOTH_KEEPS * pairs(obs)):
+        return _Tracks(fitted, interpolation_variance, BLOCK, CI_WIDEN)
+    return _Tracks(obs, _RAW, RAW_BLOCK, RAW_CI_WIDEN)
 
 
 def _argmin(cost: np.ndarray, shifts: np.ndarray) -> float:
@@ -281,7 +303,8 @@ def estimate_offset(rig: StereoRig, obs: dict[str, np.ndarray], fps: float, seed
         return SyncEstimate(0.0, None, False, "detections",
                             note=f"the markers barely move ({spread:.1f} px): the detections hold no information on time")
     raw = obs
-    obs, variance = _fitted(obs)
+    tracks = _fitted(obs)
+    obs, variance = tracks.obs, tracks.variance
     span = min(MAX_SHIFT_FRAMES, max(1.0, n / 4))
     wide = min(MAX_SEARCH_S * fps, n / 4)
     centre = _coarse_offset(rig, obs, wide, variance) if wide > span else 0.0
@@ -299,14 +322,14 @@ def estimate_offset(rig: StereoRig, obs: dict[str, np.ndarray], fps: float, seed
     if n < MIN_PAIRS:
         return SyncEstimate(0.0, None, False, "detections", note="too few frames with both cameras and their neighbours")
     rng = np.random.default_rng(seed)
-    blocks = np.arange(0, n, BLOCK)
+    blocks = np.arange(0, n, tracks.block)
     draws = [rng.choice(blocks, size=len(blocks)) for _ in range(BOOTSTRAP)]  # block starts of each resample
     cost, resampled = np.empty(len(shifts)), np.empty((BOOTSTRAP, len(shifts)))
     for cols, D in once or _table_blocks(rig, obs, shifts, variance):
         D = D[valid]
         cost[cols] = D.mean(axis=0)
         for b, starts in enumerate(draws):
-            idx = (starts[:, None] + np.arange(BLOCK)).ravel()  # the blocks' rows, block after block
+            idx = (starts[:, None] + np.arange(tracks.block)).ravel()  # the blocks' rows, block after block
             resampled[b, cols] = D[idx[idx < n]].mean(axis=0)
     best = _argmin(cost, shifts)
     if abs(best - centre) >= span - 2 * GRID_STEP:  # the cost still falls at the edge: no minimum inside the range
@@ -317,7 +340,7 @@ def estimate_offset(rig: StereoRig, obs: dict[str, np.ndarray], fps: float, seed
     # the detections' own epipolar residual in pixels at δ (unsmoothed, the weight of δ's shift undone)
     residual = float(np.sqrt(np.nanmean(_distance_table(rig, raw, np.array([best]), _RAW)) * _RAW(best)))
     spread = max(float(np.std([_argmin(m, shifts) for m in resampled])), _bound(rig, obs, best, residual))
-    half = CI_WIDEN * 1.96 * spread
+    half = tracks.widen * 1.96 * spread
     return SyncEstimate(best / fps, ((best - half) / fps, (best + half) / fps), False, "detections", residual)
 
 
