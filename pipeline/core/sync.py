@@ -59,14 +59,16 @@ GRID_STEP = 0.02  # frames
 CLIP_PX = 6.0
 BOOTSTRAP = 200
 #: frames per bootstrap block on smoothed tracks: about twice the smoothing's window, over which
-#: their distances are correlated (blocks of 10 held 0 in 46 of 48 clean manoeuvring clips); on
+#: their distances are correlated (blocks of 10, widened by √2, held 0 in 46 of 48 clean manoeuvring
+#: clips; blocks of 20 in 47); on
 #: the detections themselves, RAW_BLOCK
 BLOCK, RAW_BLOCK = 4 * SMOOTH_HALF, 10
 #: the interval is ±1.96 bootstrap standard deviations widened by this: on a marker moving mostly
 #: along the epipolar lines the plain bootstrap's interval held 0 in 80–85 % of clean simulated
-#: clips, widened by √2 (RAW_CI_WIDEN, the detections themselves) in all; with the smoothed tracks,
-#: widened by √2 it held 0 in 47 of 48 clean manoeuvring clips (6 trajectories × 8 noise seeds), by
-#: 1.7 — the least of √2, 1.5, 1.6, 1.7, 1.8 and 2 to do so — in all 48;
+#: clips; widened by √2 (RAW_CI_WIDEN, the detections themselves) in 48 of 48 clean manoeuvring
+#: clips (6 trajectories × 8 noise seeds) and 29 of 30 sine ones. With the smoothed tracks, widened
+#: by √2 it held 0 in 47 of the 48, by 1.7 — the least of √2, 1.5, 1.6, 1.7, 1.8 and 2 to do so —
+#: in all 48;
 #: tests/estimators/test_survive.py::test_clean_clips_keep_zero_in_the_interval measures it
 CI_WIDEN, RAW_CI_WIDEN = 1.7, float(np.sqrt(2.0))
 MIN_PAIRS = 12
@@ -157,14 +159,11 @@ def smooth_track(uv: np.ndarray, weights: np.ndarray | None = None) -> np.ndarra
     module's); NaN where its window is not whole (the clip's first and last frames, and next to a
     missed detection)."""
     weights = _WEIGHTS if weights is None else weights
-    half = len(weights) // 2
     ok = np.all(np.isfinite(uv), axis=1)
     whole = np.convolve(ok.astype(float), np.ones(len(weights)), mode="same") >= len(weights) - 0.5
     filled = np.where(ok[:, None], uv, 0.0)
     out = np.column_stack([np.convolve(filled[:, j], weights[::-1], mode="same") for j in range(uv.shape[1])])
     out[~whole] = np.nan
-    if half == 0:
-        out[ok] = uv[ok]  # no smoothing: the detections themselves, to the bit
     return out
 
 
