@@ -425,7 +425,7 @@ def _against_truth(s: CameraSummary, mine: dict[str, np.ndarray], truth: dict[st
 def _footage_to_grid(clip: Clip) -> dict[str, np.ndarray] | None:
     """Per camera, each footage frame's frame on the clip's grid (a video that dropped frames is
     shorter than the truth), from timestamps.csv; None without one."""
-    from pipeline.core.sync import nominal_frames
+    from pipeline.core.timestamps import nominal_frames
 
     if clip.timestamps is None:
         return None

@@ -32,7 +32,8 @@ from pipeline.core.io import read_csv, write_csv_columns, write_json
 from pipeline.core.outputs import Outputs
 from pipeline.core.rig import Rig
 from pipeline.core.settings import RunHooks, RunSettings
-from pipeline.core.sync import SyncEstimate, describe_views, grid_length, resolve_sync, resolve_view_sync
+from pipeline.core.sync import SyncEstimate, describe_views, resolve_sync, resolve_view_sync
+from pipeline.core.timestamps import grid_length
 from pipeline.core.version import stereotrack_version
 from pipeline.estimators import Estimator, Track, create, registry
 from pipeline.estimators.association import Association, associate, filter_tracks

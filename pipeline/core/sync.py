@@ -18,8 +18,10 @@ between two frames averages their noise), without which the cost dips at every h
 estimate minimises the mean of the weighted, clipped squared epipolar distances over a fine grid of
 δ and refines the minimum with a parabola; its 95 % interval comes from a moving-block bootstrap
 over frames (blocks keep the residuals' correlation in time), never narrower than the bound the
-clip itself gives, widened by ``CI_WIDEN``. Detections missed too often to smooth are used as
-they are, with the interval as it was for them.
+clip itself gives, widened by ``CI_WIDEN``. Detections
+missed too often to smooth are used as they are, with the interval as it was for them; missed so
+often that few frames have their pairs at every shift searched, the offset is found coarsely first
+and finely around it only, and an interval reaching past that window is not used.
 
 When a clip has ``timestamps.csv`` (per-camera frame times) those times are used instead: the right
 camera's detections are interpolated to the left camera's frame times, which handles offsets,
@@ -38,6 +40,7 @@ import numpy as np
 from pipeline.core.camera import StereoRig
 from pipeline.core.checks import EPIPOLAR_WARN_PX
 from pipeline.core.rig import Rig
+from pipeline.core.timestamps import align_by_timestamps, median_offset
 
 #: each camera's track is smoothed over this many frames either side before the distances
 SMOOTH_HALF = 5
@@ -72,6 +75,13 @@ BLOCK, RAW_BLOCK = 4 * SMOOTH_HALF, 10
 #: tests/estimators/test_survive.py::test_clean_clips_keep_zero_in_the_interval measures it
 CI_WIDEN, RAW_CI_WIDEN = 1.7, float(np.sqrt(2.0))
 MIN_PAIRS = 12
+#: where fewer than this share of the frames with both cameras have a pair at every shift of the fine
+#: search (a frame needs the right camera's detections over the ±10 frames around it), the offset is
+#: found coarsely on the pairs each shift has (:func:`_coarse_offset`), then finely within
+#: ±NARROW_SPAN frames of it, where most frames have their pairs. With a quarter of each camera's
+#: detections missed at random no clip kept enough frames and none got an offset; narrowed, 84 of 108
+#: did, none of the synchronised ones applied (``benchmarks/sync.py``, detections missed at random)
+NARROW_KEEPS, NARROW_SPAN = 0.25, 2.0
 #: the distance table is made this many bytes of it at a time (a block of the shifts, every frame):
 #: whole, it grows with clip × shifts (48 MB at 3,000 frames, more than the rest of a run grows)
 TABLE_BYTES = 4 << 20
@@ -250,11 +260,8 @@ def _fitted(obs: dict[str, np.ndarray]) -> _Tracks:
     cameras and at least :data:`SMOOTH_KEEPS` of the detections' pairs, else (a short clip, or
     detections often missed: a window is whole only when all its frames are) the detections
     themselves, as before the smoothing."""
-    def pairs(tracks: dict[str, np.ndarray]) -> int:
-        return sum(int(np.all(np.isfinite(Y), axis=1).sum()) for Y in tracks.values())
-
     fitted = smooth_tracks(obs) if SMOOTH_HALF else obs
-    if SMOOTH_HALF and pairs(fitted) >= max(MIN_PAIRS, SMOOTH_KEEPS * pairs(obs)):
+    if SMOOTH_HALF and _pairs(fitted) >= max(MIN_PAIRS, SMOOTH_KEEPS * _pairs(obs)):
         return _Tracks(fitted, interpolation_variance, BLOCK, CI_WIDEN)
     return _Tracks(obs, _RAW, RAW_BLOCK, RAW_CI_WIDEN)
 
@@ -290,13 +297,74 @@ def _coarse_offset(rig: StereoRig, obs: dict[str, np.ndarray], wide: float, vari
     return float(shifts[int(np.nanargmin(cost))]) if np.isfinite(cost).any() else 0.0
 
 
+def _pairs(tracks: dict[str, np.ndarray]) -> int:
+    """Frames with both cameras' points, over every marker."""
+    return sum(int(np.all(np.isfinite(Y), axis=1).sum()) for Y in tracks.values())
+
+
+def _paired_everywhere(rig: StereoRig, obs: dict[str, np.ndarray], centre: float, span: float,
+                       variance: Callable[[float], float]) -> tuple[np.ndarray, np.ndarray, list | None]:
+    """The fine grid of shifts within ±``span`` frames of ``centre``, which rows (markers·frames) have a
+    pair at every one of them (the cost compares shifts over the same frames), and the distance
+    table's blocks when it is small enough to keep (:data:`KEPT_TABLE_BYTES`), else None."""
+    shifts = centre + np.arange(-span, span + GRID_STEP / 2, GRID_STEP)
+    rows = sum(len(Y) for Y in obs.values())
+    once = list(_table_blocks(rig, obs, shifts, variance)) if 8 * rows * len(shifts) <= KEPT_TABLE_BYTES else None
+    valid = np.ones(rows, dtype=bool)
+    for _, D in once or _table_blocks(rig, obs, shifts, variance):
+        valid &= np.all(np.isfinite(D), axis=1)
+    return shifts, valid, once
+
+
+def _only(obs: dict[str, np.ndarray], rows: np.ndarray) -> dict[str, np.ndarray]:
+    """The tracks with every frame not in ``rows`` (a mask over the markers' frames, stacked) blanked.
+    A search narrowed around the coarse estimate takes the bound over the frames its cost was taken on
+    (with a quarter of the detections missed, a fifth of them: the bound over every frame made
+    intervals that missed the truth); the full search, whose cost leaves out only the clip's ends,
+    over every frame, as ``CI_WIDEN`` was calibrated."""
+    out, start = {}, 0
+    for name, Y in obs.items():
+        keep = rows[start : start + len(Y)]
+        out[name], start = np.where(keep[:, None], Y, np.nan), start + len(Y)
+    return out
+
+
+class _Window(NamedTuple):
+    """Where the fine search runs: ±``span`` frames around ``centre`` (the coarse search's, out to
+    ±``wide``, when it found the offset beyond the fine search or detections are missed often), its
+    shifts, the rows with a pair at every one of them, and the kept distance table (or None)."""
+
+    centre: float
+    span: float
+    wide: float
+    shifts: np.ndarray
+    valid: np.ndarray
+    once: list | None
+
+
+def _window(rig: StereoRig, obs: dict[str, np.ndarray], n: int, fps: float,
+            variance: Callable[[float], float]) -> _Window:
+    """The fine search's window (:class:`_Window`) for a clip of ``n`` frames."""
+    span = min(MAX_SHIFT_FRAMES, max(1.0, n / 4))
+    wide = min(MAX_SEARCH_S * fps, n / 4)
+    centre = _coarse_offset(rig, obs, wide, variance) if wide > span else 0.0
+    if abs(centre) <= span - 2:  # within the fine search: that search alone, as it was
+        centre = 0.0
+    else:
+        span = NARROW_SPAN
+    shifts, valid, once = _paired_everywhere(rig, obs, centre, span, variance)
+    if span > NARROW_SPAN and valid.sum() < NARROW_KEEPS * _pairs(obs):  # detections missed often (see NARROW_KEEPS)
+        centre, span = _coarse_offset(rig, obs, span, variance), NARROW_SPAN
+        shifts, valid, once = _paired_everywhere(rig, obs, centre, span, variance)
+    return _Window(centre, span, wide, shifts, valid, once)
+
+
 def estimate_offset(rig: StereoRig, obs: dict[str, np.ndarray], fps: float, seed: int = 0) -> SyncEstimate:
     """δ from the detections alone (see the module docstring); ``applied`` is left False. It is
     applied (:func:`resolve_sync`) only when the interval excludes 0 and the epipolar residual at δ
     is within the epipolar check's threshold: an offset must explain the mismatch to be one."""
     n = max((len(Y) for Y in obs.values()), default=0)
-    both = sum(int(np.all(np.isfinite(Y), axis=1).sum()) for Y in obs.values())
-    if both < MIN_PAIRS:
+    if (both := _pairs(obs)) < MIN_PAIRS:
         return SyncEstimate(0.0, None, False, "detections", note=f"only {both} frames with both cameras")
     if (spread := _image_spread(obs)) < STILL_PX:
         return SyncEstimate(0.0, None, False, "detections",
@@ -304,19 +372,8 @@ def estimate_offset(rig: StereoRig, obs: dict[str, np.ndarray], fps: float, seed
     raw = obs
     tracks = _fitted(obs)
     obs, variance = tracks.obs, tracks.variance
-    span = min(MAX_SHIFT_FRAMES, max(1.0, n / 4))
-    wide = min(MAX_SEARCH_S * fps, n / 4)
-    centre = _coarse_offset(rig, obs, wide, variance) if wide > span else 0.0
-    if abs(centre) <= span - 2:  # within the fine search: that search alone, as it was
-        centre = 0.0
-    else:
-        span = 2.0
-    shifts = centre + np.arange(-span, span + GRID_STEP / 2, GRID_STEP)
-    rows = sum(len(Y) for Y in obs.values())
-    once = list(_table_blocks(rig, obs, shifts, variance)) if 8 * rows * len(shifts) <= KEPT_TABLE_BYTES else None
-    valid = np.ones(rows, dtype=bool)
-    for _, D in once or _table_blocks(rig, obs, shifts, variance):
-        valid &= np.all(np.isfinite(D), axis=1)  # pairs that exist at every shift searched
+    w = _window(rig, obs, n, fps, variance)
+    centre, span, shifts, valid, once = w.centre, w.span, w.shifts, w.valid, w.once
     n = int(valid.sum())
     if n < MIN_PAIRS:
         return SyncEstimate(0.0, None, False, "detections", note="too few frames with both cameras and their neighbours")
@@ -332,14 +389,19 @@ def estimate_offset(rig: StereoRig, obs: dict[str, np.ndarray], fps: float, seed
             resampled[b, cols] = D[idx[idx < n]].mean(axis=0)
     best = _argmin(cost, shifts)
     if abs(best - centre) >= span - 2 * GRID_STEP:  # the cost still falls at the edge: no minimum inside the range
-        searched = max(wide, span)
+        searched = max(w.wide, span)
         return SyncEstimate(0.0, None, False, "detections",
                             note=f"no minimum within ±{searched:g} frames ({searched / fps:.2g} s): an offset larger "
                                  "than that, swapped cameras or mismatched detections?")
     # the detections' own epipolar residual in pixels at δ (unsmoothed, the weight of δ's shift undone)
     residual = float(np.sqrt(np.nanmean(_distance_table(rig, raw, np.array([best]), _RAW)) * _RAW(best)))
-    spread = max(float(np.std([_argmin(m, shifts) for m in resampled])), _bound(rig, obs, best, residual))
+    used = _only(obs, valid) if span <= NARROW_SPAN else obs
+    spread = max(float(np.std([_argmin(m, shifts) for m in resampled])), _bound(rig, used, best, residual))
     half = tracks.widen * 1.96 * spread
+    if span <= NARROW_SPAN and abs(best - centre) + half > span:  # beyond the window, the costs were not compared
+        return SyncEstimate(best / fps, None, False, "detections", residual,
+                            note=f"the interval (±{half:.2g} frames) reaches past the ±{span:g} frames searched around "
+                                 "the coarse estimate: not applied")
     return SyncEstimate(best / fps, ((best - half) / fps, (best + half) / fps), False, "detections", residual)
 
 
@@ -350,7 +412,7 @@ def resolve_sync(setting: str | float | None, rig: StereoRig, obs: dict[str, np.
     that do not model the offset). ``timestamps`` (per camera: frame → time) win over both."""
     if timestamps is not None:
         aligned = align_by_timestamps(obs, timestamps, fps)
-        return SyncEstimate(_median_offset(timestamps, fps), None, True, "timestamps"), aligned
+        return SyncEstimate(median_offset(timestamps, fps), None, True, "timestamps"), aligned
     if setting in (None, "auto"):
         est = estimate_offset(rig, obs, fps)
         excludes_zero = est.ci_s is not None and not (est.ci_s[0] <= 0.0 <= est.ci_s[1])
@@ -366,80 +428,6 @@ def resolve_sync(setting: str | float | None, rig: StereoRig, obs: dict[str, np.
     if not est.applied:
         return est, obs
     return est, shift_right(obs, est.offset_s * fps)
-
-
-# -- timestamps ----------------------------------------------------------------------------------
-
-
-def nominal_frames(t: np.ndarray, fps: float) -> np.ndarray:
-    """Each footage frame's place on the clip's frame grid (−1 where the camera has no such frame),
-    from the gaps between its frame times: a gap of about m frame periods means m − 1 frames were
-    dropped there. Needs no offset between the cameras and tolerates jitter under half a period.
-    A frame folder's file numbers come out unchanged; a video that dropped frames is spread out."""
-    out = np.full(len(t), -1)
-    j = np.flatnonzero(np.isfinite(t))
-    if len(j):
-        steps = np.maximum(1, np.rint(np.diff(t[j]) * fps)).astype(int)
-        out[j] = j[0] + np.concatenate([[0], np.cumsum(steps)])
-    return out
-
-
-def grid_length(ts: dict[str, np.ndarray], fps: float) -> int:
-    """Frames on the clip's grid: one past the last nominal frame of either camera."""
-    return int(max(nominal_frames(t, fps).max(initial=-1) for t in ts.values())) + 1
-
-
-def align_by_timestamps(obs: dict[str, np.ndarray], ts: dict[str, np.ndarray], fps: float) -> dict[str, np.ndarray]:
-    """Both cameras' detections (each indexed by its own footage: a video that dropped frames is
-    shorter) placed on the clip's frame grid (:func:`nominal_frames` of the left camera), the right
-    camera's detections interpolated in time to each grid frame's instant (the left frame's time,
-    or between its neighbours' where the left camera dropped it). Offset, jitter and dropped
-    frames at once; NaN where a camera has nothing."""
-    tl, tr = ts["left"], ts["right"]
-    g_all = nominal_frames(tl, fps)
-    out = {}
-    for name, Y in obs.items():
-        n = len(Y)
-        j = np.flatnonzero((g_all[: n] >= 0) & (g_all[: n] < n))
-        g = g_all[j]
-        left = np.full((n, 2), np.nan)
-        left[g] = Y[j, :2]
-        grid = np.interp(np.arange(n), g, tl[j]) if len(g) >= 2 else np.full(n, tl[j[0]] if len(j) else np.nan)
-        if len(g) >= 2:  # beyond the left camera's last frame: on at the frame rate
-            grid[g[-1] + 1:] = tl[j[-1]] + (np.arange(g[-1] + 1, n) - g[-1]) / fps
-        out[name] = np.column_stack([left, _right_at(Y, tr, grid)])
-    return out
-
-
-def _right_at(Y: np.ndarray, tr: np.ndarray, at: np.ndarray) -> np.ndarray:
-    """The right camera's detections (rows of ``Y`` by its footage index, times ``tr``) at the
-    instants ``at``: linear between the frames either side, exact on a frame's own instant."""
-    m = min(len(Y), len(tr))
-    rf = np.flatnonzero(np.isfinite(tr[:m]) & np.all(np.isfinite(Y[:m, 2:]), axis=1))
-    right = np.full((len(at), 2), np.nan)
-    order = np.argsort(tr[rf])
-    t_r, uv = tr[rf][order], Y[rf, 2:][order]
-    if len(t_r) >= 2:
-        j = np.searchsorted(t_r, at) - 1
-        ok = (j >= 0) & (j + 1 < len(t_r))
-        jj = j[ok]
-        w = ((at[ok] - t_r[jj]) / (t_r[jj + 1] - t_r[jj]))[:, None]
-        right[ok] = (1 - w) * uv[jj] + w * uv[jj + 1]
-    exact = np.isin(at, t_r)  # the same instant: no interpolation needed (a 1-frame clip)
-    right[exact] = uv[np.searchsorted(t_r, at[exact])]
-    return right
-
-
-def _median_offset(ts: dict[str, np.ndarray], fps: float) -> float:
-    """The median of right minus left frame time over the grid frames both cameras have."""
-    grids = {c: nominal_frames(t, fps) for c, t in ts.items()}
-    n = int(max(g.max(initial=-1) for g in grids.values())) + 1
-    on = {c: np.full(n, np.nan) for c in ts}
-    for c, g in grids.items():
-        on[c][g[g >= 0]] = ts[c][g >= 0]
-    d = on["right"] - on["left"]
-    d = d[np.isfinite(d)]
-    return float(np.median(d)) if len(d) else 0.0
 
 
 # -- more than two cameras -----------------------------------------------------------------------

@@ -125,3 +125,44 @@ def test_a_few_missed_detections_keep_the_smoothing(monkeypatch):
     got = estimate_offset(RIG, obs, 30.0).offset_s
     monkeypatch.setattr(sync, "SMOOTH_HALF", 0)
     assert got != estimate_offset(RIG, obs, 30.0).offset_s
+
+
+@pytest.mark.parametrize("delta", [0.0, 0.5, -1.5])
+def test_detections_missed_often_still_give_the_offset(delta):
+    """A quarter of each camera's detections missed at random: hardly a frame has the right camera's
+    detections over the ±10 frames around it, and the estimator gave up on every clip ("too few
+    frames"). Found coarsely on the pairs each shift has, then finely within ±2 frames, it is found
+    on every clip (held out: seeds 300–311, not used to choose the narrowing): median error under
+    0.05 frame, none over 0.2; applied on at least 11 of 12 clips where there is an offset (on seeds
+    200–239, 36 of 40 at half a frame: the interval, over the fifth of the frames used, is wide), on
+    none where there is none (0 of 40 there)."""
+    errs, applied = [], []
+    for seed in range(300, 312):
+        obs = _detections(delta, seed)
+        rng = np.random.default_rng(seed + 1)
+        for c in (0, 1):
+            obs["m"][rng.random(len(obs["m"])) < 0.25, 2 * c : 2 * c + 2] = np.nan
+        est, _ = resolve_sync("auto", RIG, obs, 30.0)
+        assert est.ci_s is not None, (seed, est.describe())
+        errs.append(est.offset_s * 30.0 - delta)
+        applied.append(est.applied)
+    assert np.median(np.abs(errs)) < 0.05 and np.max(np.abs(errs)) < 0.2, errs
+    assert sum(applied) >= 11 if delta else not any(applied), applied
+
+
+def test_an_interval_past_the_narrowed_window_is_not_applied(monkeypatch):
+    """Where the fine search ran only around the coarse estimate, costs beyond its window were never
+    compared: an interval reaching past it is no interval. With the window cut to ±0.1 frame (the
+    default ±2) the half-frame offsets of the test above are reported without one, saying so, and
+    not applied."""
+    import pipeline.core.sync as sync
+
+    monkeypatch.setattr(sync, "NARROW_SPAN", 0.1)
+    for seed in range(300, 304):
+        obs = _detections(0.5, seed)
+        rng = np.random.default_rng(seed + 1)
+        for c in (0, 1):
+            obs["m"][rng.random(len(obs["m"])) < 0.25, 2 * c : 2 * c + 2] = np.nan
+        est, aligned = resolve_sync("auto", RIG, obs, 30.0)
+        assert est.ci_s is None and not est.applied and "reaches past" in est.note, est.describe()
+        assert np.array_equal(aligned["m"], obs["m"], equal_nan=True)
