@@ -23,7 +23,6 @@ class UKFEstimator(GatedFilter, Estimator):
     Config = KalmanConfig
     config: KalmanConfig  # the validated settings, of this method's own type
     models_time_offset = True
-    startup_imports = ("scipy.linalg",)  # the sigma points' Cholesky factor (LAPACK)
 
     def reset(self) -> None:
         super().reset()

@@ -74,3 +74,20 @@ def test_unscented_filter_is_filterpys_on_a_nonlinear_model() -> None:
         ref.update(z, R=R, hx=lambda _x, rows=rows: next(rows))
         for a, b in ((ours.x, ref.x), (ours.P, ref.P), (ours.S, ref.S), (ours.y, ref.y)):
             np.testing.assert_array_equal(a, b)
+
+
+def test_the_sigma_points_factor_is_scipys_cholesky_bit_for_bit() -> None:
+    """numpy's upper Cholesky factor (no scipy.linalg import) equals ``scipy.linalg.cholesky``, which
+    filterpy's sigma points take, to the last bit, over covariances spanning eight decades."""
+    from scipy.linalg import cholesky
+
+    rng = np.random.default_rng(3)
+    for _ in range(2000):
+        n = int(rng.integers(2, 10))
+        M = rng.normal(size=(n, n)) * 10.0 ** rng.uniform(-4, 4)
+        A = M @ M.T + 1e-3 * np.eye(n)
+        np.testing.assert_array_equal(MerweSigmaPoints.cholesky(A), cholesky(A))
+    with pytest.raises(np.linalg.LinAlgError):
+        MerweSigmaPoints.cholesky(-np.eye(3))
+    with pytest.raises(ValueError, match="NaN"):
+        MerweSigmaPoints.cholesky(np.full((3, 3), np.nan))
