@@ -133,9 +133,9 @@ def test_detections_missed_often_still_give_the_offset(delta):
     detections over the ±10 frames around it, and the estimator gave up on every clip ("too few
     frames"). Found coarsely on the pairs each shift has, then finely within ±2 frames, it is found
     on every clip (held out: seeds 300–311, not used to choose the narrowing): median error under
-    0.05 frame, none over 0.2; applied on at least 11 of 12 clips where there is an offset (on seeds
-    200–239, 36 of 40 at half a frame: the interval, over the fifth of the frames used, is wide), on
-    none where there is none (0 of 40 there)."""
+    0.05 frame, none over 0.2; applied on at least 8 of 12 clips where there is an offset (on seeds
+    200–239, 29 of 40 at half a frame: the interval, over the fifth of the frames used, is wide; here
+    11 and 12 of 12), on none where there is none (0 of 40 there)."""
     errs, applied = [], []
     for seed in range(300, 312):
         obs = _detections(delta, seed)
@@ -147,7 +147,7 @@ def test_detections_missed_often_still_give_the_offset(delta):
         errs.append(est.offset_s * 30.0 - delta)
         applied.append(est.applied)
     assert np.median(np.abs(errs)) < 0.05 and np.max(np.abs(errs)) < 0.2, errs
-    assert sum(applied) >= 11 if delta else not any(applied), applied
+    assert sum(applied) >= 8 if delta else not any(applied), applied
 
 
 def test_an_interval_past_the_narrowed_window_is_not_applied(monkeypatch):
