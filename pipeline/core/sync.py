@@ -18,10 +18,10 @@ between two frames averages their noise), without which the cost dips at every h
 estimate minimises the mean of the weighted, clipped squared epipolar distances over a fine grid of
 δ and refines the minimum with a parabola; its 95 % interval comes from a moving-block bootstrap
 over frames (blocks keep the residuals' correlation in time), never narrower than the bound the
-clip itself gives, widened by ``CI_WIDEN``. Detections
-missed too often to smooth are used as they are, with the interval as it was for them; missed so
-often that few frames have their pairs at every shift searched, the offset is found coarsely first
-and finely around it only, and an interval reaching past that window is not used.
+clip itself gives, widened by ``CI_WIDEN``. Detections missed too often to smooth are used as they
+are, with the interval as it was for them; missed so often that few frames have their pairs at every
+shift searched, the offset is found coarsely first and finely around it only, and an interval
+reaching past that window is not used.
 
 When a clip has ``timestamps.csv`` (per-camera frame times) those times are used instead: the right
 camera's detections are interpolated to the left camera's frame times, which handles offsets,
