@@ -157,7 +157,8 @@ def shift_right(obs: dict[str, np.ndarray], shift_frames: float) -> dict[str, np
 
 def savitzky_golay(half: int) -> np.ndarray:
     """The weights that read a quadratic least-squares fit over ``2·half + 1`` frames at its centre
-    (Savitzky & Golay 1964); ``[1]`` for ``half`` 0."""
+    (Savitzky & Golay 1964); ``[1]`` for ``half`` 0. ``scipy.signal.savgol_coeffs`` gives the same
+    (tested), but importing scipy.signal would cost the estimate stage's parent process ~1 s."""
     x = np.arange(-half, half + 1, dtype=float)
     return np.linalg.pinv(np.vander(x, min(3, len(x)), increasing=True))[0]
 
@@ -356,11 +357,29 @@ def _window(rig: StereoRig, obs: dict[str, np.ndarray], n: int, fps: float,
         centre = 0.0
     else:
         span = NARROW_SPAN
-    shifts, valid, once = _paired_everywhere(rig, obs, centre, span, variance)
-    if span > NARROW_SPAN and valid.sum() < NARROW_KEEPS * _pairs(obs):  # detections missed often (see NARROW_KEEPS)
+    needed = NARROW_KEEPS * _pairs(obs)  # detections missed often below this (see NARROW_KEEPS)
+    narrow = span > NARROW_SPAN and _at_most_paired(obs, span) < needed  # sure without the table
+    if not narrow:
+        shifts, valid, once = _paired_everywhere(rig, obs, centre, span, variance)
+        narrow = span > NARROW_SPAN and valid.sum() < needed
+    if narrow:
         centre, span = _coarse_offset(rig, obs, span, variance), NARROW_SPAN
         shifts, valid, once = _paired_everywhere(rig, obs, centre, span, variance)
     return _Window(centre, span, wide, shifts, valid, once)
+
+
+def _at_most_paired(obs: dict[str, np.ndarray], span: float) -> int:
+    """An upper bound on the rows :func:`_paired_everywhere` finds over ±``span`` frames, from which
+    detections exist alone: such a row has its left point and the right camera's detections at every
+    frame within ``⌈span⌉ − 1`` of it (each is a neighbour of some shift searched). Far below the
+    share that narrows the search, it spares building the distance table (half the search's time)."""
+    reach = max(int(np.ceil(span)) - 1, 0)
+    total = 0
+    for Y in obs.values():
+        right = np.all(np.isfinite(Y[:, 2:]), axis=1).astype(float)
+        whole = np.convolve(right, np.ones(2 * reach + 1), mode="same") >= 2 * reach + 0.5  # none past the ends
+        total += int((whole & np.all(np.isfinite(Y[:, :2]), axis=1)).sum())
+    return total
 
 
 def estimate_offset(rig: StereoRig, obs: dict[str, np.ndarray], fps: float, seed: int = 0) -> SyncEstimate:

@@ -166,3 +166,36 @@ def test_an_interval_past_the_narrowed_window_is_not_applied(monkeypatch):
         est, aligned = resolve_sync("auto", RIG, obs, 30.0)
         assert est.ci_s is None and not est.applied and "reaches past" in est.note, est.describe()
         assert np.array_equal(aligned["m"], obs["m"], equal_nan=True)
+
+
+def test_the_smoothing_weights_are_scipys_savitzky_golay():
+    """The smoothing's own weights (no scipy.signal import) against scipy's, for several windows."""
+    from scipy.signal import savgol_coeffs
+
+    from pipeline.core.sync import savitzky_golay
+
+    for half in (1, 2, 5, 8):
+        np.testing.assert_allclose(savitzky_golay(half), savgol_coeffs(2 * half + 1, 2, use="dot"), atol=1e-12)
+
+
+def test_the_narrowing_is_decided_without_the_table_only_where_it_is_sure(monkeypatch):
+    """The count from the detections alone is never below the rows the ±10-frame table finds (so it
+    narrows only where the table would), and the estimate is the same with the shortcut or without
+    it, from no detections missed to 40 %."""
+    from dataclasses import astuple
+
+    import pipeline.core.sync as sync
+
+    for seed, share in enumerate((0.0, 0.03, 0.1, 0.25, 0.4)):
+        obs = _detections(0.5, 400 + seed)
+        rng = np.random.default_rng(seed)
+        for c in (0, 1):
+            obs["m"][rng.random(len(obs["m"])) < share, 2 * c : 2 * c + 2] = np.nan
+        tracks = sync._fitted(obs)
+        for span in (10.0, 3.5):
+            _, valid, _ = sync._paired_everywhere(RIG, tracks.obs, 0.0, span, tracks.variance)
+            assert sync._at_most_paired(tracks.obs, span) >= valid.sum(), (share, span)
+        quick = astuple(estimate_offset(RIG, obs, 30.0))
+        with monkeypatch.context() as m:
+            m.setattr(sync, "_at_most_paired", lambda *_: 1 << 30)
+            assert astuple(estimate_offset(RIG, obs, 30.0)) == quick, share
