@@ -122,12 +122,11 @@ class SyncEstimate:
             return f"sync offset: from timestamps.csv, median {1000 * self.offset_s:+.2f} ms (right camera late when +)"
         if self.source == "given":
             return f"sync offset: {1000 * self.offset_s:+.2f} ms as given (--time-offset)"
-        if self.ci_s is None:
-            return f"sync offset: not estimated ({self.note})"
-        lo, hi = self.ci_s
+        found = f"sync offset: {1000 * self.offset_s:+.2f} ms"
+        if self.ci_s is None:  # none found, or one whose interval reached past the search: not applied
+            return f"{found}, not applied ({self.note})" if self.offset_s else f"sync offset: not estimated ({self.note})"
         state = "applied" if self.applied else f"not applied: {self.note or 'the interval contains 0'}"
-        return (f"sync offset: {1000 * self.offset_s:+.2f} ms (95 % interval {1000 * lo:+.2f} … {1000 * hi:+.2f} ms), "
-                f"{state}")
+        return f"{found} (95 % interval {1000 * self.ci_s[0]:+.2f} … {1000 * self.ci_s[1]:+.2f} ms), {state}"
 
 
 def interpolate_track(uv: np.ndarray, at: np.ndarray) -> np.ndarray:
@@ -424,7 +423,7 @@ def estimate_offset(rig: StereoRig, obs: dict[str, np.ndarray], fps: float, seed
     if span <= NARROW_SPAN and abs(best - centre) + half > span:  # beyond the window, the costs were not compared
         return SyncEstimate(best / fps, None, False, "detections", residual,
                             note=f"the interval (±{half:.2g} frames) reaches past the ±{span:g} frames searched around "
-                                 "the coarse estimate: not applied")
+                                 "the coarse estimate")
     return SyncEstimate(best / fps, ((best - half) / fps, (best + half) / fps), False, "detections", residual)
 
 
