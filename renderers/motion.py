@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pipeline.core.linalg import expm
 from renderers.scenario import (
     ConstantAcceleration,
     ConstantVelocity,
@@ -82,8 +83,6 @@ class TargetPath:
 
     def state_at(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(α, α̇) and (z, ż) at times ``t`` (each N×2)."""
-        from scipy.linalg import expm
-
         t = np.atleast_1d(np.asarray(t, dtype=float))
         k = np.clip(np.floor(t / self.dt).astype(int), 0, len(self.al) - 1)
         tau = t - k * self.dt
@@ -177,8 +176,6 @@ def target_points(center: np.ndarray, alpha: np.ndarray, radius: float, axis_ang
 
 def _second_order(A: np.ndarray, x0: np.ndarray, noise: float, n: int, dt: float, rng: np.random.Generator) -> np.ndarray:
     """Integrate ``ẋ = A x + [0, q]`` exactly between frames (``expm(A dt)``), white noise on the rate."""
-    from scipy.linalg import expm  # imported here: render workers start faster without scipy
-
     F = expm(A * dt)
     out = np.empty((n, 2))
     x = np.asarray(x0, dtype=float)

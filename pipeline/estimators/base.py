@@ -31,6 +31,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from pipeline.core import linalg
 from pipeline.core.camera import StereoMeasurementModel, StereoRig
 from pipeline.core.errors import StereotrackError
 from pipeline.core.rig import Rig
@@ -40,18 +41,16 @@ Kind = Literal["point", "target"]
 
 
 def expm(M: np.ndarray) -> np.ndarray:
-    """``scipy.linalg.expm``, remembered: the continuous-time filters exponentiate the same few
-    matrices every frame (same model, same dt), so each is computed once. Read-only result; scipy
-    is imported on first use, not when the registry loads."""
+    """``scipy.linalg.expm`` (:func:`pipeline.core.linalg.expm`, the same bits without importing
+    scipy.linalg), remembered: the continuous-time filters exponentiate the same few matrices every
+    frame (same model, same dt), so each is computed once. Read-only result."""
     M = np.ascontiguousarray(M, dtype=float)
     return _expm(M.tobytes(), M.shape)
 
 
 @functools.lru_cache(maxsize=256)
 def _expm(data: bytes, shape: tuple[int, ...]) -> np.ndarray:
-    from scipy.linalg import expm as scipy_expm
-
-    E = scipy_expm(np.frombuffer(data).reshape(shape))
+    E = linalg.expm(np.frombuffer(data).reshape(shape))
     E.flags.writeable = False
     return E
 

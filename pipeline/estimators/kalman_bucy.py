@@ -25,6 +25,7 @@ import numpy as np
 from pydantic import Field
 
 from pipeline.core.errors import StereotrackError
+from pipeline.core.linalg import block_diag
 from pipeline.estimators.base import Step, expm
 from pipeline.estimators.four_point import TargetConfig, TargetEstimator
 from pipeline.estimators.registration import register
@@ -172,15 +173,13 @@ class KalmanBucyEstimator(TargetEstimator):
 
     name = "kalman_bucy"
     models_target_dynamics = True
-    startup_imports = ("scipy.linalg",)  # the Riccati solution, matrix exponentials
+    startup_imports = ("scipy",)  # scipy's expm kernel (pipeline.core.linalg)
     Config = KalmanBucyConfig
     config: KalmanBucyConfig  # the validated settings, of this method's own type
 
     def reset(self) -> None:
         super().reset()
         c = self.config
-        from scipy.linalg import block_diag  # imported here: scipy.linalg costs 0.1 s at start-up
-
         self.A = block_diag(channel_matrix(c.a_alpha, c.alpha_feedback), channel_matrix(c.a_z, c.z_feedback))
         check_model(self.A, C4)
         self.GQG = G4 @ np.diag([c.q_alpha, c.q_z]) @ G4.T

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from pipeline.core.lazy import lazy_module
+from pipeline.core.linalg import block_diag
 from pipeline.estimators.base import Step, expm
 from pipeline.estimators.filters import KalmanFilter
 from pipeline.estimators.four_point import (
@@ -64,15 +65,13 @@ class PnPKFEstimator(TargetEstimator):
 
     name = "pnp_kf"
     models_target_dynamics = True
-    startup_imports = ("scipy.linalg",)  # the transition's matrix exponential
+    startup_imports = ("scipy", "cv2")  # scipy's expm kernel for the transition; OpenCV's PnP
     Config = KalmanBucyConfig
     config: KalmanBucyConfig  # the validated settings, of this method's own type
 
     def reset(self) -> None:
         super().reset()
         c = self.config
-        from scipy.linalg import block_diag  # imported here: scipy.linalg costs 0.1 s at start-up
-
         A = block_diag(channel_matrix(c.a_alpha, c.alpha_feedback), channel_matrix(c.a_z, c.z_feedback))
         F, Qd = van_loan(A, G4 @ np.diag([c.q_alpha, c.q_z]) @ G4.T, self.dt)
         self.kf = KalmanFilter(dim_x=4, dim_z=2)
