@@ -13,6 +13,7 @@ kernel is not found or takes other arguments (another scipy), it calls ``scipy.l
 from __future__ import annotations
 
 import functools
+import importlib.machinery
 import importlib.util
 from pathlib import Path
 from types import ModuleType
@@ -37,6 +38,8 @@ def expm(a: np.ndarray) -> np.ndarray:
     ``scipy.linalg``: its steps (the diagonal case; the Padé kernel; the squaring, with a triangular
     matrix's diagonal and first off-diagonal recomputed exactly at each square, Higham's
     *Functions of Matrices* (2008) eq. 10.42, as Al-Mohy & Higham's code fragment 2.1 does)."""
+    if np.iscomplexobj(a):
+        return _scipy_expm(a)
     a = np.asarray(a, dtype=float)
     kernel = _kernel()
     if kernel is None or a.ndim != 2 or a.shape[0] != a.shape[1] or a.shape[0] < 2:
@@ -113,11 +116,12 @@ def _kernel() -> Any:
         return None
     if spec is None or spec.origin is None:
         return None
-    found = sorted((Path(spec.origin).parent / "linalg").glob("_matfuncs_expm.*"))
-    found = [p for p in found if p.suffix in (".so", ".pyd")]
+    folder = Path(spec.origin).parent / "linalg"
+    found = [folder / f"_matfuncs_expm{suffix}" for suffix in importlib.machinery.EXTENSION_SUFFIXES]
+    found = [p for p in found if p.is_file()]
     if not found:
         return None
-    import scipy  # noqa: F401  (the package's own start-up: its bundled BLAS is loaded for the kernel)
+    import scipy  # noqa: F401  (scipy's own start-up: on some platforms it makes its bundled libraries loadable)
 
     ext = importlib.util.spec_from_file_location("scipy.linalg._matfuncs_expm", found[0])
     if ext is None or ext.loader is None:

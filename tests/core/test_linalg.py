@@ -32,6 +32,8 @@ def test_expm_is_scipys_to_the_bit() -> None:
         ours, theirs = linalg.expm(m), scipy_expm(m)
         assert ours.shape == theirs.shape and ours.dtype == theirs.dtype
         assert np.array_equal(ours, theirs), m
+    complex_ = np.array([[0.0, 1j], [1.0, 0.5]])  # scipy's own path, not cast to float
+    assert np.array_equal(linalg.expm(complex_), scipy_expm(complex_))
 
 
 def test_expm_is_the_exponential() -> None:
