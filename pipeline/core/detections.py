@@ -139,8 +139,10 @@ def observations_from_columns(cols: dict[str, np.ndarray], n_frames: int | None,
     for k, c, name, u, v, score in zip(frames.astype(int), index.tolist(), cols["marker"], cols["u"], cols["v"],
                                        cols["score"], strict=True):
         score = score if np.isfinite(score) else 0.0
-        arr = out.setdefault(str(name), np.full((n, 2 * len(cameras)), np.nan))
-        key = (str(name), int(k), c)
+        arr = out.get(name := str(name))
+        if arr is None:  # not setdefault: that would build a frames × 2N array for every row
+            arr = out[name] = np.full((n, 2 * len(cameras)), np.nan)
+        key = (name, int(k), c)
         if key in best and best[key] >= score:
             continue
         best[key] = score
