@@ -82,8 +82,8 @@ def test_run_s_recording_holds_each_frame_as_its_camera_encoded_it(mp4_clip, tmp
 
 
 def test_jobs_pair_smoothers_with_filters_and_share_costly_imports():
-    """The default methods' jobs: each smoother with its filter, the methods importing scipy.linalg
-    (the target's) together, the UKF (numpy's Cholesky) apart; every method once. A smoother with its
+    """The default methods' jobs: each smoother with its filter, the methods importing scipy's
+    expm kernel (the target's) together, the UKF (numpy's Cholesky) apart; every method once. A smoother with its
     own settings runs apart."""
     from pipeline.estimate import _jobs
     from pipeline.estimators.registration import default_methods
